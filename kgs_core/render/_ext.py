@@ -1,0 +1,95 @@
+"""Builds (once) and loads the C++ rasteriser extension.
+
+The extension is compiled on first use with ninja through ``torch.utils.cpp_extension`` and
+cached under ``$KGS_CACHE_DIR/ext/<key>`` (default ``~/.cache/kinematics-gs``). The key
+hashes the sources, the flags, the torch and Python versions and the CPU model, so a change
+to any of them rebuilds instead of loading a stale or illegal-instruction binary.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import shutil
+import sys
+import threading
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = ["bindings.cpp", "project.cpp", "binning.cpp", "raster.cpp"]
+HEADERS = ["kernels.h"]
+CFLAGS = ["-O3", "-march=native", "-fopenmp", "-std=c++17", "-fno-math-errno"]
+LDFLAGS = ["-fopenmp"]
+
+_lock = threading.Lock()
+_module: ModuleType | None = None
+_error: Exception | None = None
+
+
+class ExtensionUnavailable(RuntimeError):
+    """The C++ backend cannot be built or loaded on this machine."""
+
+
+def cache_root() -> Path:
+    return Path(os.environ.get("KGS_CACHE_DIR", Path.home() / ".cache" / "kinematics-gs"))
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("model name", "flags")):
+                return line
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def build_key() -> str:
+    h = hashlib.sha256()
+    for name in SOURCES + HEADERS:
+        h.update(name.encode())
+        h.update((CSRC / name).read_bytes())
+    h.update(" ".join(CFLAGS + LDFLAGS).encode())
+    h.update(torch.__version__.encode())
+    h.update(sys.version.encode())
+    h.update(_cpu_model().encode())
+    return h.hexdigest()[:16]
+
+
+def compiler_available() -> bool:
+    return shutil.which(os.environ.get("CXX", "c++")) is not None
+
+
+def load(verbose: bool = False) -> ModuleType:
+    """Returns the compiled extension, building it on first use (about a minute on 2 cores)."""
+    global _module, _error
+    with _lock:
+        if _module is not None:
+            return _module
+        if _error is not None:
+            raise ExtensionUnavailable(str(_error)) from _error
+        if not compiler_available():
+            _error = ExtensionUnavailable("no C++ compiler found (set CXX or install g++)")
+            raise _error
+        from torch.utils import cpp_extension
+
+        key = build_key()
+        build_dir = cache_root() / "ext" / key
+        build_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            _module = cpp_extension.load(
+                name=f"kgs_raster_{key}",
+                sources=[str(CSRC / s) for s in SOURCES],
+                extra_cflags=CFLAGS,
+                extra_ldflags=LDFLAGS,
+                build_directory=str(build_dir),
+                verbose=verbose,
+            )
+        except Exception as exc:  # compiler errors, missing ninja, ...
+            _error = exc
+            raise ExtensionUnavailable(f"building the C++ rasteriser failed: {exc}") from exc
+        return _module

@@ -1,0 +1,81 @@
+"""C++ rasteriser wrapped in autograd Functions (kernels in csrc/, built by _ext)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from . import _ext
+from .types import Projection
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, aa):
+        ext = _ext.load()
+        means2d, conics, depths, opac_eff, radii, bbox = ext.project_forward(
+            means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, aa
+        )
+        ctx.save_for_backward(means, covars6, opacities, viewmat, K, radii)
+        ctx.args = (width, height, near, far, eps2d, aa)
+        ctx.mark_non_differentiable(radii, bbox)
+        return means2d, conics, depths, opac_eff, radii, bbox
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_means2d, g_conics, g_depths, g_opac, _g_radii, _g_bbox):
+        means, covars6, opacities, viewmat, K, radii = ctx.saved_tensors
+        g_means, g_cov, g_op = _ext.load().project_backward(
+            means, covars6, opacities, viewmat, K, *ctx.args, radii,
+            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(), g_opac.contiguous(),
+        )
+        return g_means, g_cov, g_op, *([None] * 8)
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, offsets, ids, width, height, info):
+        image, alpha, depth, t_final, n_contrib = _ext.load().raster_forward(
+            means2d, conics, opacities, colors, depths, bbox, background, offsets, ids, width, height
+        )
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, bbox, offsets, ids, t_final, n_contrib)
+        ctx.size = (width, height)
+        ctx.info = info
+        return image, alpha, depth
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_image, g_alpha, g_depth):
+        (means2d, conics, opacities, colors, depths, background, bbox, offsets, ids, t_final, n_contrib) = ctx.saved_tensors
+        g_m2d, g_con, g_op, g_col, g_dep, abs_g = _ext.load().raster_backward(
+            means2d, conics, opacities, colors, depths, bbox, background, offsets, ids, t_final, n_contrib,
+            g_image.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), *ctx.size,
+        )
+        ctx.info["means2d_absgrad"] = abs_g
+        g_bg = (g_image * t_final.unsqueeze(-1)).sum(dim=(0, 1)) if ctx.needs_input_grad[5] else None
+        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 6)
+
+
+def project(means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased) -> Projection:
+    dt = means.dtype
+    means2d, conics, depths, opac, radii, bbox = _Project.apply(
+        means.contiguous(), covars6.contiguous(), opacities.contiguous(),
+        viewmat.detach().to(torch.float64).contiguous(), K.detach().to(torch.float64).contiguous(),
+        int(width), int(height), float(near), float(far), float(eps2d), bool(antialiased),
+    )
+    assert means2d.dtype == dt
+    return Projection(means2d, conics, depths, opac, radii, bbox)
+
+
+def rasterize_to_pixels(
+    proj: Projection, colors: Tensor, background: Tensor, width: int, height: int
+) -> tuple[Tensor, Tensor, Tensor, dict]:
+    ext = _ext.load()
+    offsets, ids = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
+    info: dict = {"tile_offsets": offsets, "tile_ids": ids}
+    image, alpha, depth = _Rasterize.apply(
+        proj.means2d, proj.conics, proj.opacities, colors.contiguous(), proj.depths,
+        background.contiguous(), proj.bbox, offsets, ids, int(width), int(height), info,
+    )
+    return image, alpha, depth, info

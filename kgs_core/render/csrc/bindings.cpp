@@ -1,0 +1,168 @@
+// Torch bindings: check shapes and dtypes, allocate outputs, dispatch float/double.
+#include <torch/extension.h>
+
+#include "kernels.h"
+
+namespace {
+
+using torch::Tensor;
+
+void check(const Tensor& t, const char* name, c10::ScalarType dtype) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+  TORCH_CHECK(t.scalar_type() == dtype, name, " has dtype ", t.scalar_type(), ", expected ", dtype);
+}
+
+kgs::Camera make_camera(const Tensor& viewmat, const Tensor& K, int64_t width, int64_t height,
+                        double near_plane, double far_plane) {
+  TORCH_CHECK(viewmat.sizes() == torch::IntArrayRef({4, 4}), "viewmat must be (4, 4)");
+  TORCH_CHECK(K.sizes() == torch::IntArrayRef({3, 3}), "K must be (3, 3)");
+  const auto vm = viewmat.to(torch::kFloat64).contiguous();
+  const auto kk = K.to(torch::kFloat64).contiguous();
+  kgs::Camera cam;
+  std::copy(vm.data_ptr<double>(), vm.data_ptr<double>() + 16, cam.viewmat);
+  const double* kp = kk.data_ptr<double>();
+  cam.fx = kp[0]; cam.cx = kp[2]; cam.fy = kp[4]; cam.cy = kp[5];
+  cam.width = int(width); cam.height = int(height);
+  cam.near_plane = near_plane; cam.far_plane = far_plane;
+  return cam;
+}
+
+std::vector<Tensor> project_forward(Tensor means, Tensor covars, Tensor opacities, Tensor viewmat,
+                                    Tensor K, int64_t width, int64_t height, double near_plane,
+                                    double far_plane, double eps2d, bool antialiased) {
+  const auto dt = means.scalar_type();
+  check(means, "means", dt); check(covars, "covars", dt); check(opacities, "opacities", dt);
+  const int64_t n = means.size(0);
+  TORCH_CHECK(covars.size(0) == n && covars.size(1) == 6, "covars must be (N, 6)");
+  const auto cam = make_camera(viewmat, K, width, height, near_plane, far_plane);
+  auto opts = means.options();
+  auto means2d = torch::empty({n, 2}, opts), conics = torch::empty({n, 3}, opts);
+  auto depths = torch::empty({n}, opts), opac_eff = torch::empty({n}, opts);
+  auto radii = torch::empty({n}, opts.dtype(torch::kInt32));
+  auto bbox = torch::empty({n, 4}, opts.dtype(torch::kInt32));
+  AT_DISPATCH_FLOATING_TYPES(dt, "project_forward", [&] {
+    kgs::project_forward<scalar_t>(n, means.data_ptr<scalar_t>(), covars.data_ptr<scalar_t>(),
+                                   opacities.data_ptr<scalar_t>(), cam, scalar_t(eps2d),
+                                   antialiased, means2d.data_ptr<scalar_t>(),
+                                   conics.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+                                   opac_eff.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                                   bbox.data_ptr<int32_t>());
+  });
+  return {means2d, conics, depths, opac_eff, radii, bbox};
+}
+
+std::vector<Tensor> project_backward(Tensor means, Tensor covars, Tensor opacities,
+                                     Tensor viewmat, Tensor K, int64_t width, int64_t height,
+                                     double near_plane, double far_plane, double eps2d,
+                                     bool antialiased, Tensor radii, Tensor g_means2d,
+                                     Tensor g_conics, Tensor g_depths, Tensor g_opac_eff) {
+  const auto dt = means.scalar_type();
+  check(radii, "radii", torch::kInt32);
+  for (auto* t : {&g_means2d, &g_conics, &g_depths, &g_opac_eff}) check(*t, "gradient", dt);
+  const int64_t n = means.size(0);
+  const auto cam = make_camera(viewmat, K, width, height, near_plane, far_plane);
+  auto g_means = torch::empty_like(means), g_covars = torch::empty_like(covars);
+  auto g_opac = torch::empty_like(opacities);
+  AT_DISPATCH_FLOATING_TYPES(dt, "project_backward", [&] {
+    kgs::project_backward<scalar_t>(
+        n, means.data_ptr<scalar_t>(), covars.data_ptr<scalar_t>(),
+        opacities.data_ptr<scalar_t>(), cam, scalar_t(eps2d), antialiased,
+        radii.data_ptr<int32_t>(), g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
+        g_depths.data_ptr<scalar_t>(), g_opac_eff.data_ptr<scalar_t>(),
+        g_means.data_ptr<scalar_t>(), g_covars.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>());
+  });
+  return {g_means, g_covars, g_opac};
+}
+
+std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int64_t width,
+                                  int64_t height) {
+  check(bbox, "bbox", torch::kInt32);
+  check(radii, "radii", torch::kInt32);
+  check(depths, "depths", depths.scalar_type());
+  const int64_t n = radii.size(0);
+  const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
+  auto offsets = torch::empty({tiles + 1}, bbox.options());
+  const int64_t pairs = kgs::bin_count_pairs(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
+                                             int(width), int(height), offsets.data_ptr<int32_t>());
+  TORCH_CHECK(pairs < (int64_t(1) << 31), "too many tile/Gaussian pairs: ", pairs);
+  auto ids = torch::empty({pairs}, bbox.options());
+  AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "bin_fill", [&] {
+    kgs::bin_fill<scalar_t>(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
+                            depths.data_ptr<scalar_t>(), int(width), int(height),
+                            offsets.data_ptr<int32_t>(), ids.data_ptr<int32_t>());
+  });
+  return {offsets, ids};
+}
+
+kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
+  return {int(width), int(height), int(channels), int((width + kgs::TILE - 1) / kgs::TILE),
+          int((height + kgs::TILE - 1) / kgs::TILE)};
+}
+
+std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
+                                   Tensor depths, Tensor bbox, Tensor background,
+                                   Tensor tile_offsets, Tensor tile_ids, int64_t width,
+                                   int64_t height) {
+  const auto dt = means2d.scalar_type();
+  for (auto* t : {&means2d, &conics, &opac, &colors, &depths, &background}) check(*t, "raster input", dt);
+  check(bbox, "bbox", torch::kInt32);
+  check(tile_offsets, "tile_offsets", torch::kInt32);
+  check(tile_ids, "tile_ids", torch::kInt32);
+  const int64_t C = colors.size(1);
+  TORCH_CHECK(background.numel() == C, "background must have ", C, " channels");
+  const auto shape = shape_of(width, height, C);
+  auto opts = means2d.options();
+  auto image = torch::empty({height, width, C}, opts);
+  auto alpha = torch::empty({height, width}, opts), depth = torch::empty({height, width}, opts);
+  auto t_final = torch::empty({height, width}, opts);
+  auto n_contrib = torch::empty({height, width}, opts.dtype(torch::kInt32));
+  AT_DISPATCH_FLOATING_TYPES(dt, "raster_forward", [&] {
+    kgs::raster_forward<scalar_t>(
+        shape, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+        opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(),
+        tile_offsets.data_ptr<int32_t>(), tile_ids.data_ptr<int32_t>(),
+        image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+        t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>());
+  });
+  return {image, alpha, depth, t_final, n_contrib};
+}
+
+std::vector<Tensor> raster_backward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
+                                    Tensor depths, Tensor bbox, Tensor background,
+                                    Tensor tile_offsets, Tensor tile_ids, Tensor t_final,
+                                    Tensor n_contrib, Tensor g_image, Tensor g_alpha,
+                                    Tensor g_depth, int64_t width, int64_t height) {
+  const auto dt = means2d.scalar_type();
+  for (auto* t : {&g_image, &g_alpha, &g_depth}) check(*t, "raster gradient", dt);
+  const int64_t n = means2d.size(0), C = colors.size(1);
+  const auto shape = shape_of(width, height, C);
+  auto g_means2d = torch::empty_like(means2d), g_conics = torch::empty_like(conics);
+  auto g_opac = torch::empty_like(opac), g_colors = torch::empty_like(colors);
+  auto g_depths = torch::empty_like(depths), abs_g = torch::empty_like(means2d);
+  AT_DISPATCH_FLOATING_TYPES(dt, "raster_backward", [&] {
+    kgs::raster_backward<scalar_t>(
+        shape, n, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+        opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(),
+        tile_offsets.data_ptr<int32_t>(), tile_ids.data_ptr<int32_t>(),
+        t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(), g_image.data_ptr<scalar_t>(),
+        g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
+        g_conics.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),
+        g_depths.data_ptr<scalar_t>(), abs_g.data_ptr<scalar_t>());
+  });
+  return {g_means2d, g_conics, g_opac, g_colors, g_depths, abs_g};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "Kinematics-GS CPU Gaussian rasteriser";
+  m.def("project_forward", &project_forward);
+  m.def("project_backward", &project_backward);
+  m.def("bin_gaussians", &bin_gaussians);
+  m.def("raster_forward", &raster_forward);
+  m.def("raster_backward", &raster_backward);
+  m.attr("TILE") = kgs::TILE;
+}

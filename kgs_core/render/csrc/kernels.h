@@ -1,0 +1,71 @@
+// Kinematics-GS CPU rasteriser: kernels on raw pointers, no torch headers, so that the
+// heavy translation units compile quickly and the math stays readable.
+//
+// Conventions (match kgs_core/render/torch_backend.py, the test oracle):
+//  * OpenCV pinhole camera, world-to-camera viewmat (row-major 4x4), K row-major 3x3.
+//  * Pixel (row i, col j) has its centre at (j + 0.5, i + 0.5) (COLMAP convention).
+//  * Covariances are packed upper-triangular: (xx, xy, xz, yy, yz, zz).
+//  * Conics are packed (a, b, c) for the inverse 2D covariance [[a, b], [b, c]].
+//  * A Gaussian contributes alpha = min(ALPHA_MAX, o * exp(power)) to a pixel when
+//    power <= 0 and alpha >= ALPHA_MIN; a pixel stops (excluding that Gaussian) as soon as
+//    its transmittance would fall below T_MIN. Forward and backward share these rules.
+#pragma once
+#include <cstdint>
+
+namespace kgs {
+
+constexpr int TILE = 16;
+constexpr int TILE_PIXELS = TILE * TILE;
+constexpr float ALPHA_MIN = 1.0f / 255.0f;
+constexpr float ALPHA_MAX = 0.99f;
+constexpr float T_MIN = 1e-4f;
+
+struct Camera {
+  double viewmat[16];  // world-to-camera, row-major
+  double fx, fy, cx, cy;
+  int width, height;
+  double near_plane, far_plane;
+};
+
+template <typename S>
+void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
+                     const Camera& cam, S eps2d, bool antialiased,
+                     S* means2d, S* conics, S* depths, S* opac_eff, int32_t* radii,
+                     int32_t* bbox);
+
+template <typename S>
+void project_backward(int64_t n, const S* means, const S* covars, const S* opacities,
+                      const Camera& cam, S eps2d, bool antialiased, const int32_t* radii,
+                      const S* g_means2d, const S* g_conics, const S* g_depths,
+                      const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities);
+
+// Depth-sorted tile lists. Returns the number of (tile, Gaussian) pairs; the caller
+// allocates tile_ids with bin_count_pairs() entries first.
+int64_t bin_count_pairs(int64_t n, const int32_t* bbox, const int32_t* radii, int width,
+                        int height, int32_t* tile_offsets);
+template <typename S>
+void bin_fill(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
+              int width, int height, const int32_t* tile_offsets, int32_t* tile_ids);
+
+struct RasterShape {
+  int width, height, channels;
+  int tiles_x, tiles_y;
+};
+
+template <typename S>
+void raster_forward(const RasterShape& shape, const S* means2d, const S* conics,
+                    const S* opac, const S* colors, const S* depths, const int32_t* bbox,
+                    const S* background, const int32_t* tile_offsets,
+                    const int32_t* tile_ids, S* image, S* alpha, S* depth_acc,
+                    S* t_final, int32_t* n_contrib);
+
+template <typename S>
+void raster_backward(const RasterShape& shape, int64_t n, const S* means2d, const S* conics,
+                     const S* opac, const S* colors, const S* depths, const int32_t* bbox,
+                     const S* background, const int32_t* tile_offsets,
+                     const int32_t* tile_ids, const S* t_final, const int32_t* n_contrib,
+                     const S* g_image, const S* g_alpha, const S* g_depth,
+                     S* g_means2d, S* g_conics, S* g_opac, S* g_colors, S* g_depths,
+                     S* abs_g_means2d);
+
+}  // namespace kgs

@@ -1,0 +1,247 @@
+// Projection of 3D Gaussians to screen-space ellipses (EWA splatting) and its backward.
+// One Gaussian per loop iteration; OpenMP over Gaussians.
+#include <algorithm>
+#include <cmath>
+
+#include "kernels.h"
+
+namespace kgs {
+namespace {
+
+// Largest half-extent we keep, in pixels: beyond this the bounding box is clipped to the
+// image anyway, and the clamp keeps float -> int conversions defined.
+constexpr double MAX_EXTENT = 1e7;
+
+template <typename S>
+struct Mat3 {
+  S m[9];
+  S operator()(int r, int c) const { return m[3 * r + c]; }
+};
+
+template <typename S>
+struct CamS {
+  Mat3<S> R;
+  S t[3];
+  S fx, fy, cx, cy;
+  S lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg;
+  explicit CamS(const Camera& c) {
+    for (int r = 0; r < 3; ++r) {
+      for (int k = 0; k < 3; ++k) R.m[3 * r + k] = S(c.viewmat[4 * r + k]);
+      t[r] = S(c.viewmat[4 * r + 3]);
+    }
+    fx = S(c.fx); fy = S(c.fy); cx = S(c.cx); cy = S(c.cy);
+    // Off-screen Gaussians use the Jacobian at a clamped direction (as 3DGS/gsplat do):
+    // without it a Gaussian far outside the frustum gets an exploding 2D covariance.
+    const S tan_fovx = S(0.5) * S(c.width) / fx, tan_fovy = S(0.5) * S(c.height) / fy;
+    lim_x_pos = (S(c.width) - cx) / fx + S(0.3) * tan_fovx;
+    lim_x_neg = cx / fx + S(0.3) * tan_fovx;
+    lim_y_pos = (S(c.height) - cy) / fy + S(0.3) * tan_fovy;
+    lim_y_neg = cy / fy + S(0.3) * tan_fovy;
+  }
+};
+
+// Everything the forward computes for one Gaussian, recomputed by the backward.
+template <typename S>
+struct Projected {
+  S p[3];           // camera-space mean
+  S txz, tyz;       // clamped x/z, y/z used by the Jacobian
+  bool clamp_x, clamp_y;
+  S J[6];           // 2x3 Jacobian, row-major
+  S sc[9];          // camera-space covariance
+  S cov2d[3];       // undilated (xx, xy, yy)
+  S det0, det1;     // determinants without / with dilation
+  S comp;           // anti-aliasing opacity compensation (1 when off)
+  S u, v;
+};
+
+template <typename S>
+inline void unpack_cov(const S* c, S out[9]) {
+  out[0] = c[0]; out[1] = c[1]; out[2] = c[2];
+  out[3] = c[1]; out[4] = c[3]; out[5] = c[4];
+  out[6] = c[2]; out[7] = c[4]; out[8] = c[5];
+}
+
+// Returns false when the Gaussian cannot be seen (outside near/far, degenerate).
+template <typename S>
+inline bool project_one(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
+                        S eps2d, bool antialiased, Projected<S>& P) {
+  const auto& R = cam.R;
+  for (int r = 0; r < 3; ++r)
+    P.p[r] = R(r, 0) * mean[0] + R(r, 1) * mean[1] + R(r, 2) * mean[2] + cam.t[r];
+  const S z = P.p[2];
+  if (!(z >= S(c.near_plane) && z <= S(c.far_plane))) return false;
+  const S xz = P.p[0] / z, yz = P.p[1] / z;
+  P.txz = std::min(cam.lim_x_pos, std::max(-cam.lim_x_neg, xz));
+  P.tyz = std::min(cam.lim_y_pos, std::max(-cam.lim_y_neg, yz));
+  P.clamp_x = P.txz != xz;
+  P.clamp_y = P.tyz != yz;
+  const S iz = S(1) / z;
+  P.J[0] = cam.fx * iz; P.J[1] = 0; P.J[2] = -cam.fx * P.txz * iz;
+  P.J[3] = 0; P.J[4] = cam.fy * iz; P.J[5] = -cam.fy * P.tyz * iz;
+  S sw[9];
+  unpack_cov(cov, sw);
+  // sc = R sw R^T
+  S tmp[9];
+  for (int r = 0; r < 3; ++r)
+    for (int k = 0; k < 3; ++k)
+      tmp[3 * r + k] = R(r, 0) * sw[k] + R(r, 1) * sw[3 + k] + R(r, 2) * sw[6 + k];
+  for (int r = 0; r < 3; ++r)
+    for (int k = 0; k < 3; ++k)
+      P.sc[3 * r + k] = tmp[3 * r + 0] * R(k, 0) + tmp[3 * r + 1] * R(k, 1) + tmp[3 * r + 2] * R(k, 2);
+  // cov2d = J sc J^T
+  S T[6];
+  for (int r = 0; r < 2; ++r)
+    for (int k = 0; k < 3; ++k)
+      T[3 * r + k] = P.J[3 * r] * P.sc[k] + P.J[3 * r + 1] * P.sc[3 + k] + P.J[3 * r + 2] * P.sc[6 + k];
+  P.cov2d[0] = T[0] * P.J[0] + T[1] * P.J[1] + T[2] * P.J[2];
+  P.cov2d[1] = T[0] * P.J[3] + T[1] * P.J[4] + T[2] * P.J[5];
+  P.cov2d[2] = T[3] * P.J[3] + T[4] * P.J[4] + T[5] * P.J[5];
+  const S p = P.cov2d[0], q = P.cov2d[1], r = P.cov2d[2];
+  P.det0 = p * r - q * q;
+  P.det1 = (p + eps2d) * (r + eps2d) - q * q;
+  if (!(P.det1 > S(0)) || !std::isfinite(P.det1)) return false;
+  P.comp = antialiased ? (P.det0 > S(0) ? std::sqrt(P.det0 / P.det1) : S(0)) : S(1);
+  P.u = cam.fx * xz + cam.cx;
+  P.v = cam.fy * yz + cam.cy;
+  return std::isfinite(P.u) && std::isfinite(P.v);
+}
+
+}  // namespace
+
+template <typename S>
+void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
+                     const Camera& c, S eps2d, bool antialiased, S* means2d, S* conics,
+                     S* depths, S* opac_eff, int32_t* radii, int32_t* bbox) {
+  const CamS<S> cam(c);
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    Projected<S> P;
+    radii[i] = 0;
+    means2d[2 * i] = means2d[2 * i + 1] = 0;
+    conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = 0;
+    depths[i] = 0;
+    opac_eff[i] = 0;
+    for (int k = 0; k < 4; ++k) bbox[4 * i + k] = 0;
+    if (!project_one(cam, c, means + 3 * i, covars + 6 * i, eps2d, antialiased, P)) continue;
+    const S o = opacities[i] * P.comp;
+    // A Gaussian whose peak alpha is below ALPHA_MIN never touches a pixel.
+    if (!(o >= S(ALPHA_MIN))) continue;
+    const S pd = P.cov2d[0] + eps2d, q = P.cov2d[1], rd = P.cov2d[2] + eps2d;
+    // Exact bounding box of the ellipse where o * exp(-d^2/2) >= ALPHA_MIN.
+    const double level = 2.0 * std::log(double(o) / double(ALPHA_MIN));
+    const double rx = std::min(MAX_EXTENT, std::sqrt(std::max(0.0, level * double(pd))));
+    const double ry = std::min(MAX_EXTENT, std::sqrt(std::max(0.0, level * double(rd))));
+    const double u = std::clamp(double(P.u), -1e9, 1e9), v = std::clamp(double(P.v), -1e9, 1e9);
+    const double x0 = std::max(0.0, std::floor(u - rx)), x1 = std::min(double(c.width), std::ceil(u + rx));
+    const double y0 = std::max(0.0, std::floor(v - ry)), y1 = std::min(double(c.height), std::ceil(v + ry));
+    if (!(x0 < x1 && y0 < y1)) continue;
+    bbox[4 * i + 0] = int32_t(x0); bbox[4 * i + 1] = int32_t(y0);
+    bbox[4 * i + 2] = int32_t(x1); bbox[4 * i + 3] = int32_t(y1);
+    radii[i] = int32_t(std::max(1.0, std::ceil(std::max(rx, ry))));
+    means2d[2 * i] = P.u; means2d[2 * i + 1] = P.v;
+    const S det = P.det1;
+    conics[3 * i] = rd / det; conics[3 * i + 1] = -q / det; conics[3 * i + 2] = pd / det;
+    depths[i] = P.p[2];
+    opac_eff[i] = o;
+  }
+}
+
+template <typename S>
+void project_backward(int64_t n, const S* means, const S* covars, const S* opacities,
+                      const Camera& c, S eps2d, bool antialiased, const int32_t* radii,
+                      const S* g_means2d, const S* g_conics, const S* g_depths,
+                      const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities) {
+  const CamS<S> cam(c);
+  const auto& R = cam.R;
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    for (int k = 0; k < 3; ++k) g_means[3 * i + k] = 0;
+    for (int k = 0; k < 6; ++k) g_covars[6 * i + k] = 0;
+    g_opacities[i] = 0;
+    if (radii[i] <= 0) continue;
+    Projected<S> P;
+    if (!project_one(cam, c, means + 3 * i, covars + 6 * i, eps2d, antialiased, P)) continue;
+    const S o = opacities[i];
+    const S go = g_opac_eff[i];
+    g_opacities[i] = go * P.comp;
+    const S g_comp = go * o;
+
+    // conic = inverse(cov2d + eps2d * I), written out per scalar (q appears twice).
+    const S pd = P.cov2d[0] + eps2d, q = P.cov2d[1], rd = P.cov2d[2] + eps2d;
+    const S det = P.det1, id2 = S(1) / (det * det);
+    const S ga = g_conics[3 * i], gb = g_conics[3 * i + 1], gc = g_conics[3 * i + 2];
+    S gp = (-ga * rd * rd + gb * q * rd - gc * q * q) * id2;
+    S gq = (S(2) * ga * q * rd - gb * (pd * rd + q * q) + S(2) * gc * pd * q) * id2;
+    S gr = (-ga * q * q + gb * q * pd - gc * pd * pd) * id2;
+    if (antialiased && P.det0 > S(0)) {
+      const S k = g_comp * P.comp * S(0.5);
+      const S p0 = P.cov2d[0], r0 = P.cov2d[2];
+      gp += k * (r0 / P.det0 - rd / P.det1);
+      gq += k * (-S(2) * q / P.det0 + S(2) * q / P.det1);
+      gr += k * (p0 / P.det0 - pd / P.det1);
+    }
+    // cov2d = J sc J^T with the symmetric matrix gradient G2.
+    const S G2[4] = {gp, gq * S(0.5), gq * S(0.5), gr};
+    const S* J = P.J;
+    S G2J[6];  // G2 (2x2) @ J (2x3)
+    for (int r = 0; r < 2; ++r)
+      for (int k = 0; k < 3; ++k) G2J[3 * r + k] = G2[2 * r] * J[k] + G2[2 * r + 1] * J[3 + k];
+    S gsc[9];  // J^T G2 J
+    for (int r = 0; r < 3; ++r)
+      for (int k = 0; k < 3; ++k) gsc[3 * r + k] = J[r] * G2J[k] + J[3 + r] * G2J[3 + k];
+    S gJ[6];  // 2 G2 J sc
+    for (int r = 0; r < 2; ++r)
+      for (int k = 0; k < 3; ++k)
+        gJ[3 * r + k] = S(2) * (G2J[3 * r] * P.sc[k] + G2J[3 * r + 1] * P.sc[3 + k] +
+                                G2J[3 * r + 2] * P.sc[6 + k]);
+
+    const S x = P.p[0], y = P.p[1], z = P.p[2], iz = S(1) / z, iz2 = iz * iz;
+    S gpc[3] = {0, 0, 0};
+    // J00 = fx/z, J11 = fy/z, J02 = -fx txz / z, J12 = -fy tyz / z.
+    gpc[2] += -gJ[0] * cam.fx * iz2 - gJ[4] * cam.fy * iz2;
+    if (P.clamp_x) {
+      gpc[2] += gJ[2] * cam.fx * P.txz * iz2;
+    } else {
+      gpc[0] += -gJ[2] * cam.fx * iz2;
+      gpc[2] += gJ[2] * S(2) * cam.fx * x * iz2 * iz;
+    }
+    if (P.clamp_y) {
+      gpc[2] += gJ[5] * cam.fy * P.tyz * iz2;
+    } else {
+      gpc[1] += -gJ[5] * cam.fy * iz2;
+      gpc[2] += gJ[5] * S(2) * cam.fy * y * iz2 * iz;
+    }
+    // means2d = (fx x/z + cx, fy y/z + cy)
+    const S gu = g_means2d[2 * i], gv = g_means2d[2 * i + 1];
+    gpc[0] += gu * cam.fx * iz;
+    gpc[1] += gv * cam.fy * iz;
+    gpc[2] += -(gu * cam.fx * x + gv * cam.fy * y) * iz2;
+    gpc[2] += g_depths[i];
+    // p = R m + t
+    for (int k = 0; k < 3; ++k)
+      g_means[3 * i + k] = R(0, k) * gpc[0] + R(1, k) * gpc[1] + R(2, k) * gpc[2];
+    // sc = R sw R^T  ->  gsw = R^T gsc R
+    S tmp[9], gsw[9];
+    for (int r = 0; r < 3; ++r)
+      for (int k = 0; k < 3; ++k)
+        tmp[3 * r + k] = R(0, r) * gsc[k] + R(1, r) * gsc[3 + k] + R(2, r) * gsc[6 + k];
+    for (int r = 0; r < 3; ++r)
+      for (int k = 0; k < 3; ++k)
+        gsw[3 * r + k] = tmp[3 * r] * R(0, k) + tmp[3 * r + 1] * R(1, k) + tmp[3 * r + 2] * R(2, k);
+    S* gc6 = g_covars + 6 * i;
+    gc6[0] = gsw[0]; gc6[1] = gsw[1] + gsw[3]; gc6[2] = gsw[2] + gsw[6];
+    gc6[3] = gsw[4]; gc6[4] = gsw[5] + gsw[7]; gc6[5] = gsw[8];
+  }
+}
+
+#define KGS_INSTANTIATE(S)                                                                  \
+  template void project_forward<S>(int64_t, const S*, const S*, const S*, const Camera&, S, \
+                                   bool, S*, S*, S*, S*, int32_t*, int32_t*);               \
+  template void project_backward<S>(int64_t, const S*, const S*, const S*, const Camera&,   \
+                                    S, bool, const int32_t*, const S*, const S*, const S*,  \
+                                    const S*, S*, S*, S*);
+KGS_INSTANTIATE(float)
+KGS_INSTANTIATE(double)
+#undef KGS_INSTANTIATE
+
+}  // namespace kgs
