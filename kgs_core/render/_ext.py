@@ -20,9 +20,9 @@ from types import ModuleType
 import torch
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ["bindings.cpp", "project.cpp", "binning.cpp", "raster.cpp"]
+SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "raster.cpp"]
 HEADERS = ["kernels.h"]
-CFLAGS = ["-O3", "-march=native", "-fopenmp", "-std=c++17", "-fno-math-errno"]
+CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno", "-Wno-psabi"]
 LDFLAGS = ["-fopenmp"]
 
 _lock = threading.Lock()

@@ -10,6 +10,24 @@ from . import _ext
 from .types import Projection
 
 
+class _Covar(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, quats, scales):
+        ctx.save_for_backward(quats, scales)
+        return _ext.load().covar_forward(quats, scales)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_cov6):
+        quats, scales = ctx.saved_tensors
+        return tuple(_ext.load().covar_backward(quats, scales, g_cov6.contiguous()))
+
+
+def packed_covariance(quats: Tensor, scales: Tensor) -> Tensor:
+    """`(N, 6)` packed `R S S^T R^T` from `(N, 4)` quaternions and `(N, 3)` scales."""
+    return _Covar.apply(quats.contiguous(), scales.contiguous())
+
+
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, aa):
@@ -35,11 +53,11 @@ class _Project(torch.autograd.Function):
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, offsets, ids, width, height, info):
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, offsets, ranks, order, width, height, info):
         image, alpha, depth, t_final, n_contrib = _ext.load().raster_forward(
-            means2d, conics, opacities, colors, depths, bbox, background, offsets, ids, width, height
+            means2d, conics, opacities, colors, depths, bbox, background, offsets, ranks, order, width, height
         )
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, bbox, offsets, ids, t_final, n_contrib)
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, bbox, offsets, ranks, order, t_final, n_contrib)
         ctx.size = (width, height)
         ctx.info = info
         return image, alpha, depth
@@ -47,14 +65,14 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_image, g_alpha, g_depth):
-        (means2d, conics, opacities, colors, depths, background, bbox, offsets, ids, t_final, n_contrib) = ctx.saved_tensors
+        (means2d, conics, opacities, colors, depths, background, bbox, offsets, ranks, order, t_final, n_contrib) = ctx.saved_tensors
         g_m2d, g_con, g_op, g_col, g_dep, abs_g = _ext.load().raster_backward(
-            means2d, conics, opacities, colors, depths, bbox, background, offsets, ids, t_final, n_contrib,
+            means2d, conics, opacities, colors, depths, bbox, background, offsets, ranks, order, t_final, n_contrib,
             g_image.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), *ctx.size,
         )
         ctx.info["means2d_absgrad"] = abs_g
         g_bg = (g_image * t_final.unsqueeze(-1)).sum(dim=(0, 1)) if ctx.needs_input_grad[5] else None
-        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 6)
+        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 7)
 
 
 def project(means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased) -> Projection:
@@ -72,10 +90,10 @@ def rasterize_to_pixels(
     proj: Projection, colors: Tensor, background: Tensor, width: int, height: int
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     ext = _ext.load()
-    offsets, ids = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
-    info: dict = {"tile_offsets": offsets, "tile_ids": ids}
+    offsets, ranks, order = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
+    info: dict = {"tile_offsets": offsets, "tile_ranks": ranks, "depth_order": order}
     image, alpha, depth = _Rasterize.apply(
         proj.means2d, proj.conics, proj.opacities, colors.contiguous(), proj.depths,
-        background.contiguous(), proj.bbox, offsets, ids, int(width), int(height), info,
+        background.contiguous(), proj.bbox, offsets, ranks, order, int(width), int(height), info,
     )
     return image, alpha, depth, info

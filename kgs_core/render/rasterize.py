@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from . import _ext, cpu_backend, torch_backend
-from .covariance import covariance_from_quat_scale, pack_covariance
+from .covariance import pack_covariance
 from .sh import eval_sh
 from .types import Rendered
 
@@ -95,12 +95,15 @@ def rasterize(
     if not 0 < near < far:
         raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
     opacities = opacities.reshape(n)
+    impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
     if covars is None:
         if quats.shape != (n, 4) or scales.shape != (n, 3):
             raise ValueError(f"quats must be (N, 4) and scales (N, 3), got {tuple(quats.shape)}, {tuple(scales.shape)}")
-        covars = covariance_from_quat_scale(quats, scales)
+        cov6 = impl.packed_covariance(quats, scales)
     elif covars.shape != (n, 3, 3):
         raise ValueError(f"covars must be (N, 3, 3), got {tuple(covars.shape)}")
+    else:
+        cov6 = pack_covariance(covars)
     if colors is None:
         if sh_degree is None:
             raise ValueError("sh_coeffs needs sh_degree")
@@ -114,9 +117,8 @@ def rasterize(
     elif background.shape != (C,):
         raise ValueError(f"background must be ({C},), got {tuple(background.shape)}")
 
-    impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
     proj = impl.project(
-        means, pack_covariance(covars), opacities, viewmat, K, width, height, near, far, eps2d, antialiased
+        means, cov6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased
     )
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()

@@ -12,6 +12,7 @@ import math
 import torch
 from torch import Tensor
 
+from .covariance import covariance_from_quat_scale, pack_covariance
 from .types import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, Projection
 
 _TRIU = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
@@ -21,6 +22,11 @@ def unpack_covariance(cov6: Tensor) -> Tensor:
     """`(N, 6)` upper triangle -> `(N, 3, 3)` symmetric."""
     idx = torch.tensor(_TRIU, device=cov6.device).reshape(-1)
     return cov6[:, idx].reshape(-1, 3, 3)
+
+
+def packed_covariance(quats: Tensor, scales: Tensor) -> Tensor:
+    """`(N, 6)` packed `R S S^T R^T` from `(N, 4)` quaternions and `(N, 3)` scales."""
+    return pack_covariance(covariance_from_quat_scale(quats, scales))
 
 
 def project(

@@ -28,6 +28,33 @@ kgs::Camera make_camera(const Tensor& viewmat, const Tensor& K, int64_t width, i
   return cam;
 }
 
+Tensor covar_forward(Tensor quats, Tensor scales) {
+  const auto dt = quats.scalar_type();
+  check(quats, "quats", dt);
+  check(scales, "scales", dt);
+  const int64_t n = quats.size(0);
+  TORCH_CHECK(quats.dim() == 2 && quats.size(1) == 4, "quats must be (N, 4)");
+  TORCH_CHECK(scales.dim() == 2 && scales.size(0) == n && scales.size(1) == 3, "scales must be (N, 3)");
+  auto cov6 = torch::empty({n, 6}, quats.options());
+  AT_DISPATCH_FLOATING_TYPES(dt, "covar_forward", [&] {
+    kgs::covar_forward<scalar_t>(n, quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+                                 cov6.data_ptr<scalar_t>());
+  });
+  return cov6;
+}
+
+std::vector<Tensor> covar_backward(Tensor quats, Tensor scales, Tensor g_cov6) {
+  const auto dt = quats.scalar_type();
+  check(g_cov6, "g_cov6", dt);
+  auto g_quats = torch::empty_like(quats), g_scales = torch::empty_like(scales);
+  AT_DISPATCH_FLOATING_TYPES(dt, "covar_backward", [&] {
+    kgs::covar_backward<scalar_t>(quats.size(0), quats.data_ptr<scalar_t>(),
+                                  scales.data_ptr<scalar_t>(), g_cov6.data_ptr<scalar_t>(),
+                                  g_quats.data_ptr<scalar_t>(), g_scales.data_ptr<scalar_t>());
+  });
+  return {g_quats, g_scales};
+}
+
 std::vector<Tensor> project_forward(Tensor means, Tensor covars, Tensor opacities, Tensor viewmat,
                                     Tensor K, int64_t width, int64_t height, double near_plane,
                                     double far_plane, double eps2d, bool antialiased) {
@@ -75,6 +102,7 @@ std::vector<Tensor> project_backward(Tensor means, Tensor covars, Tensor opaciti
   return {g_means, g_covars, g_opac};
 }
 
+// Returns (tile_offsets, tile_ranks, order): see kernels.h.
 std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int64_t width,
                                   int64_t height) {
   check(bbox, "bbox", torch::kInt32);
@@ -83,16 +111,20 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
   const int64_t n = radii.size(0);
   const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
   auto offsets = torch::empty({tiles + 1}, bbox.options());
+  int64_t n_visible = 0;
   const int64_t pairs = kgs::bin_count_pairs(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
-                                             int(width), int(height), offsets.data_ptr<int32_t>());
+                                             int(width), int(height), offsets.data_ptr<int32_t>(),
+                                             &n_visible);
   TORCH_CHECK(pairs < (int64_t(1) << 31), "too many tile/Gaussian pairs: ", pairs);
-  auto ids = torch::empty({pairs}, bbox.options());
+  auto ranks = torch::empty({pairs}, bbox.options());
+  auto order = torch::empty({n_visible}, bbox.options());
   AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "bin_fill", [&] {
     kgs::bin_fill<scalar_t>(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
                             depths.data_ptr<scalar_t>(), int(width), int(height),
-                            offsets.data_ptr<int32_t>(), ids.data_ptr<int32_t>());
+                            offsets.data_ptr<int32_t>(), order.data_ptr<int32_t>(),
+                            ranks.data_ptr<int32_t>());
   });
-  return {offsets, ids};
+  return {offsets, ranks, order};
 }
 
 kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
@@ -102,13 +134,14 @@ kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
 
 std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
                                    Tensor depths, Tensor bbox, Tensor background,
-                                   Tensor tile_offsets, Tensor tile_ids, int64_t width,
-                                   int64_t height) {
+                                   Tensor tile_offsets, Tensor tile_ranks, Tensor order,
+                                   int64_t width, int64_t height) {
   const auto dt = means2d.scalar_type();
   for (auto* t : {&means2d, &conics, &opac, &colors, &depths, &background}) check(*t, "raster input", dt);
   check(bbox, "bbox", torch::kInt32);
   check(tile_offsets, "tile_offsets", torch::kInt32);
-  check(tile_ids, "tile_ids", torch::kInt32);
+  check(tile_ranks, "tile_ranks", torch::kInt32);
+  check(order, "order", torch::kInt32);
   const int64_t C = colors.size(1);
   TORCH_CHECK(background.numel() == C, "background must have ", C, " channels");
   const auto shape = shape_of(width, height, C);
@@ -119,10 +152,10 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
   auto n_contrib = torch::empty({height, width}, opts.dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(dt, "raster_forward", [&] {
     kgs::raster_forward<scalar_t>(
-        shape, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+        shape, order.numel(), order.data_ptr<int32_t>(), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
         opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
         bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(),
-        tile_offsets.data_ptr<int32_t>(), tile_ids.data_ptr<int32_t>(),
+        tile_offsets.data_ptr<int32_t>(), tile_ranks.data_ptr<int32_t>(),
         image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>());
   });
@@ -131,7 +164,8 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
 
 std::vector<Tensor> raster_backward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
                                     Tensor depths, Tensor bbox, Tensor background,
-                                    Tensor tile_offsets, Tensor tile_ids, Tensor t_final,
+                                    Tensor tile_offsets, Tensor tile_ranks, Tensor order,
+                                    Tensor t_final,
                                     Tensor n_contrib, Tensor g_image, Tensor g_alpha,
                                     Tensor g_depth, int64_t width, int64_t height) {
   const auto dt = means2d.scalar_type();
@@ -143,10 +177,10 @@ std::vector<Tensor> raster_backward(Tensor means2d, Tensor conics, Tensor opac, 
   auto g_depths = torch::empty_like(depths), abs_g = torch::empty_like(means2d);
   AT_DISPATCH_FLOATING_TYPES(dt, "raster_backward", [&] {
     kgs::raster_backward<scalar_t>(
-        shape, n, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+        shape, n, order.numel(), order.data_ptr<int32_t>(), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
         opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
         bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(),
-        tile_offsets.data_ptr<int32_t>(), tile_ids.data_ptr<int32_t>(),
+        tile_offsets.data_ptr<int32_t>(), tile_ranks.data_ptr<int32_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(), g_image.data_ptr<scalar_t>(),
         g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
         g_conics.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),
@@ -159,6 +193,8 @@ std::vector<Tensor> raster_backward(Tensor means2d, Tensor conics, Tensor opac, 
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "Kinematics-GS CPU Gaussian rasteriser";
+  m.def("covar_forward", &covar_forward);
+  m.def("covar_backward", &covar_backward);
   m.def("project_forward", &project_forward);
   m.def("project_backward", &project_backward);
   m.def("bin_gaussians", &bin_gaussians);

@@ -52,12 +52,14 @@ void sort_by_depth(const std::vector<int32_t>& ids, const double* depths, std::v
 }  // namespace
 
 int64_t bin_count_pairs(int64_t n, const int32_t* bbox, const int32_t* radii, int width,
-                        int height, int32_t* tile_offsets) {
+                        int height, int32_t* tile_offsets, int64_t* n_visible) {
   const int tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
   const int n_tiles = tiles_x * tiles_y;
   std::vector<int64_t> counts(n_tiles, 0);
+  int64_t visible = 0;
   for (int64_t i = 0; i < n; ++i) {
     if (radii[i] <= 0) continue;
+    ++visible;
     const TileRect r = tile_rect(bbox + 4 * i);
     for (int ty = r.y0; ty < r.y1; ++ty)
       for (int tx = r.x0; tx < r.x1; ++tx) ++counts[ty * tiles_x + tx];
@@ -68,30 +70,33 @@ int64_t bin_count_pairs(int64_t n, const int32_t* bbox, const int32_t* radii, in
     total += counts[t];
   }
   tile_offsets[n_tiles] = int32_t(total);
+  *n_visible = visible;
   return total;
 }
 
 template <typename S>
 void bin_fill(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
-              int width, int height, const int32_t* tile_offsets, int32_t* tile_ids) {
+              int width, int height, const int32_t* tile_offsets, int32_t* order,
+              int32_t* tile_ranks) {
   const int tiles_x = (width + TILE - 1) / TILE, tiles_y = (height + TILE - 1) / TILE;
   std::vector<int32_t> visible;
   visible.reserve(size_t(n));
   for (int64_t i = 0; i < n; ++i)
     if (radii[i] > 0) visible.push_back(int32_t(i));
-  std::vector<int32_t> order;
-  sort_by_depth(visible, depths, order);
+  std::vector<int32_t> sorted;
+  sort_by_depth(visible, depths, sorted);
+  std::copy(sorted.begin(), sorted.end(), order);
   std::vector<int32_t> cursor(tile_offsets, tile_offsets + tiles_x * tiles_y);
-  for (const int32_t g : order) {
-    const TileRect r = tile_rect(bbox + 4 * g);
+  for (int32_t rank = 0; rank < int32_t(sorted.size()); ++rank) {
+    const TileRect r = tile_rect(bbox + 4 * sorted[rank]);
     for (int ty = r.y0; ty < r.y1; ++ty)
-      for (int tx = r.x0; tx < r.x1; ++tx) tile_ids[cursor[ty * tiles_x + tx]++] = g;
+      for (int tx = r.x0; tx < r.x1; ++tx) tile_ranks[cursor[ty * tiles_x + tx]++] = rank;
   }
 }
 
 template void bin_fill<float>(int64_t, const int32_t*, const int32_t*, const float*, int, int,
-                              const int32_t*, int32_t*);
+                              const int32_t*, int32_t*, int32_t*);
 template void bin_fill<double>(int64_t, const int32_t*, const int32_t*, const double*, int, int,
-                               const int32_t*, int32_t*);
+                               const int32_t*, int32_t*, int32_t*);
 
 }  // namespace kgs

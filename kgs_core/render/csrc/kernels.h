@@ -27,6 +27,13 @@ struct Camera {
   double near_plane, far_plane;
 };
 
+// Sigma = R(q) diag(s)^2 R(q)^T, packed; q need not be normalised (zero -> identity).
+template <typename S>
+void covar_forward(int64_t n, const S* quats, const S* scales, S* cov6);
+template <typename S>
+void covar_backward(int64_t n, const S* quats, const S* scales, const S* g_cov6, S* g_quats,
+                    S* g_scales);
+
 template <typename S>
 void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
                      const Camera& cam, S eps2d, bool antialiased,
@@ -39,13 +46,16 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
                       const S* g_means2d, const S* g_conics, const S* g_depths,
                       const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities);
 
-// Depth-sorted tile lists. Returns the number of (tile, Gaussian) pairs; the caller
-// allocates tile_ids with bin_count_pairs() entries first.
+// Depth-sorted tile lists. bin_count_pairs fills tile_offsets (n_tiles + 1) and returns
+// the number of (tile, Gaussian) pairs and, through n_visible, the number of visible
+// Gaussians. bin_fill writes `order` (visible ids, front to back: rank -> id) and
+// `tile_ranks` (per tile, ranks in increasing depth).
 int64_t bin_count_pairs(int64_t n, const int32_t* bbox, const int32_t* radii, int width,
-                        int height, int32_t* tile_offsets);
+                        int height, int32_t* tile_offsets, int64_t* n_visible);
 template <typename S>
 void bin_fill(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
-              int width, int height, const int32_t* tile_offsets, int32_t* tile_ids);
+              int width, int height, const int32_t* tile_offsets, int32_t* order,
+              int32_t* tile_ranks);
 
 struct RasterShape {
   int width, height, channels;
@@ -53,19 +63,19 @@ struct RasterShape {
 };
 
 template <typename S>
-void raster_forward(const RasterShape& shape, const S* means2d, const S* conics,
-                    const S* opac, const S* colors, const S* depths, const int32_t* bbox,
-                    const S* background, const int32_t* tile_offsets,
-                    const int32_t* tile_ids, S* image, S* alpha, S* depth_acc,
-                    S* t_final, int32_t* n_contrib);
+void raster_forward(const RasterShape& shape, int64_t n_visible, const int32_t* order,
+                    const S* means2d, const S* conics, const S* opac, const S* colors,
+                    const S* depths, const int32_t* bbox, const S* background,
+                    const int32_t* tile_offsets, const int32_t* tile_ranks, S* image, S* alpha,
+                    S* depth_acc, S* t_final, int32_t* n_contrib);
 
 template <typename S>
-void raster_backward(const RasterShape& shape, int64_t n, const S* means2d, const S* conics,
-                     const S* opac, const S* colors, const S* depths, const int32_t* bbox,
+void raster_backward(const RasterShape& shape, int64_t n, int64_t n_visible,
+                     const int32_t* order, const S* means2d, const S* conics, const S* opac,
+                     const S* colors, const S* depths, const int32_t* bbox,
                      const S* background, const int32_t* tile_offsets,
-                     const int32_t* tile_ids, const S* t_final, const int32_t* n_contrib,
-                     const S* g_image, const S* g_alpha, const S* g_depth,
-                     S* g_means2d, S* g_conics, S* g_opac, S* g_colors, S* g_depths,
-                     S* abs_g_means2d);
+                     const int32_t* tile_ranks, const S* t_final, const int32_t* n_contrib,
+                     const S* g_image, const S* g_alpha, const S* g_depth, S* g_means2d,
+                     S* g_conics, S* g_opac, S* g_colors, S* g_depths, S* abs_g_means2d);
 
 }  // namespace kgs

@@ -23,6 +23,7 @@ namespace kgs {
 namespace {
 
 static_assert(TILE == 16, "one tile row is one 16-lane vector");
+constexpr int PREFETCH = 8;  // Gaussians ahead in a tile list
 
 template <typename S>
 struct Lanes;
@@ -86,7 +87,7 @@ inline int count_set(const M& m) {
 struct TileGeom {
   int px0, py0;     // tile origin in pixels
   int w, h;         // tile extent inside the image
-  int begin, end;   // range in tile_ids
+  int begin, end;   // range in tile_ranks
 };
 
 inline TileGeom tile_geom(const RasterShape& s, const int32_t* tile_offsets, int tile) {
@@ -110,6 +111,32 @@ struct Clip {
 inline Clip clip_to_tile(const int32_t* b, const TileGeom& t) {
   return {std::max(b[0], t.px0) - t.px0, std::min(b[2], t.px0 + TILE) - t.px0,
           std::max(b[1], t.py0), std::min(b[3], t.py0 + TILE)};
+}
+
+// A visible Gaussian's screen-space parameters, gathered in depth order so that every
+// tile walks memory forward instead of jumping across the whole scene per Gaussian.
+template <typename S>
+struct Splat {
+  S mx, my, ca, cb, cc, op, z;
+  int32_t box[4];
+};
+
+template <typename S>
+void gather_splats(int64_t n_visible, const int32_t* order, const S* means2d, const S* conics,
+                   const S* opac, const S* colors, const S* depths, const int32_t* bbox, int C,
+                   std::vector<Splat<S>>& splats, std::vector<S>& cols) {
+  splats.resize(size_t(n_visible));
+  cols.resize(size_t(n_visible) * C);
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n_visible; ++i) {
+    const int32_t g = order[i];
+    Splat<S>& sp = splats[i];
+    sp.mx = means2d[2 * g]; sp.my = means2d[2 * g + 1];
+    sp.ca = conics[3 * g]; sp.cb = conics[3 * g + 1]; sp.cc = conics[3 * g + 2];
+    sp.op = opac[g]; sp.z = depths[g];
+    for (int j = 0; j < 4; ++j) sp.box[j] = bbox[4 * g + j];
+    for (int ch = 0; ch < C; ++ch) cols[size_t(i) * C + ch] = colors[size_t(g) * C + ch];
+  }
 }
 
 // Lane constants shared by forward and backward for one tile.
@@ -151,9 +178,9 @@ inline RowEval<S> eval_row(const TileLanes<S>& L, const Clip& c, S mx, S dy, S c
 }
 
 template <typename S>
-void forward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, const S* conics,
-                  const S* opac, const S* colors, const S* depths, const int32_t* bbox,
-                  const S* background, const int32_t* tile_ids, S* image, S* alpha_out,
+void forward_tile(const RasterShape& s, const TileGeom& t, const Splat<S>* splats,
+                  const S* colors, const S* background, const int32_t* tile_ranks, S* image,
+                  S* alpha_out,
                   S* depth_out, S* t_final, int32_t* n_contrib,
                   std::vector<typename Lanes<S>::V>& acc) {
   using V = typename Lanes<S>::V;
@@ -172,13 +199,26 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, con
     done[r] = (L.lane >= t.w) | (M{} + (r >= t.h ? -1 : 0));
     n_done += count_set(done[r]);
   }
-  for (int k = t.begin; k < t.end && n_done < TILE_PIXELS; ++k) {
-    const int32_t g = tile_ids[k];
-    const Clip c = clip_to_tile(bbox + 4 * g, t);
+  M any_term{};
+  for (int k = t.begin; k < t.end; ++k) {
+    // Counting finished pixels needs lane extraction: do it only after a pixel finished
+    // and at most every 8 Gaussians.
+    if (((k - t.begin) & 7) == 0 && count_set(any_term) > 0) {
+      any_term = M{};
+      n_done = 0;
+      for (int r = 0; r < TILE; ++r) n_done += count_set(done[r]);
+      if (n_done == TILE_PIXELS) break;
+    }
+    const int32_t g = tile_ranks[k];
+    // Ranks in a tile are sparse in the scene-wide array: fetch a few Gaussians ahead.
+    if (k + PREFETCH < t.end) {
+      __builtin_prefetch(&splats[tile_ranks[k + PREFETCH]]);
+      __builtin_prefetch(colors + size_t(tile_ranks[k + PREFETCH]) * C);
+    }
+    const Splat<S>& sp = splats[g];
+    const Clip c = clip_to_tile(sp.box, t);
     if (c.empty()) continue;
-    const S mx = means2d[2 * g], my = means2d[2 * g + 1];
-    const S ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
-    const S op = opac[g], gz = depths[g];
+    const S mx = sp.mx, my = sp.my, ca = sp.ca, cb = sp.cb, cc = sp.cc, op = sp.op, gz = sp.z;
     const S* col = colors + size_t(g) * C;
     const M list_pos = M{} + (k - t.begin + 1);
     for (int y = c.y0; y < c.y1; ++y) {
@@ -192,7 +232,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, con
       T[r] = use ? test_t : T[r];
       last[r] = use ? list_pos : last[r];
       done[r] |= term;
-      n_done += count_set(term);
+      any_term |= term;
       dacc[r] += w * gz;
       for (int ch = 0; ch < C; ++ch) acc[size_t(ch) * TILE + r] += w * col[ch];
     }
@@ -214,9 +254,8 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, con
 enum Slot { MX = 0, MY, CA, CB, CC, OP, DEPTH, ABS_MX, ABS_MY, COLOR0 };
 
 template <typename S>
-void backward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, const S* conics,
-                   const S* opac, const S* colors, const S* depths, const int32_t* bbox,
-                   const S* background, const int32_t* tile_ids, const S* t_final,
+void backward_tile(const RasterShape& s, const TileGeom& t, const Splat<S>* splats,
+                   const S* colors, const S* background, const int32_t* tile_ranks, const S* t_final,
                    const int32_t* n_contrib, const S* g_image, const S* g_alpha,
                    const S* g_depth, S* slots, std::vector<typename Lanes<S>::V>& scratch) {
   using V = typename Lanes<S>::V;
@@ -251,14 +290,17 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, co
     }
   }
   for (int k = t.end - 1; k >= t.begin; --k) {
-    const int32_t g = tile_ids[k];
+    const int32_t g = tile_ranks[k];
+    if (k - PREFETCH >= t.begin) {
+      __builtin_prefetch(&splats[tile_ranks[k - PREFETCH]]);
+      __builtin_prefetch(colors + size_t(tile_ranks[k - PREFETCH]) * C);
+    }
     S* slot = slots + size_t(k) * stride;
     for (int j = 0; j < stride; ++j) slot[j] = S(0);
-    const Clip c = clip_to_tile(bbox + 4 * g, t);
+    const Splat<S>& sp = splats[g];
+    const Clip c = clip_to_tile(sp.box, t);
     if (c.empty()) continue;
-    const S mx = means2d[2 * g], my = means2d[2 * g + 1];
-    const S ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
-    const S op = opac[g], gz = depths[g];
+    const S mx = sp.mx, my = sp.my, ca = sp.ca, cb = sp.cb, cc = sp.cc, op = sp.op, gz = sp.z;
     const S* col = colors + size_t(g) * C;
     const M list_pos = M{} + (k - t.begin);  // contributes where list_pos < last
     V a_mx{}, a_my{}, a_ca{}, a_cb{}, a_cc{}, a_op{}, a_d{}, a_amx{}, a_amy{};
@@ -308,43 +350,59 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* means2d, co
 }  // namespace
 
 template <typename S>
-void raster_forward(const RasterShape& s, const S* means2d, const S* conics, const S* opac,
-                    const S* colors, const S* depths, const int32_t* bbox, const S* background,
-                    const int32_t* tile_offsets, const int32_t* tile_ids, S* image, S* alpha,
+void raster_forward(const RasterShape& s, int64_t n_visible, const int32_t* order,
+                    const S* means2d, const S* conics, const S* opac, const S* colors,
+                    const S* depths, const int32_t* bbox, const S* background,
+                    const int32_t* tile_offsets, const int32_t* tile_ranks, S* image, S* alpha,
                     S* depth_acc, S* t_final, int32_t* n_contrib) {
   const int n_tiles = s.tiles_x * s.tiles_y;
+  std::vector<Splat<S>> splats;
+  std::vector<S> cols;
+  gather_splats(n_visible, order, means2d, conics, opac, colors, depths, bbox, s.channels,
+                splats, cols);
 #pragma omp parallel
   {
     std::vector<typename Lanes<S>::V> acc;
 #pragma omp for schedule(dynamic, 1)
     for (int tile = 0; tile < n_tiles; ++tile) {
-      forward_tile(s, tile_geom(s, tile_offsets, tile), means2d, conics, opac, colors, depths,
-                   bbox, background, tile_ids, image, alpha, depth_acc, t_final, n_contrib, acc);
+      forward_tile(s, tile_geom(s, tile_offsets, tile), splats.data(), cols.data(), background,
+                   tile_ranks, image, alpha, depth_acc, t_final, n_contrib, acc);
     }
   }
 }
 
 template <typename S>
-void raster_backward(const RasterShape& s, int64_t n, const S* means2d, const S* conics,
-                     const S* opac, const S* colors, const S* depths, const int32_t* bbox,
-                     const S* background, const int32_t* tile_offsets, const int32_t* tile_ids,
-                     const S* t_final, const int32_t* n_contrib, const S* g_image,
-                     const S* g_alpha, const S* g_depth, S* g_means2d, S* g_conics, S* g_opac,
-                     S* g_colors, S* g_depths, S* abs_g_means2d) {
+void raster_backward(const RasterShape& s, int64_t n, int64_t n_visible, const int32_t* order,
+                     const S* means2d, const S* conics, const S* opac, const S* colors,
+                     const S* depths, const int32_t* bbox, const S* background,
+                     const int32_t* tile_offsets, const int32_t* tile_ranks, const S* t_final,
+                     const int32_t* n_contrib, const S* g_image, const S* g_alpha,
+                     const S* g_depth, S* g_means2d, S* g_conics, S* g_opac, S* g_colors,
+                     S* g_depths, S* abs_g_means2d) {
   const int n_tiles = s.tiles_x * s.tiles_y;
   const int C = s.channels;
   const int stride = COLOR0 + C;
   const int64_t n_pairs = tile_offsets[n_tiles];
+  std::vector<Splat<S>> splats;
+  std::vector<S> cols;
+  gather_splats(n_visible, order, means2d, conics, opac, colors, depths, bbox, C, splats, cols);
   std::vector<S> slots(size_t(n_pairs) * stride);
 #pragma omp parallel
   {
     std::vector<typename Lanes<S>::V> scratch;
 #pragma omp for schedule(dynamic, 1)
     for (int tile = 0; tile < n_tiles; ++tile) {
-      backward_tile(s, tile_geom(s, tile_offsets, tile), means2d, conics, opac, colors, depths,
-                    bbox, background, tile_ids, t_final, n_contrib, g_image, g_alpha, g_depth,
-                    slots.data(), scratch);
+      backward_tile(s, tile_geom(s, tile_offsets, tile), splats.data(), cols.data(), background,
+                    tile_ranks, t_final, n_contrib, g_image, g_alpha, g_depth, slots.data(),
+                    scratch);
     }
+  }
+  // Sum the pair slots per depth rank (in list order: deterministic), then scatter by id.
+  std::vector<S> per_rank(size_t(n_visible) * stride, S(0));
+  for (int64_t k = 0; k < n_pairs; ++k) {
+    const S* slot = slots.data() + size_t(k) * stride;
+    S* acc = per_rank.data() + size_t(tile_ranks[k]) * stride;
+    for (int j = 0; j < stride; ++j) acc[j] += slot[j];
   }
   std::fill(g_means2d, g_means2d + 2 * n, S(0));
   std::fill(abs_g_means2d, abs_g_means2d + 2 * n, S(0));
@@ -352,30 +410,33 @@ void raster_backward(const RasterShape& s, int64_t n, const S* means2d, const S*
   std::fill(g_opac, g_opac + n, S(0));
   std::fill(g_depths, g_depths + n, S(0));
   std::fill(g_colors, g_colors + n * C, S(0));
-  for (int64_t k = 0; k < n_pairs; ++k) {
-    const int32_t g = tile_ids[k];
-    const S* slot = slots.data() + size_t(k) * stride;
-    g_means2d[2 * g] += slot[MX];
-    g_means2d[2 * g + 1] += slot[MY];
-    abs_g_means2d[2 * g] += slot[ABS_MX];
-    abs_g_means2d[2 * g + 1] += slot[ABS_MY];
-    g_conics[3 * g] += slot[CA];
-    g_conics[3 * g + 1] += slot[CB];
-    g_conics[3 * g + 2] += slot[CC];
-    g_opac[g] += slot[OP];
-    g_depths[g] += slot[DEPTH];
-    for (int ch = 0; ch < C; ++ch) g_colors[size_t(g) * C + ch] += slot[COLOR0 + ch];
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n_visible; ++i) {
+    const int32_t g = order[i];
+    const S* a = per_rank.data() + size_t(i) * stride;
+    g_means2d[2 * g] = a[MX];
+    g_means2d[2 * g + 1] = a[MY];
+    abs_g_means2d[2 * g] = a[ABS_MX];
+    abs_g_means2d[2 * g + 1] = a[ABS_MY];
+    g_conics[3 * g] = a[CA];
+    g_conics[3 * g + 1] = a[CB];
+    g_conics[3 * g + 2] = a[CC];
+    g_opac[g] = a[OP];
+    g_depths[g] = a[DEPTH];
+    for (int ch = 0; ch < C; ++ch) g_colors[size_t(g) * C + ch] = a[COLOR0 + ch];
   }
 }
 
 #define KGS_INSTANTIATE(S)                                                                    \
-  template void raster_forward<S>(const RasterShape&, const S*, const S*, const S*, const S*, \
-                                  const S*, const int32_t*, const S*, const int32_t*,         \
-                                  const int32_t*, S*, S*, S*, S*, int32_t*);                  \
-  template void raster_backward<S>(const RasterShape&, int64_t, const S*, const S*, const S*, \
-                                   const S*, const S*, const int32_t*, const S*,              \
-                                   const int32_t*, const int32_t*, const S*, const int32_t*,  \
-                                   const S*, const S*, const S*, S*, S*, S*, S*, S*, S*);
+  template void raster_forward<S>(const RasterShape&, int64_t, const int32_t*, const S*,      \
+                                  const S*, const S*, const S*, const S*, const int32_t*,     \
+                                  const S*, const int32_t*, const int32_t*, S*, S*, S*, S*,   \
+                                  int32_t*);                                                  \
+  template void raster_backward<S>(const RasterShape&, int64_t, int64_t, const int32_t*,      \
+                                   const S*, const S*, const S*, const S*, const S*,          \
+                                   const int32_t*, const S*, const int32_t*, const int32_t*,  \
+                                   const S*, const int32_t*, const S*, const S*, const S*,    \
+                                   S*, S*, S*, S*, S*, S*);
 KGS_INSTANTIATE(float)
 KGS_INSTANTIATE(double)
 #undef KGS_INSTANTIATE
