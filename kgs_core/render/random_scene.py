@@ -36,21 +36,25 @@ def random_scene(
     dtype: torch.dtype = torch.float32,
     anisotropy: float = 3.0,
 ) -> RandomScene:
-    """N Gaussians in a unit cube 3 units in front of a 60-degree camera, sized so that on
-    average about `overlap` Gaussians cover each pixel (counting their 3-sigma footprints)."""
+    """N Gaussians in a unit cube 3 units in front of a 60-degree camera, sized so that about
+    `overlap` Gaussians reach alpha >= 1/255 at each pixel on average (the "Gaussians per
+    pixel" of the rasteriser benchmark; it ignores early termination)."""
     g = torch.Generator().manual_seed(seed)
     means = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
     means[:, 2] *= 0.5
     quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
     K = intrinsics(width, height, 60.0, dtype=torch.float64)
     fx = float(K[0, 0])
-    # The cube spans about 2 units at depth 3: fx * 2/3 pixels across. Pick the pixel radius r
-    # with n * pi r^2 = overlap * width * height, then the world sigma r / (3 fx / depth).
-    r_pix = math.sqrt(overlap * width * height / (n * math.pi))
-    sigma = r_pix * 3.0 / (3.0 * fx)
+    opacities = 0.3 + 0.7 * torch.rand(n, generator=g, dtype=torch.float64)
+    # A Gaussian with pixel std s and opacity o covers pi * 2 ln(255 o) * (s^2 + 0.3) pixels
+    # at alpha >= 1/255 (0.3: the rasteriser's low-pass dilation). Solve for s.
+    mean_level = float((2 * torch.log(255 * opacities)).mean()) if n else 1.0
+    s2 = overlap * width * height / (max(n, 1) * math.pi * mean_level) - 0.3
+    # The cube's projection fills part of the frame and the perspective spreads sizes; the
+    # 0.8 calibrates the average to `overlap` (checked by the benchmark's own measurement).
+    sigma = math.sqrt(max(s2, 0.01) * 0.8) * 3.0 / fx
     aniso = torch.exp(torch.rand(n, 3, generator=g, dtype=torch.float64) * math.log(anisotropy))
     scales = sigma * aniso / aniso.prod(-1, keepdim=True) ** (1 / 3)
-    opacities = 0.3 + 0.7 * torch.rand(n, generator=g, dtype=torch.float64)
     colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
     viewmat = look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0))
     return RandomScene(

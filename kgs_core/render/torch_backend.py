@@ -129,10 +129,6 @@ def rasterize_to_pixels(
             torch.arange(y0, y1, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij"
         )
         pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)  # (P, 2)
-        if not bool(sel.any()):
-            T = torch.ones(pix.shape[0], dtype=dtype)
-            rows.append((torch.zeros(pix.shape[0], C, dtype=dtype), T, torch.zeros_like(T)))
-            continue
         d = pix[:, None, :] - m2d[sel][None]  # (P, G, 2)
         a, b, c = con[sel].unbind(-1)
         power = -0.5 * (a * d[..., 0] ** 2 + c * d[..., 1] ** 2) - b * d[..., 0] * d[..., 1]

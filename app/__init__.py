@@ -1,0 +1,1 @@
+"""kgs_app: the `kgs-app` command line and the desktop viewer."""
