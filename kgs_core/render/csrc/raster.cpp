@@ -154,26 +154,43 @@ struct TileLanes {
   }
 };
 
+// What one Gaussian contributes along a tile row, with everything that does not depend on
+// the row hoisted out: power(dy) = p0 + dy * p1 - cc dy^2 / 2 per lane.
+template <typename S>
+struct GaussLanes {
+  using V = typename Lanes<S>::V;
+  using M = typename Lanes<S>::M;
+  V dx, p0, p1;
+  M in_box;  // lanes inside the Gaussian's bounding box
+  S half_cc, op;
+  GaussLanes(const TileLanes<S>& L, const Clip& c, S mx, S ca, S cb, S cc, S opacity) {
+    dx = L.px - mx;
+    p0 = S(-0.5) * ca * dx * dx;
+    p1 = -cb * dx;
+    in_box = (L.lane >= c.x0) & (L.lane < c.x1);
+    half_cc = S(0.5) * cc;
+    op = opacity;
+  }
+};
+
 // The per-row evaluation both passes share: lanes where the Gaussian takes part (before
-// the pixel's own cut-off, which the caller adds), its raw and clamped alpha.
+// the pixel's own cut-off, which the caller adds), its Gaussian value, raw and clamped alpha.
 template <typename S>
 struct RowEval {
   using V = typename Lanes<S>::V;
   using M = typename Lanes<S>::M;
-  V dx, G, a_raw, alpha;
+  V G, a_raw, alpha;
   M ok;
 };
 
 template <typename S>
-inline RowEval<S> eval_row(const TileLanes<S>& L, const Clip& c, S mx, S dy, S ca, S cb, S cc,
-                           S op) {
+inline RowEval<S> eval_row(const GaussLanes<S>& gl, S dy) {
   RowEval<S> e;
-  e.dx = L.px - mx;
-  const auto power = S(-0.5) * (ca * e.dx * e.dx + cc * dy * dy) - cb * e.dx * dy;
+  const auto power = gl.p0 + dy * gl.p1 - gl.half_cc * dy * dy;
   e.G = vexp(power);
-  e.a_raw = op * e.G;
+  e.a_raw = gl.op * e.G;
   e.alpha = e.a_raw < S(ALPHA_MAX) ? e.a_raw : typename Lanes<S>::V{} + S(ALPHA_MAX);
-  e.ok = (L.lane >= c.x0) & (L.lane < c.x1) & (power <= S(0)) & (e.alpha >= S(ALPHA_MIN));
+  e.ok = gl.in_box & (power <= S(0)) & (e.alpha >= S(ALPHA_MIN));
   return e;
 }
 
@@ -221,9 +238,10 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const Splat<S>* splat
     const S mx = sp.mx, my = sp.my, ca = sp.ca, cb = sp.cb, cc = sp.cc, op = sp.op, gz = sp.z;
     const S* col = colors + size_t(g) * C;
     const M list_pos = M{} + (k - t.begin + 1);
+    const GaussLanes<S> gl(L, c, mx, ca, cb, cc, op);
     for (int y = c.y0; y < c.y1; ++y) {
       const int r = y - t.py0;
-      const RowEval<S> e = eval_row(L, c, mx, S(y) + S(0.5) - my, ca, cb, cc, op);
+      const RowEval<S> e = eval_row(gl, S(y) + S(0.5) - my);
       const M in = e.ok & (done[r] == 0);
       const V test_t = T[r] * (S(1) - e.alpha);
       const M term = in & (test_t < S(T_MIN));
@@ -305,10 +323,12 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const Splat<S>* spla
     const M list_pos = M{} + (k - t.begin);  // contributes where list_pos < last
     V a_mx{}, a_my{}, a_ca{}, a_cb{}, a_cc{}, a_op{}, a_d{}, a_amx{}, a_amy{};
     for (int ch = 0; ch < C; ++ch) s_col[ch] = V{};
+    const GaussLanes<S> gl(L, c, mx, ca, cb, cc, op);
+    const V& dx = gl.dx;
     for (int y = c.y0; y < c.y1; ++y) {
       const int r = y - t.py0;
       const S dy = S(y) + S(0.5) - my;
-      const RowEval<S> e = eval_row(L, c, mx, dy, ca, cb, cc, op);
+      const RowEval<S> e = eval_row(gl, dy);
       const M use = e.ok & (list_pos < last[r]);
       const V inv = S(1) / (S(1) - e.alpha);
       const V Ti = Tcur[r] * inv;  // transmittance in front of this Gaussian
@@ -330,13 +350,13 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const Splat<S>* spla
       const V da = use & (e.a_raw < S(ALPHA_MAX)) ? dal : V{};
       const V gp = da * e.a_raw;
       a_op += da * e.G;
-      const V gmx = gp * (ca * e.dx + cb * dy), gmy = gp * (cb * e.dx + cc * dy);
+      const V gmx = gp * (ca * dx + cb * dy), gmy = gp * (cb * dx + cc * dy);
       a_mx += gmx;
       a_my += gmy;
       a_amx += gmx < S(0) ? -gmx : gmx;
       a_amy += gmy < S(0) ? -gmy : gmy;
-      a_ca += S(-0.5) * gp * e.dx * e.dx;
-      a_cb += -gp * e.dx * dy;
+      a_ca += S(-0.5) * gp * dx * dx;
+      a_cb += -gp * dx * dy;
       a_cc += S(-0.5) * gp * (dy * dy);
     }
     slot[MX] = hsum(a_mx); slot[MY] = hsum(a_my);
