@@ -1,0 +1,162 @@
+"""Renders a named synthetic scene to a dataset folder (Nerfies + D-NeRF layouts) with ground
+truth: sharp mid-exposure frames, dynamic masks and per-pixel image motion, from the blurry
+training camera and from a sharp held-out camera (the BARD-GS protocol)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ...io import atomic_directory
+from ..formats import write_dnerf, write_nerfies
+from ..images import write_image, write_mask, write_motion
+from ..scene import Camera, Frame, Scene
+from .raytrace import World
+from .scenes import SCENES, build_world, heldout_camera, intrinsics, shaky_training_camera
+
+BLUR_LEVELS = {"none": 0.0, "mild": 0.5, "severe": 1.0}
+DEFAULT_SCENE = "bounce"
+
+
+@dataclass
+class Rendered:
+    color: np.ndarray  # (H, W, 3)
+    obj: np.ndarray  # (H, W) hit object index, -1 = nothing
+    local: np.ndarray  # (H, W, 3)
+    depth: np.ndarray  # (H, W)
+
+
+def camera_rays(viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and directions (unnormalised, camera z = 1, so the ray parameter is depth)."""
+    j, i = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    d_cam = np.stack([(j - K[0, 2]) / K[0, 0], (i - K[1, 2]) / K[1, 1], np.ones_like(j)], -1).reshape(-1, 3)
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    d_world = d_cam @ R  # R^T d
+    origin = -R.T @ t
+    return np.broadcast_to(origin, d_world.shape), d_world
+
+
+def render(world: World, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, t: float) -> Rendered:
+    o, d = camera_rays(viewmat, K, width, height)
+    res = world.trace(o, d, t)
+    return Rendered(res.color.reshape(height, width, 3), res.obj.reshape(height, width),
+                    res.local.reshape(height, width, 3), res.depth.reshape(height, width))
+
+
+def project(points: np.ndarray, viewmat: np.ndarray, K: np.ndarray) -> np.ndarray:
+    p = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    uv = p @ K.T
+    return uv[:, :2] / uv[:, 2:3]
+
+
+def image_motion(world: World, r: Rendered, cam_at, K: np.ndarray, t: float, dt: float) -> np.ndarray:
+    """Per-pixel motion of the visible surface point, in pixels per frame interval, including
+    camera motion (central difference over +-5% of a frame)."""
+    h = 0.05 * dt
+    motion = np.zeros(r.obj.shape + (2,), np.float32)
+    for k, ob in enumerate(world.objects):
+        sel = r.obj == k
+        if not sel.any():
+            continue
+        local = r.local[sel]
+        p_plus = project(ob.world_point(local, t + h), cam_at(t + h), K)
+        p_minus = project(ob.world_point(local, t - h), cam_at(t - h), K)
+        motion[sel] = ((p_plus - p_minus) / (2 * h) * dt).astype(np.float32)
+    return motion
+
+
+def synthesize(
+    name: str = DEFAULT_SCENE,
+    out: str | Path = "scene",
+    blur: str = "mild",
+    seed: int = 0,
+    size: int = 128,
+    frames: int = 60,
+    subframes: int = 16,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Writes the dataset folder `out` and returns its path (written to a temporary sibling and
+    renamed when complete)."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
+    if blur not in BLUR_LEVELS:
+        raise ValueError(f"blur must be one of {', '.join(BLUR_LEVELS)}, got {blur!r}")
+    if frames < 2 or size < 16 or subframes < 1:
+        raise ValueError("need frames >= 2, size >= 16 and subframes >= 1")
+    exposure = BLUR_LEVELS[blur]
+    world = build_world(name, seed)
+    dynamic = {k for k, ob in enumerate(world.objects) if ob.dynamic}
+    K = intrinsics(size, size)
+    rigs = {0: shaky_training_camera(seed), 1: heldout_camera()}
+    dt = 1.0 / (frames - 1)
+    n_sub = subframes if exposure > 0 else 1
+    out = Path(out)
+    point_sets, color_sets = [], []
+    point_frames = set(np.linspace(0, frames - 1, 5).round().astype(int).tolist())
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        scene_frames = []
+        for i in tqdm(range(frames), desc=f"synth {name}", disable=not progress, unit="frame"):
+            t = i * dt
+            for cam_id, cam_at in rigs.items():
+                fid = f"c{cam_id}_{i:05d}"
+                paths = {kind: tmp / kind / "1x" / f"{fid}{ext}" for kind, ext in
+                         (("rgb", ".png"), ("sharp", ".png"), ("mask", ".png"), ("motion", ".npy"))}
+                sharp = render(world, cam_at(t), K, size, size, t)
+                frame_exposure = exposure if cam_id == 0 else 0.0
+                if frame_exposure > 0:
+                    offsets = (np.arange(n_sub) + 0.5) / n_sub - 0.5  # midpoints of equal slices
+                    subs = [render(world, cam_at(t + o * dt * frame_exposure), K, size, size, t + o * dt * frame_exposure).color
+                            for o in offsets]
+                    blurry = np.mean(subs, axis=0)
+                else:
+                    blurry = sharp.color
+                write_image(paths["rgb"], blurry)
+                write_image(paths["sharp"], sharp.color)
+                write_mask(paths["mask"], np.isin(sharp.obj, list(dynamic)))
+                write_motion(paths["motion"], image_motion(world, sharp, cam_at, K, t, dt))
+                scene_frames.append(Frame(
+                    id=fid, image_path=paths["rgb"], time=t,
+                    camera=Camera(K=K.copy(), viewmat=cam_at(t), width=size, height=size),
+                    exposure=frame_exposure, split="train" if cam_id == 0 else "test", camera_id=cam_id,
+                    sharp_path=paths["sharp"], mask_path=paths["mask"], motion_path=paths["motion"],
+                ))
+                if cam_id == 0 and i in point_frames:
+                    pts, cols = surface_points(world, sharp, cam_at(t), K, t, dynamic, keep_dynamic=i == frames // 2)
+                    point_sets.append(pts)
+                    color_sets.append(cols)
+        scene_frames.sort(key=lambda f: (f.camera_id, f.time))
+        scene = Scene(
+            name=out.name, root=tmp, frames=scene_frames,
+            points=np.concatenate(point_sets), point_colors=np.concatenate(color_sets),
+            source_format="synthetic",
+            extras={"generator": {"scene": name, "blur": blur, "exposure": exposure, "seed": seed, "size": size,
+                                  "frames": frames, "subframes": n_sub,
+                                  "dynamic_objects": [world.objects[k].name for k in sorted(dynamic)],
+                                  "points": "surface samples of the generator's geometry (stands in for SfM)"}},
+        )
+        scene.normalize()
+        scene.extras["normalized"] = True
+        scene.extras["normalization"] = scene.normalization.to_dict()
+        write_nerfies(scene, tmp)
+        write_dnerf(scene, tmp)
+    return out
+
+
+def surface_points(world: World, r: Rendered, viewmat, K, t, dynamic: set[int], keep_dynamic: bool, stride: int = 3):
+    """World points and colours of every `stride`-th pixel's surface (static ones always,
+    dynamic ones only when `keep_dynamic`): the generator's stand-in for SfM points."""
+    obj = r.obj[::stride, ::stride].reshape(-1)
+    depth = r.depth[::stride, ::stride].reshape(-1)
+    color = r.color[::stride, ::stride].reshape(-1, 3)
+    h, w = r.obj.shape
+    o, d = camera_rays(viewmat, K, w, h)
+    d = d.reshape(h, w, 3)[::stride, ::stride].reshape(-1, 3)
+    o = o.reshape(h, w, 3)[::stride, ::stride].reshape(-1, 3)
+    keep = (obj >= 0) & np.isfinite(depth)
+    if not keep_dynamic:
+        keep &= ~np.isin(obj, list(dynamic))
+    return o[keep] + depth[keep, None] * d[keep], color[keep]

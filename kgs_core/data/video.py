@@ -1,0 +1,84 @@
+"""Video decoding and encoding with PyAV."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from .scene import SceneError
+
+
+def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_size: int | None = None,
+                 progress: bool = True) -> list[np.ndarray]:
+    """RGB uint8 frames of `path`, every `every`-th, downscaled so the long side <= max_size."""
+    import av
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"video not found: {path}")
+    frames = []
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                raise SceneError(f"{path}: no video stream")
+            stream = container.streams.video[0]
+            total = stream.frames or None
+            for k, fr in enumerate(tqdm(container.decode(stream), total=total, desc=f"decode {path.name}",
+                                        disable=not progress, unit="frame")):
+                if k % every:
+                    continue
+                img = fr.to_ndarray(format="rgb24")
+                if max_size and max(img.shape[:2]) > max_size:
+                    s = max_size / max(img.shape[:2])
+                    img = np.asarray(Image.fromarray(img).resize((round(img.shape[1] * s), round(img.shape[0] * s)), Image.BICUBIC))
+                frames.append(img)
+                if max_frames and len(frames) >= max_frames:
+                    break
+    except SceneError:
+        raise
+    except Exception as exc:  # av.error.InvalidDataError and friends
+        raise SceneError(f"cannot decode video {path}: {exc}") from None
+    if len(frames) < 2:
+        raise SceneError(f"{path}: decoded {len(frames)} frame(s); need at least 2")
+    return frames
+
+
+
+def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, progress: bool = False) -> Path:
+    """Writes RGB uint8 frames `(H, W, 3)` (even sizes are padded if needed) as H.264 mp4,
+    to a temporary file renamed into place when complete."""
+    import av
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frames = list(frames)
+    if not frames:
+        raise ValueError("encode_video: no frames")
+    h, w = frames[0].shape[:2]
+    H, W = h + h % 2, w + w % 2
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".mp4")
+    os.close(fd)
+    try:
+        with av.open(tmp, mode="w") as container:
+            codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
+            stream = container.add_stream(codec, rate=round(fps))
+            stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+            if codec == "libx264":
+                stream.options = {"crf": str(crf)}
+            for img in tqdm(frames, desc=f"encode {path.name}", disable=not progress, unit="frame"):
+                if img.shape[:2] != (H, W):
+                    img = np.pad(img, ((0, H - img.shape[0]), (0, W - img.shape[1]), (0, 0)), mode="edge")
+                for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
