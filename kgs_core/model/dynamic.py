@@ -1,0 +1,257 @@
+"""The Kinematics-GS model: canonical Gaussians + deformation field + static/dynamic split +
+coarse-to-fine offsets + kinematic covariance, evaluated at any time `t`.
+
+`KinematicsGS.at(t, ...)` returns the Gaussians to rasterize; it is what training, the server,
+the viewers and the exporters all call.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor, nn
+
+from ..render.covariance import covariance_from_quat_scale, quat_to_rotmat
+from .deformation import DeformationField, FineResidual, Offsets
+from .gaussians import GaussianParams
+from .kinematics import refine_covariance, safe_norm, so3_exp
+
+Velocity = Literal["paper", "physical"]
+
+
+@dataclass
+class ModelConfig:
+    sh_degree: int = 1
+    feature_dim: int = 16  # per-Gaussian feature f_i of the fine residual
+    knn: int = 8  # dynamic neighbours averaged by the coarse deformation
+    tau: float = 2e-5  # dynamic when the temporal variance K of dx exceeds tau
+    variance_times: int = 16  # T, times at which K is evaluated
+    coarse_to_fine: bool = True  # C.F.
+    kinematic: bool = True  # K.R.
+    velocity: Velocity = "physical"
+    basis: str = "paper"
+    lambda_s: float = 0.1
+    still_len: float = 1e-3  # per-frame motion below which the kinematic frame fades out
+    kappa_init: float = -2.0  # sigmoid(-2) = 0.12: the lower bound of eta
+    deform_spatial: int = 64
+    deform_temporal: int = 25
+    deform_features: int = 32
+    deform_multires: tuple = (1, 2)
+    deform_width: int = 64
+    deform_depth: int = 1
+    bound: float = 1.5  # K-Planes domain, normalised scene units
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["deform_multires"] = list(self.deform_multires)
+        return d
+
+
+@dataclass
+class GaussiansAt:
+    """Gaussians at one time, ready for `rasterize`."""
+
+    means: Tensor  # (N, 3)
+    covars: Tensor  # (N, 3, 3)
+    opacities: Tensor  # (N,)
+    sh: Tensor  # (N, K, 3)
+    dynamic: Tensor  # (N,) bool
+    velocity: Tensor | None = None  # (N, 3), zeros for static Gaussians
+    offsets_dx: Tensor | None = None  # (N, 3), for L_reg
+    extras: dict = field(default_factory=dict)
+
+
+class KinematicsGS(nn.Module):
+    def __init__(self, params: GaussianParams, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.params = params
+        c = config
+        self.deform = DeformationField(c.deform_spatial, c.deform_temporal, c.deform_features, c.deform_multires,
+                                       c.deform_width, c.deform_depth, c.bound)
+        self.fine = FineResidual(c.feature_dim)
+        self.kappa = nn.Parameter(torch.tensor(float(c.kappa_init)))
+        n = len(params)
+        self.decomposed = False  # before the split every Gaussian deforms
+        self.dynamic = torch.zeros(n, dtype=torch.bool)
+        self.variance = torch.zeros(n)
+        self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
+        self._knn: Tensor | None = None
+
+    # ------------------------------------------------------------ bookkeeping
+
+    def __len__(self) -> int:
+        return len(self.params)
+
+    def network_parameters(self) -> dict[str, list[Tensor]]:
+        return {"grid": list(self.deform.planes.parameters()), "deform_mlp": list(self.deform.mlp.parameters()),
+                "fine_mlp": list(self.fine.parameters()), "kappa": [self.kappa]}
+
+    def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor) -> None:
+        """After densification or pruning: new leaf tensors and the matching per-Gaussian flags."""
+        self.params = params
+        self.dynamic = dynamic
+        self.variance = variance
+        self._knn = None
+
+    def scales(self) -> Tensor:
+        return torch.exp(self.params.log_scales) + self.min_scale
+
+    # ------------------------------------------------------------ decomposition
+
+    @torch.no_grad()
+    def temporal_variance(self, chunk: int = 65536) -> Tensor:
+        """K_i = mean_t |dx_t - mean_t dx_t|^2 over `variance_times` evenly spaced times, from the
+        deformation field itself (no time noise, no coarse-to-fine averaging)."""
+        T = self.config.variance_times
+        times = torch.linspace(0, 1, T)
+        means = self.params.means.detach()
+        out = torch.empty(len(means))
+        for s in range(0, len(means), chunk):
+            x = means[s:s + chunk]
+            dx = torch.stack([self.deform(x, torch.full((len(x),), float(t))).dx for t in times])  # (T, n, 3)
+            out[s:s + chunk] = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
+        return out
+
+    @torch.no_grad()
+    def decompose(self, tau: float | None = None, recompute: bool = True) -> Tensor:
+        """Splits into static (`K <= tau`) and dynamic (`K > tau`); returns the dynamic mask."""
+        if tau is not None:
+            self.config.tau = tau
+        if recompute:
+            self.variance = self.temporal_variance()
+        self.dynamic = self.variance > self.config.tau
+        self.decomposed = True
+        self._knn = None
+        return self.dynamic
+
+    def knn_index(self) -> Tensor:
+        """`(D, k)` indices into the dynamic subset: each dynamic Gaussian's nearest dynamic
+        neighbours (itself included), rebuilt when the dynamic set changes."""
+        if self._knn is None:
+            pts = self.params.means.detach()[self.dynamic].numpy()
+            k = min(self.config.knn, len(pts))
+            if k <= 1:
+                self._knn = torch.arange(len(pts))[:, None]
+            else:
+                _, idx = cKDTree(pts).query(pts, k=k)
+                self._knn = torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
+        return self._knn
+
+    # ------------------------------------------------------------ evaluation at time t
+
+    def offsets(self, idx: Tensor, t: float, noise: float = 0.0) -> Offsets:
+        """Offsets of the Gaussians `idx` (all of them, or the dynamic set) at time `t`."""
+        x = self.params.means[idx]
+        tt = torch.full((len(x),), float(t))
+        if noise > 0:
+            tt = tt + noise * torch.randn(len(x))
+        raw = self.deform(x, tt)
+        if not (self.decomposed and self.config.coarse_to_fine):
+            return raw
+        knn = self.knn_index()
+        coarse = Offsets.split(raw.cat()[knn].mean(1))
+        return coarse + self.fine(self.params.features[idx], tt)
+
+    def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
+        off = self.offsets(idx, t, noise)
+        return self.params.means[idx] + off.dx, off
+
+    def at(self, t: float, exposure: float = 0.0, dt: float = 1.0, noise: float = 0.0) -> GaussiansAt:
+        """Gaussians at time `t`. `exposure` (fraction of the frame interval `dt`) sets the
+        kinematic elongation: 0 renders sharp. `noise` is the training-time jitter of `t`."""
+        p = self.params
+        n = len(p)
+        scales = self.scales()
+        covars = covariance_from_quat_scale(p.quats, scales)
+        means = p.means
+        velocity = torch.zeros(n, 3)
+        dx_all = torch.zeros(n, 3)
+        if not self.decomposed:
+            idx = torch.arange(n)
+        else:
+            idx = torch.nonzero(self.dynamic).squeeze(1)
+        if len(idx):
+            x_t, off = self.positions(idx, t, noise)
+            cov_pred = covars[idx]
+            if self.config.kinematic and self.decomposed:
+                v = self.velocity(idx, t, off, dt, exposure, noise)
+                speed = safe_norm(v)
+                R = quat_to_rotmat(p.quats[idx])
+                r_z = torch.gather(R, 2, scales[idx].argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
+                cov_dyn = refine_covariance(
+                    cov_pred, v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa, speed * dt,
+                    basis=self.config.basis, lambda_s=self.config.lambda_s, still_len=self.config.still_len)
+                velocity = velocity.index_put((idx,), v.detach())
+            else:
+                # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
+                R = quat_to_rotmat(p.quats[idx]) @ so3_exp(off.dr)
+                s = scales[idx] * torch.exp(self.config.lambda_s * off.ds)
+                M = R * s[:, None, :]
+                cov_dyn = M @ M.transpose(-1, -2)
+            means = means.index_put((idx,), x_t)
+            covars = covars.index_put((idx,), cov_dyn)
+            dx_all = dx_all.index_put((idx,), off.dx)
+        return GaussiansAt(means=means, covars=covars, opacities=p.opacities, sh=p.sh(),
+                           dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
+                           velocity=velocity, offsets_dx=dx_all)
+
+    def at_static(self) -> GaussiansAt:
+        """The canonical Gaussians, no deformation (the static 3DGS baseline)."""
+        p = self.params
+        return GaussiansAt(means=p.means, covars=covariance_from_quat_scale(p.quats, self.scales()),
+                           opacities=p.opacities, sh=p.sh(), dynamic=torch.zeros(len(p), dtype=torch.bool))
+
+    def velocity(self, idx: Tensor, t: float, off: Offsets, dt: float, exposure: float, noise: float) -> Tensor:
+        """`paper`: v = dx_t / dt (the offset from the canonical position over one frame).
+        `physical`: central difference of the deformed position over the exposure (at least
+        half a frame, so that short exposures do not amplify noise)."""
+        if self.config.velocity == "paper":
+            return off.dx / dt
+        h = 0.5 * dt * max(exposure, 0.5)
+        x_plus, _ = self.positions(idx, t + h, 0.0)
+        x_minus, _ = self.positions(idx, t - h, 0.0)
+        return (x_plus - x_minus) / (2 * h)
+
+    # ------------------------------------------------------------ persistence
+
+    def state(self) -> dict:
+        return {
+            "config": self.config.to_dict(),
+            "params": {k: v.detach().clone() for k, v in self.params.items()},
+            "networks": {k: v for k, v in self.state_dict().items()},
+            "decomposed": self.decomposed,
+            "dynamic": self.dynamic.clone(),
+            "variance": self.variance.clone(),
+            "min_scale": self.min_scale,
+        }
+
+    @classmethod
+    def from_state(cls, state: dict) -> "KinematicsGS":
+        cfg = dict(state["config"])
+        cfg["deform_multires"] = tuple(cfg["deform_multires"])
+        params = GaussianParams(**{k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
+        model = cls(params, ModelConfig(**cfg))
+        model.load_state_dict(state["networks"])
+        model.decomposed = bool(state["decomposed"])
+        model.dynamic = state["dynamic"].clone()
+        model.variance = state["variance"].clone()
+        model.min_scale = float(state["min_scale"])
+        return model
+
+
+def split_counts(model: KinematicsGS) -> dict:
+    n = len(model)
+    d = int(model.dynamic.sum()) if model.decomposed else n
+    return {"gaussians": n, "dynamic": d, "static": n - d, "dynamic_share": d / max(n, 1)}
+
+
+def variance_histogram(variance: np.ndarray, bins: int = 64) -> dict:
+    """Histogram of log10 K (what the tau slider of the viewers shows)."""
+    lv = np.log10(np.clip(variance, 1e-12, None))
+    counts, edges = np.histogram(lv, bins=bins, range=(-12, 0))
+    return {"log10_edges": edges.tolist(), "counts": counts.tolist()}

@@ -1,0 +1,118 @@
+"""Kinematic basis and kinematics-guided covariance refinement (paper §4.3-4.4, appendix A.1).
+
+Everything here is batched over Gaussians and differentiable with finite gradients at the
+degenerate inputs (zero velocity, zero rotation vector): see tests/test_kinematics.py.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+Basis = Literal["paper", "duff"]
+
+EPS = 1e-8  # the paper's epsilon in u_z = v / (|v| + eps)
+
+
+def safe_norm(v: Tensor, eps: float = 1e-12) -> Tensor:
+    """|v| along the last axis with a finite gradient at v = 0 (gradient 0 there)."""
+    return torch.sqrt((v * v).sum(-1) + eps * eps)
+
+
+def kinematic_basis(v: Tensor, basis: Basis = "paper") -> Tensor:
+    """`(N, 3, 3)` rotation `[u_x | u_y | u_z]` with `u_z` along the velocity `v (N, 3)`.
+
+    * `paper`: reference `e_x`, switched to `e_y` when `|u_z . e_x| > 0.99` (appendix A.1).
+      The switch makes the basis jump (a roll about `u_z`) across that threshold.
+    * `duff`: the branch-free construction of Duff et al. (2017). No tangent frame on the
+      sphere is continuous everywhere (hairy-ball theorem); this one jumps where `u_z` crosses
+      the plane z = 0 instead of at the paper's 0.99 cap.
+    For `v = 0` `u_z` is 0 and the basis degenerates; callers blend it away (see
+    `refine_covariance`).
+    """
+    uz = v / (safe_norm(v)[..., None] + EPS)
+    if basis == "paper":
+        ex = torch.zeros_like(uz)
+        ex[..., 0] = 1.0
+        ey = torch.zeros_like(uz)
+        ey[..., 1] = 1.0
+        switch = (uz[..., 0].abs() > 0.99)[..., None]
+        ref = torch.where(switch, ey, ex)
+        ux = torch.linalg.cross(uz, ref)
+        ux = ux / (safe_norm(ux)[..., None] + EPS)
+        uy = torch.linalg.cross(uz, ux)
+    elif basis == "duff":
+        n = uz / (safe_norm(uz)[..., None] + EPS)  # unit even where |v| ~ eps
+        x, y, z = n.unbind(-1)
+        sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
+        a = -1.0 / (sign + z)
+        b = x * y * a
+        ux = torch.stack([1.0 + sign * x * x * a, sign * b, -sign * x], -1)
+        uy = torch.stack([b, sign + y * y * a, -y], -1)
+        scale = safe_norm(uz)[..., None]  # keeps the v = 0 degeneracy identical to `paper`
+        ux, uy = ux * scale, uy * scale
+    else:
+        raise ValueError(f"basis must be 'paper' or 'duff', got {basis!r}")
+    return torch.stack([ux, uy, uz], dim=-1)
+
+
+def so3_exp(w: Tensor) -> Tensor:
+    """Rotation matrices `(N, 3, 3)` from rotation vectors `(N, 3)` (Rodrigues), with Taylor
+    series below 1e-3 rad so that values and gradients stay accurate near 0."""
+    theta2 = (w * w).sum(-1)
+    small = theta2 < 1e-6
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(theta2_safe)
+    A = torch.where(small, 1 - theta2 / 6 + theta2 * theta2 / 120, torch.sin(theta) / theta)
+    B = torch.where(small, 0.5 - theta2 / 24 + theta2 * theta2 / 720, (1 - torch.cos(theta)) / theta2_safe)
+    zero = torch.zeros_like(w[..., 0])
+    Kx = torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0], -w[..., 1], w[..., 0], zero], -1)
+    Kx = Kx.reshape(w.shape[:-1] + (3, 3))
+    eye = torch.eye(3, dtype=w.dtype).expand_as(Kx)
+    return eye + A[..., None, None] * Kx + B[..., None, None] * (Kx @ Kx)
+
+
+def refine_covariance(
+    sigma: Tensor,
+    v: Tensor,
+    blur_len: Tensor,
+    delta_s: Tensor,
+    delta_r: Tensor,
+    r_z: Tensor,
+    kappa: Tensor,
+    frame_len: Tensor,
+    basis: Basis = "paper",
+    lambda_s: float = 0.1,
+    still_len: float = 1e-3,
+) -> Tensor:
+    """Kinematics-guided covariance `(N, 3, 3)`.
+
+    Args:
+        sigma: `(N, 3, 3)` covariance predicted for the Gaussian (SPD).
+        v: `(N, 3)` velocity.
+        blur_len: `(N,)` `|v| dt * exposure`, the path length during the exposure (0 = sharp).
+        delta_s, delta_r: `(N, 3)` residual log-scale and rotation vector from the network.
+        r_z: `(N, 3)` principal axis of the predicted rotation.
+        kappa: scalar; `sigmoid(kappa)` is the lower bound of the alignment factor eta.
+        frame_len: `(N,)` `|v| dt`, how far the Gaussian moves in one frame.
+        still_len: below this per-frame motion the velocity direction is noise, so the result
+            blends toward `sigma` with weight `frame_len^2 / (frame_len^2 + still_len^2)`.
+
+    Steps (paper eqs. 9-14): `sigma_k^2 = u_k^T Sigma u_k`; `s' = (sigma_x, sigma_y, sigma_z +
+    eta * blur_len)`; `eta = max(|r_z . u_z|, sigmoid(kappa))`; `log s = log s' + lambda_s *
+    delta_s`; `R = R_kin exp(delta_r)`; `Sigma_kin = R S S^T R^T`.
+    """
+    Rk = kinematic_basis(v, basis)
+    var = torch.einsum("nik,nij,njk->nk", Rk, sigma, Rk)  # u_k^T Sigma u_k per column k
+    s_prime = torch.sqrt(var.clamp_min(0) + 1e-20)
+    uz = Rk[..., 2]
+    eta = torch.maximum((r_z * uz).sum(-1).abs(), torch.sigmoid(kappa).expand_as(blur_len))
+    s_prime = torch.cat([s_prime[..., :2], (s_prime[..., 2] + eta * blur_len)[..., None]], -1)
+    log_s = torch.log(s_prime.clamp_min(1e-10)) + lambda_s * delta_s
+    R = Rk @ so3_exp(delta_r)
+    M = R * torch.exp(log_s)[..., None, :]
+    sigma_kin = M @ M.transpose(-1, -2)
+    w = (frame_len * frame_len / (frame_len * frame_len + still_len * still_len))[..., None, None]
+    return (1 - w) * sigma + w * sigma_kin

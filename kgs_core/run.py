@@ -1,0 +1,127 @@
+"""The run directory: everything a training run produces, loadable without the training code.
+
+```
+RUN/
+  run.json            format version, scene path, config, status, counts, timings
+  model.pt            the final model (KinematicsGS.state() + LoD level snapshots)
+  checkpoints/        ckpt_XXXXXX.pt: model + optimizer + schedule state, for --resume
+  log.csv             iteration, train_seconds, wall_seconds, loss, psnr_heldout, gaussians, dynamic_share
+  psnr_vs_time.png    held-out PSNR against training time
+  decomposition.npy   temporal variance K per Gaussian (final level)
+  metrics.json/.md    written by `kgs-app eval`
+  error.txt           present when training failed
+```
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .io import atomic_write_bytes, atomic_write_text
+from .model.dynamic import KinematicsGS
+
+RUN_FORMAT_VERSION = 1
+
+
+class RunError(ValueError):
+    pass
+
+
+def save_torch(path: Path, obj) -> None:
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def write_run_json(run_dir: Path, info: dict) -> None:
+    atomic_write_text(run_dir / "run.json", json.dumps({"format_version": RUN_FORMAT_VERSION, **info}, indent=1))
+
+
+def read_run_json(run_dir: Path) -> dict:
+    path = Path(run_dir) / "run.json"
+    if not path.is_file():
+        raise RunError(f"not a run directory (no run.json): {run_dir}")
+    try:
+        info = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise RunError(f"{path}: invalid JSON ({exc.msg})") from None
+    if info.get("format_version") != RUN_FORMAT_VERSION:
+        raise RunError(f"{path}: run format {info.get('format_version')} not supported (expected {RUN_FORMAT_VERSION})")
+    return info
+
+
+@dataclass
+class LoadedRun:
+    path: Path
+    info: dict
+    model: KinematicsGS
+    levels: list[dict]  # LoD snapshots, coarse to fine; the model itself is the finest
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.levels) + 1
+
+    def level(self, level: int) -> KinematicsGS:
+        """The model at LoD `level` (1 = coarsest, n_levels = the final one)."""
+        if not 1 <= level <= self.n_levels:
+            raise RunError(f"LoD level must be in 1..{self.n_levels}, got {level}")
+        if level == self.n_levels:
+            return self.model
+        return level_view(self.model, self.levels[level - 1])
+
+
+def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
+    """A model sharing the networks of `model` with a level snapshot's Gaussians."""
+    from .model.gaussians import GaussianParams
+
+    view = KinematicsGS.__new__(KinematicsGS)
+    torch.nn.Module.__init__(view)
+    view.config = model.config
+    view.deform, view.fine, view.kappa = model.deform, model.fine, model.kappa
+    view.params = GaussianParams(**snap["params"])
+    view.decomposed = model.decomposed
+    view.dynamic = snap["dynamic"]
+    view.variance = snap["variance"]
+    view.min_scale = snap["min_scale"]
+    view._knn = None
+    return view
+
+
+def load_run(run_dir: str | Path) -> LoadedRun:
+    run_dir = Path(run_dir)
+    info = read_run_json(run_dir)
+    path = run_dir / "model.pt"
+    if not path.is_file():
+        raise RunError(f"{run_dir}: no model.pt (training not finished? status: {info.get('status')})")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise RunError(f"{path}: cannot load ({exc})") from None
+    model = KinematicsGS.from_state(state["model"])
+    model.eval()
+    return LoadedRun(run_dir, info, model, state.get("levels", []))
+
+
+def read_log(run_dir: Path) -> list[dict]:
+    path = Path(run_dir) / "log.csv"
+    if not path.is_file():
+        return []
+    lines = path.read_text().strip().splitlines()
+    head = lines[0].split(",")
+    rows = []
+    for line in lines[1:]:
+        vals = line.split(",")
+        rows.append({k: (float(v) if v not in ("", "nan") else float("nan")) for k, v in zip(head, vals)})
+    return rows
+
+
+def save_decomposition(run_dir: Path, variance: torch.Tensor) -> None:
+    buf = io.BytesIO()
+    np.save(buf, variance.numpy().astype(np.float32))
+    atomic_write_bytes(run_dir / "decomposition.npy", buf.getvalue())

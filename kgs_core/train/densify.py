@@ -1,0 +1,114 @@
+"""Adaptive density control (3DGS): clone small and split large Gaussians with large
+screen-space gradients, prune transparent ones, reset opacities. A small strategy class in the
+spirit of gsplat's: `accumulate` after each backward, `step` once per iteration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..model.dynamic import KinematicsGS
+from ..model.gaussians import GaussianParams, append, select, set_param
+from ..render.covariance import quat_to_rotmat
+from ..render.types import Rendered
+
+
+@dataclass
+class DensifyStrategy:
+    grad_threshold: float
+    densify_from: int
+    densify_until: int
+    densify_every: int
+    prune_opacity: float
+    percent_dense: float
+    opacity_reset_at: tuple
+    max_gaussians: int
+    extent: float = 1.0
+
+    def __post_init__(self):
+        self.grad_sum = torch.zeros(0)
+        self.count = torch.zeros(0)
+
+    def _ensure(self, n: int) -> None:
+        if len(self.grad_sum) != n:
+            self.grad_sum = torch.zeros(n)
+            self.count = torch.zeros(n)
+
+    def accumulate(self, out: Rendered, width: int, height: int) -> None:
+        g = out.means2d.grad
+        if g is None:
+            return
+        self._ensure(len(g))
+        # Pixel gradients -> NDC units, so thresholds match the 3DGS literature.
+        g = g * torch.tensor([width / 2.0, height / 2.0])
+        vis = out.radii > 0
+        self.grad_sum[vis] += g[vis].norm(dim=-1)
+        self.count[vis] += 1
+
+    def step(self, model: KinematicsGS, optimizer, it: int) -> bool:
+        """Returns True when the set of Gaussians changed."""
+        changed = False
+        if self.densify_from <= it < self.densify_until and it % self.densify_every == 0 and it > 0:
+            self._densify_and_prune(model, optimizer)
+            changed = True
+        if it in self.opacity_reset_at:
+            op = model.params.opacity_logits.detach()
+            cap = torch.logit(torch.tensor(0.01))
+            model.params = set_param(model.params, optimizer, "opacity_logits", torch.minimum(op, cap))
+        return changed
+
+    @torch.no_grad()
+    def _densify_and_prune(self, model: KinematicsGS, optimizer) -> None:
+        n = len(model)
+        self._ensure(n)
+        avg = self.grad_sum / self.count.clamp_min(1)
+        big = avg >= self.grad_threshold
+        scales = model.scales().detach()
+        small = scales.max(-1).values <= self.percent_dense * self.extent
+        room = max(self.max_gaussians - n, 0)
+        clone = big & small
+        split = big & ~small
+        # Respect the budget: keep the largest gradients.
+        want = int(clone.sum() + split.sum())
+        if want > room:
+            order = torch.argsort(torch.where(big, avg, torch.zeros_like(avg)), descending=True)
+            allowed = torch.zeros(n, dtype=torch.bool)
+            allowed[order[:room]] = True
+            clone &= allowed
+            split &= allowed
+        p = model.params
+        new_parts: list[GaussianParams] = []
+        parents = []
+        if clone.any():
+            new_parts.append(GaussianParams(*(v.detach()[clone] for _, v in p.items())))
+            parents.append(torch.nonzero(clone).squeeze(1))
+        if split.any():
+            idx = torch.nonzero(split).squeeze(1)
+            R = quat_to_rotmat(p.quats.detach()[idx])
+            s = scales[idx]
+            for _ in range(2):
+                offset = (R @ (torch.randn_like(s) * s)[..., None]).squeeze(-1)
+                child = GaussianParams(*(v.detach()[idx].clone() for _, v in p.items()))
+                child.means = child.means + offset
+                child.log_scales = torch.log((s / 1.6 - model.min_scale).clamp_min(1e-8))
+                new_parts.append(child)
+                parents.append(idx)
+        params, dynamic, variance = p, model.dynamic, model.variance
+        for part, par in zip(new_parts, parents):
+            params = append(params, optimizer, part)
+            dynamic = torch.cat([dynamic, dynamic[par]])
+            variance = torch.cat([variance, variance[par]])
+        # Prune: split parents, transparent and huge Gaussians.
+        keep = torch.ones(len(params), dtype=torch.bool)
+        keep[: n][split] = False
+        opac = torch.sigmoid(params.opacity_logits.detach())
+        keep &= opac >= self.prune_opacity
+        big_world = (torch.exp(params.log_scales.detach()).max(-1).values + model.min_scale) > 0.5 * self.extent
+        keep &= ~big_world
+        if keep.sum() < 4:  # never prune everything
+            keep[:] = True
+        params = select(params, optimizer, keep)
+        model.set_params(params, dynamic[keep], variance[keep])
+        self.grad_sum = torch.zeros(len(params))
+        self.count = torch.zeros(len(params))

@@ -1,0 +1,417 @@
+"""The training loop: data, schedules, losses, densification, decomposition, FLoD levels,
+held-out PSNR against wall time, checkpoints and resume."""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+import traceback
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..data.scene import Frame, Scene
+from ..io import atomic_write_text
+from ..losses import photometric_loss, psnr
+from ..model.deformation import TimeNoise
+from ..model.dynamic import GaussiansAt, KinematicsGS, split_counts
+from ..model.gaussians import init_from_points, make_optimizer, random_points
+from ..render import rasterize
+from ..render.types import Rendered
+from ..run import save_decomposition, save_torch, write_run_json
+from .config import TrainConfig
+from .densify import DensifyStrategy
+
+
+class NonFiniteError(FloatingPointError):
+    """A loss or gradient became NaN/Inf; the message names the tensor and the iteration."""
+
+
+def torch_camera(frame: Frame) -> tuple[torch.Tensor, torch.Tensor]:
+    return (torch.tensor(frame.camera.viewmat, dtype=torch.float32), torch.tensor(frame.camera.K, dtype=torch.float32))
+
+
+def render_frame(model: KinematicsGS, frame: Frame, exposure: float, dt: float, background: torch.Tensor,
+                 noise: float = 0.0, t: float | None = None, extra_colors: torch.Tensor | None = None) -> tuple[Rendered, GaussiansAt]:
+    """Renders `model` from `frame`'s camera at the frame's time (or `t`)."""
+    g = model.at(frame.time if t is None else t, exposure=exposure, dt=dt, noise=noise)
+    viewmat, K = torch_camera(frame)
+    cam = frame.camera
+    kw = dict(sh_coeffs=g.sh, sh_degree=model.config.sh_degree) if extra_colors is None else dict(colors=extra_colors)
+    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars,
+                    background=background if extra_colors is None else None, **kw)
+    return out, g
+
+
+class ImageCache:
+    """Decoded frames as tensors, loaded once."""
+
+    def __init__(self):
+        self._imgs: dict[tuple[str, str], torch.Tensor] = {}
+
+    def get(self, frame: Frame, kind: str = "image") -> torch.Tensor:
+        key = (frame.id, kind)
+        if key not in self._imgs:
+            arr = frame.image() if kind == "image" else frame.sharp()
+            self._imgs[key] = torch.from_numpy(arr)
+        return self._imgs[key]
+
+
+def evaluation_frames(scene: Scene, count: int) -> list[tuple[Frame, str]]:
+    """Held-out views (sharp) if any; else the training views' sharp ground truth; else the
+    training images themselves."""
+    if scene.test_frames:
+        pool, kind = scene.test_frames, "image"
+    elif any(f.sharp_path for f in scene.train_frames):
+        pool, kind = [f for f in scene.train_frames if f.sharp_path], "sharp"
+    else:
+        pool, kind = scene.train_frames, "image"
+    idx = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
+    return [(pool[i], kind) for i in sorted(set(idx.tolist()))]
+
+
+@torch.no_grad()
+def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background) -> float:
+    vals = []
+    for frame, kind in frames:
+        out, _ = render_frame(model, frame, exposure=0.0, dt=scene.dt, background=background)
+        vals.append(psnr(out.image, cache.get(frame, kind)))
+    return float(np.mean(vals))
+
+
+def lr_exp(k: int, total: int, lr0: float, lr1: float) -> float:
+    f = min(max(k / max(total, 1), 0.0), 1.0)
+    return math.exp(math.log(lr0) * (1 - f) + math.log(lr1) * f)
+
+
+def check_finite(it: int, **tensors) -> None:
+    for name, t in tensors.items():
+        if t is not None and not torch.isfinite(t).all():
+            raise NonFiniteError(f"non-finite values in {name} at iteration {it}")
+
+
+class Trainer:
+    def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
+                 on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None):
+        self.scene, self.cfg = scene, cfg
+        self.run_dir = Path(run_dir)
+        self.progress, self.on_log, self.should_stop = progress, on_log, should_stop
+        self.background = torch.zeros(3)
+        self.cache = ImageCache()
+        self.eval_set = evaluation_frames(scene, cfg.eval_frames)
+        self.iteration = 0
+        self.train_seconds = 0.0
+        self.levels: list[dict] = []
+        self.log_rows: list[dict] = []
+        n_levels = max(1, cfg.lod_levels)
+        fr = list(cfg.lod_fractions)[-n_levels:] if n_levels > 1 else [1.0]
+        self.level_ends = [int(round(f * cfg.iterations)) for f in fr]
+        self.noise = TimeNoise(cfg.noise_init_frames * scene.dt, cfg.noise_final_frames * scene.dt,
+                               int(cfg.noise_until * cfg.iterations), int(cfg.noise_delay * cfg.iterations), cfg.noise_w_delay)
+        self.static_only = "deform" in cfg.ablate
+        self.no_split = "split" in cfg.ablate
+
+    # ------------------------------------------------------------ setup
+
+    def init_model(self) -> None:
+        cfg, scene = self.cfg, self.scene
+        torch.manual_seed(cfg.seed)
+        random.seed(cfg.seed)
+        pts, cols = scene.points, scene.point_colors
+        if len(pts) < 4:
+            pts, cols = random_points(cfg.init_points, 1.0, cfg.seed)
+        params = init_from_points(pts, cols, cfg.model.sh_degree, cfg.model.feature_dim, cfg.init_points, cfg.seed)
+        self.model = KinematicsGS(params.requires_grad_(True), cfg.model)
+        self.model.min_scale = self.level_min_scale(0)
+        self.make_optimizers()
+        self.strategy = self.make_strategy()
+
+    def level_min_scale(self, level_idx: int) -> float:
+        """FLoD lower bound of level `level_idx` (0-based): lambda * rho^l below the top level,
+        0 at it. (The paper writes rho^(1-l) with rho in (0, 1), which grows with l; the intent,
+        coarse to fine, is a geometric decay, so we use rho^(l-1) with rho in (0, 1).)"""
+        n = len(self.level_ends)
+        if level_idx >= n - 1:
+            return 0.0
+        return self.cfg.lod_lambda * self.cfg.lod_rho ** level_idx
+
+    def make_strategy(self) -> DensifyStrategy:
+        c = self.cfg
+        return DensifyStrategy(c.grad_threshold, c.densify_from, c.densify_until, c.densify_every, c.prune_opacity,
+                               c.percent_dense, tuple(c.opacity_reset_at), c.max_gaussians)
+
+    def make_optimizers(self) -> None:
+        c = self.cfg
+        lrs = {"means": c.lr_means, "quats": c.lr_quats, "log_scales": c.lr_scales, "opacity_logits": c.lr_opacity,
+               "sh0": c.lr_sh0, "sh_rest": c.lr_sh_rest, "features": c.lr_features}
+        self.opt = make_optimizer(self.model.params, lrs)
+        nets = self.model.network_parameters()
+        self.net_opt = torch.optim.Adam([
+            {"params": nets["grid"], "lr": c.lr_grid, "name": "grid"},
+            {"params": nets["deform_mlp"] + nets["fine_mlp"], "lr": c.lr_deform, "name": "mlp"},
+            {"params": nets["kappa"], "lr": c.lr_kappa, "name": "kappa"},
+        ], eps=1e-15)
+
+    def set_learning_rates(self, it: int) -> None:
+        c = self.cfg
+        for g in self.opt.param_groups:
+            if g["name"] == "means":
+                g["lr"] = lr_exp(it, c.iterations, c.lr_means, c.lr_means_final)
+        for g in self.net_opt.param_groups:
+            if g["name"] == "grid":
+                g["lr"] = lr_exp(it, c.iterations, c.lr_grid, c.lr_grid_final)
+            elif g["name"] == "mlp":
+                g["lr"] = lr_exp(it, c.iterations, c.lr_deform, c.lr_deform_final)
+
+    # ------------------------------------------------------------ one step
+
+    def loss_for(self, frame: Frame, it: int) -> tuple[torch.Tensor, Rendered]:
+        c, scene, model = self.cfg, self.scene, self.model
+        noise = 0.0 if self.static_only else self.noise.sigma(it)
+        if self.static_only:
+            g = model.at_static()
+            viewmat, K = torch_camera(frame)
+            out = rasterize(g.means, g.opacities, viewmat, K, frame.camera.width, frame.camera.height, covars=g.covars,
+                            sh_coeffs=g.sh, sh_degree=model.config.sh_degree, background=self.background)
+        else:
+            out, g = render_frame(model, frame, scene.exposure if frame.split == "train" else 0.0, scene.dt,
+                                  self.background, noise=noise)
+        gt = self.cache.get(frame)
+        loss = photometric_loss(out.image, gt, c.lambda_dssim)
+        if not self.static_only:
+            if c.lambda_reg > 0 and g.offsets_dx is not None:
+                # L_reg: mean |dx| over the static set plus mean |dx| over the dynamic set.
+                norms = g.offsets_dx.norm(dim=-1)
+                dyn = g.dynamic
+                reg = norms[dyn].mean() if dyn.any() else norms.sum() * 0
+                if (~dyn).any():
+                    reg = reg + norms[~dyn].mean()
+                loss = loss + c.lambda_reg * reg
+            if c.lambda_tv > 0:
+                loss = loss + c.lambda_tv * model.deform.planes.smoothness()
+        if c.lambda_ani > 0:
+            s = model.scales()
+            loss = loss + c.lambda_ani * (s.max(-1).values / (s.min(-1).values + c.eps_ani)).mean()
+        return loss, out
+
+    def train_step(self, it: int) -> float:
+        c = self.cfg
+        self.set_learning_rates(it)
+        frames = random.sample(self.scene.train_frames, min(c.batch_size, len(self.scene.train_frames)))
+        total = 0.0
+        outs = []
+        for frame in frames:
+            loss, out = self.loss_for(frame, it)
+            check_finite(it, loss=loss)
+            (loss / len(frames)).backward()
+            total += float(loss) / len(frames)
+            outs.append((out, frame))
+        for name, v in self.model.params.items():
+            check_finite(it, **{f"grad of {name}": v.grad})
+        for out, frame in outs:
+            self.strategy.accumulate(out, frame.camera.width, frame.camera.height)
+        self.opt.step()
+        self.net_opt.step()
+        self.opt.zero_grad(set_to_none=True)
+        self.net_opt.zero_grad(set_to_none=True)
+        return total
+
+    # ------------------------------------------------------------ schedule events
+
+    def after_step(self, it: int) -> None:
+        c, model = self.cfg, self.model
+        nxt = it + 1
+        changed = self.strategy.step(model, self.opt, nxt)
+        if not self.static_only and not self.no_split:
+            if nxt == c.decompose_at or (model.decomposed and c.decompose_every and nxt > c.decompose_at
+                                         and (nxt - c.decompose_at) % c.decompose_every == 0):
+                model.decompose()
+        elif changed:
+            model._knn = None
+        if nxt in self.level_ends[:-1]:
+            self.next_level(self.level_ends.index(nxt) + 1)
+
+    @torch.no_grad()
+    def importance(self) -> torch.Tensor:
+        """Sum over training views of each Gaussian's blending weights (FLoD's importance),
+        read off as the gradient of the rendered sum of a constant colour."""
+        model = self.model
+        total = torch.zeros(len(model))
+        frames = self.scene.train_frames
+        pick = np.linspace(0, len(frames) - 1, min(self.cfg.lod_importance_views, len(frames))).round().astype(int)
+        for i in sorted(set(pick.tolist())):
+            with torch.enable_grad():
+                ones = torch.ones(len(model), 1, requires_grad=True)
+                out, _ = render_frame(model, frames[i], self.scene.exposure, self.scene.dt, self.background, extra_colors=ones)
+                out.image.sum().backward()
+            total += ones.grad[:, 0]
+        return total
+
+    def next_level(self, level_idx: int) -> None:
+        """Ends a FLoD level: prune by importance, keep a snapshot for rendering at that level,
+        and clone into the next level with scales re-parameterised so that exp(s) + s_min is
+        unchanged."""
+        model = self.model
+        imp = self.importance()
+        keep = imp >= self.cfg.lod_prune_importance
+        if keep.sum() >= 4:
+            from ..model.gaussians import select
+
+            model.set_params(select(model.params, self.opt, keep), model.dynamic[keep], model.variance[keep])
+        snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
+                "variance": model.variance.clone(), "min_scale": model.min_scale, "iteration": self.iteration + 1}
+        self.levels.append(snap)
+        old, new = model.min_scale, self.level_min_scale(level_idx)
+        with torch.no_grad():
+            s = torch.exp(model.params.log_scales.detach()) + old - new
+            from ..model.gaussians import set_param
+
+            model.params = set_param(model.params, self.opt, "log_scales", torch.log(s.clamp_min(1e-8)))
+        model.min_scale = new
+        model._knn = None
+
+    # ------------------------------------------------------------ logging and checkpoints
+
+    def log(self, it: int, loss: float, wall0: float) -> dict:
+        p = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background) if not self.static_only \
+            else self.static_psnr()
+        counts = split_counts(self.model)
+        row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(time.time() - wall0, 3),
+               "loss": loss, "psnr_heldout": p, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}
+        self.log_rows.append(row)
+        head = list(row)
+        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r[k]}" for k in head) for r in self.log_rows) + "\n"
+        atomic_write_text(self.run_dir / "log.csv", text)
+        if self.on_log:
+            self.on_log(row)
+        return row
+
+    @torch.no_grad()
+    def static_psnr(self) -> float:
+        vals = []
+        for frame, kind in self.eval_set:
+            g = self.model.at_static()
+            viewmat, K = torch_camera(frame)
+            out = rasterize(g.means, g.opacities, viewmat, K, frame.camera.width, frame.camera.height, covars=g.covars,
+                            sh_coeffs=g.sh, sh_degree=self.model.config.sh_degree, background=self.background)
+            vals.append(psnr(out.image, self.cache.get(frame, kind)))
+        return float(np.mean(vals))
+
+    def checkpoint(self) -> Path:
+        path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"
+        save_torch(path, {
+            "iteration": self.iteration, "train_seconds": self.train_seconds, "model": self.model.state(),
+            "opt": self.opt.state_dict(), "net_opt": self.net_opt.state_dict(), "levels": self.levels,
+            "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
+            "strategy": {"grad_sum": self.strategy.grad_sum, "count": self.strategy.count},
+        })
+        return path
+
+    def restore(self, path: Path) -> None:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        self.model = KinematicsGS.from_state(state["model"])
+        self.make_optimizers()
+        self.opt.load_state_dict(state["opt"])
+        self.net_opt.load_state_dict(state["net_opt"])
+        self.strategy = self.make_strategy()
+        self.strategy.grad_sum, self.strategy.count = state["strategy"]["grad_sum"], state["strategy"]["count"]
+        self.iteration = state["iteration"]
+        self.train_seconds = state["train_seconds"]
+        self.levels = state["levels"]
+        self.log_rows = state["log"]
+        torch.set_rng_state(state["rng"]["torch"])
+        random.setstate(state["rng"]["python"])
+
+    # ------------------------------------------------------------ the loop
+
+    def run(self, resume: bool = False) -> dict:
+        cfg = self.cfg
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        ckpts = sorted((self.run_dir / "checkpoints").glob("ckpt_*.pt"))
+        if resume and ckpts:
+            self.restore(ckpts[-1])
+        else:
+            self.init_model()
+        info = {"status": "training", "scene": str(self.scene.root), "scene_name": self.scene.name,
+                "config": cfg.to_dict(), "normalization": self.scene.normalization.to_dict(),
+                "exposure": self.scene.exposure, "dt": self.scene.dt,
+                "frames": len(self.scene.frames), "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height]}
+        write_run_json(self.run_dir, info)
+        (self.run_dir / "error.txt").unlink(missing_ok=True)
+        wall0 = time.time() - (self.log_rows[-1]["wall_seconds"] if self.log_rows else 0.0)
+        if not self.log_rows:
+            self.log(0, float("nan"), wall0)
+        bar = tqdm(total=cfg.iterations, initial=self.iteration, disable=not self.progress, desc="train", unit="it",
+                   dynamic_ncols=True)
+        loss = float("nan")
+        try:
+            while self.iteration < cfg.iterations:
+                if self.should_stop and self.should_stop():
+                    info["status"] = "cancelled"
+                    break
+                t0 = time.perf_counter()
+                loss = self.train_step(self.iteration)
+                self.after_step(self.iteration)
+                self.iteration += 1
+                self.train_seconds += time.perf_counter() - t0
+                if self.iteration % cfg.eval_every == 0 or self.iteration == cfg.iterations:
+                    row = self.log(self.iteration, loss, wall0)
+                    bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"],
+                                    dynamic=f"{row['dynamic_share']:.0%}")
+                if self.iteration % cfg.checkpoint_every == 0:
+                    self.checkpoint()
+                bar.update(1)
+        except Exception as exc:
+            atomic_write_text(self.run_dir / "error.txt", f"{type(exc).__name__}: {exc}\n\n{traceback.format_exc()}")
+            info.update(status="failed", error=f"{type(exc).__name__}: {exc}", iteration=self.iteration)
+            write_run_json(self.run_dir, info)
+            raise
+        finally:
+            bar.close()
+        self.checkpoint()
+        self.save_final(info)
+        return info
+
+    def save_final(self, info: dict) -> None:
+        counts = split_counts(self.model)
+        save_torch(self.run_dir / "model.pt", {"model": self.model.state(), "levels": self.levels})
+        save_decomposition(self.run_dir, self.model.variance)
+        plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)
+        if info["status"] == "training":
+            info["status"] = "done"
+        info.update(iteration=self.iteration, train_seconds=round(self.train_seconds, 2), lod_levels=len(self.levels) + 1,
+                    final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None, **counts)
+        write_run_json(self.run_dir, info)
+
+
+def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str = "held-out PSNR") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io import atomic_write_bytes
+
+    rows = [r for r in rows if not math.isnan(r["psnr_heldout"])]
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=110)
+    ax.plot([r["train_seconds"] for r in rows], [r["psnr_heldout"] for r in rows], marker="o", ms=3, label=label)
+    ax.set_xlabel("training time (s)")
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def train(scene: Scene, run_dir: str | Path, cfg: TrainConfig, resume: bool = False, progress: bool = True, **kw) -> dict:
+    return Trainer(scene, run_dir, cfg, progress=progress, **kw).run(resume=resume)
