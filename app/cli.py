@@ -9,31 +9,34 @@ from pathlib import Path
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Smoke demo until the reconstruction pipeline lands: render a random Gaussian scene."""
-    import numpy as np
-    import torch
-    from PIL import Image
+    """The main job: synthesize the built-in scene, train the fast preset, evaluate it."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.synth.generate import DEFAULT_SCENE, synthesize
+    from kgs_core.evaluate import evaluate_run
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import train
 
-    from kgs_core.io import atomic_write_bytes
-    from kgs_core.render import rasterize, resolve_backend
-    from kgs_core.render.random_scene import random_scene
+    work = Path(args.workspace)
+    scene_dir, run_dir = work / "scenes" / DEFAULT_SCENE, work / "runs" / f"{DEFAULT_SCENE}-fast"
+    if not (scene_dir / "dataset.json").is_file():
+        print(f"[1/3] synthesizing the built-in scene '{DEFAULT_SCENE}' -> {scene_dir}")
+        synthesize(DEFAULT_SCENE, scene_dir, blur="mild", overwrite=True)
+    else:
+        print(f"[1/3] scene already there: {scene_dir}")
+    scene = load_scene(scene_dir)
+    done = (run_dir / "model.pt").is_file() and not args.retrain
+    if done:
+        print(f"[2/3] run already trained: {run_dir} (--retrain to train again)")
+    else:
+        print(f"[2/3] training the fast preset -> {run_dir}")
+        import shutil
 
-    backend = resolve_backend("auto")
-    scene = random_scene(args.n, args.size, args.size, overlap=20.0, seed=args.seed)
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        out = rasterize(scene.means, scene.opacities, scene.viewmat, scene.K, args.size, args.size,
-                        quats=scene.quats, scales=scene.scales, colors=scene.colors,
-                        background=torch.ones(3), backend=backend)
-    ms = (time.perf_counter() - t0) * 1e3
-    img = (out.image.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-    import io
-
-    buf = io.BytesIO()
-    Image.fromarray(img).save(buf, format="PNG")
-    path = Path(args.out)
-    atomic_write_bytes(path, buf.getvalue())
-    print(f"rendered {args.n:,} Gaussians at {args.size}x{args.size} with the {backend} backend in {ms:.1f} ms -> {path}")
+        shutil.rmtree(run_dir, ignore_errors=True)
+        train(scene, run_dir, make_config("fast", iterations=args.iterations) if args.iterations else make_config("fast"))
+    print("[3/3] evaluating")
+    evaluate_run(run_dir)
+    print((run_dir / "metrics.md").read_text())
+    print(f"PSNR against training time: {run_dir / 'psnr_vs_time.png'}")
     return 0
 
 
@@ -57,6 +60,43 @@ def cmd_ingest(args: argparse.Namespace) -> int:
           + (f", {rep.eval_registered}/{rep.eval_frames} held-out frames" if rep.eval_video else "")
           + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points; "
           f"times {rep.seconds} -> {args.out}")
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """Train Kinematics-GS on a scene folder; writes a run directory."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import train
+
+    overrides = {}
+    if args.iterations:
+        overrides["iterations"] = args.iterations
+    if args.tau is not None:
+        overrides["model.tau"] = args.tau
+    if args.velocity:
+        overrides["model.velocity"] = args.velocity
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    ablate = tuple(a for a in (args.ablate or "").split(",") if a)
+    cfg = make_config(args.preset, ablate=ablate, **overrides)
+    scene = load_scene(args.scene)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.resume:
+        raise FileExistsError(f"{out} exists: pass --resume to continue it, or choose another --out")
+    info = train(scene, out, cfg, resume=args.resume)
+    print(f"{info['status']}: {info['iteration']} iterations in {info['train_seconds']:.0f} s, "
+          f"{info['gaussians']:,} Gaussians ({info['dynamic_share']:.0%} dynamic), held-out PSNR "
+          f"{info['final_psnr_heldout']:.2f} dB -> {out}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Metrics of a run against its scene's sharp ground truth (metrics.json and .md)."""
+    from kgs_core.evaluate import evaluate_run
+
+    evaluate_run(args.run, args.scene)
+    print((Path(args.run) / "metrics.md").read_text())
     return 0
 
 
@@ -86,11 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="kgs-app", description="Kinematics-GS: dynamic Gaussians from blurry video.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("demo", help="render a random Gaussian scene to a PNG (smoke demo)")
-    p.add_argument("--out", default="out/demo.png")
-    p.add_argument("--n", type=int, default=20_000, help="number of Gaussians")
-    p.add_argument("--size", type=int, default=256, help="image width and height")
-    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("demo", help="the main job: synthesize the built-in scene, train (fast preset), evaluate")
+    p.add_argument("--workspace", default="workspace", help="folder for the demo's scene and run")
+    p.add_argument("--iterations", type=int, help="override the preset's iteration count")
+    p.add_argument("--retrain", action="store_true")
     p.set_defaults(func=cmd_demo)
 
     from kgs_core.data.synth.generate import BLUR_LEVELS, DEFAULT_SCENE
@@ -117,6 +156,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exposure", type=float, default=0.5, help="assumed shutter fraction of the training video")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)
+
+    from kgs_core.train.config import ABLATIONS, PRESETS
+
+    p = sub.add_parser("train", help="train Kinematics-GS on a scene folder")
+    p.add_argument("scene", help="dataset folder (Nerfies, D-NeRF or COLMAP layout)")
+    p.add_argument("--out", required=True, help="run directory")
+    p.add_argument("--preset", default="fast", choices=sorted(PRESETS))
+    p.add_argument("--ablate", help="comma-separated: " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()))
+    p.add_argument("--tau", type=float, help="static/dynamic threshold on the temporal variance K")
+    p.add_argument("--velocity", choices=["paper", "physical"], help="velocity estimate of the kinematic basis")
+    p.add_argument("--iterations", type=int)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("eval", help="evaluate a run: PSNR/SSIM (+ in the dynamic mask), decomposition IoU, FPS per LoD")
+    p.add_argument("run")
+    p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
+    p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("build-ext", help="compile the C++ CPU rasteriser (cached after the first time)")
     p.add_argument("--verbose", action="store_true")

@@ -108,8 +108,9 @@ def fast_preset() -> TrainConfig:
         lr_means=4e-4, lr_means_final=4e-6,
         densify_from=150, densify_until=int(0.7 * it), densify_every=150, grad_threshold=2e-4,
         opacity_reset_at=(int(0.3 * it),), decompose_at=int(0.2 * it), decompose_every=int(0.2 * it),
-        eval_every=300, checkpoint_every=1000,
-        model=ModelConfig(sh_degree=1, deform_spatial=32, deform_temporal=16, deform_features=16),
+        eval_every=300, checkpoint_every=1000, lambda_tv=0.0,
+        lr_deform=1e-3, lr_deform_final=1e-5,
+        model=ModelConfig(sh_degree=1, deform_spatial=32, deform_temporal=16, deform_features=16, deform_multires=(1,)),
     )
 
 

@@ -21,7 +21,7 @@ from ..losses import photometric_loss, psnr
 from ..model.deformation import TimeNoise
 from ..model.dynamic import GaussiansAt, KinematicsGS, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
-from ..render import rasterize
+from ..model.render import render_model
 from ..render.types import Rendered
 from ..run import save_decomposition, save_torch, write_run_json
 from .config import TrainConfig
@@ -30,22 +30,6 @@ from .densify import DensifyStrategy
 
 class NonFiniteError(FloatingPointError):
     """A loss or gradient became NaN/Inf; the message names the tensor and the iteration."""
-
-
-def torch_camera(frame: Frame) -> tuple[torch.Tensor, torch.Tensor]:
-    return (torch.tensor(frame.camera.viewmat, dtype=torch.float32), torch.tensor(frame.camera.K, dtype=torch.float32))
-
-
-def render_frame(model: KinematicsGS, frame: Frame, exposure: float, dt: float, background: torch.Tensor,
-                 noise: float = 0.0, t: float | None = None, extra_colors: torch.Tensor | None = None) -> tuple[Rendered, GaussiansAt]:
-    """Renders `model` from `frame`'s camera at the frame's time (or `t`)."""
-    g = model.at(frame.time if t is None else t, exposure=exposure, dt=dt, noise=noise)
-    viewmat, K = torch_camera(frame)
-    cam = frame.camera
-    kw = dict(sh_coeffs=g.sh, sh_degree=model.config.sh_degree) if extra_colors is None else dict(colors=extra_colors)
-    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars,
-                    background=background if extra_colors is None else None, **kw)
-    return out, g
 
 
 class ImageCache:
@@ -76,10 +60,10 @@ def evaluation_frames(scene: Scene, count: int) -> list[tuple[Frame, str]]:
 
 
 @torch.no_grad()
-def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background) -> float:
+def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background, static: bool = False) -> float:
     vals = []
     for frame, kind in frames:
-        out, _ = render_frame(model, frame, exposure=0.0, dt=scene.dt, background=background)
+        out, _ = render_model(model, frame.camera, frame.time, 0.0, scene.dt, background, static=static)
         vals.append(psnr(out.image, cache.get(frame, kind)))
     return float(np.mean(vals))
 
@@ -173,14 +157,8 @@ class Trainer:
     def loss_for(self, frame: Frame, it: int) -> tuple[torch.Tensor, Rendered]:
         c, scene, model = self.cfg, self.scene, self.model
         noise = 0.0 if self.static_only else self.noise.sigma(it)
-        if self.static_only:
-            g = model.at_static()
-            viewmat, K = torch_camera(frame)
-            out = rasterize(g.means, g.opacities, viewmat, K, frame.camera.width, frame.camera.height, covars=g.covars,
-                            sh_coeffs=g.sh, sh_degree=model.config.sh_degree, background=self.background)
-        else:
-            out, g = render_frame(model, frame, scene.exposure if frame.split == "train" else 0.0, scene.dt,
-                                  self.background, noise=noise)
+        out, g = render_model(model, frame.camera, frame.time, scene.exposure, scene.dt, self.background,
+                              noise=noise, static=self.static_only)
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if not self.static_only:
@@ -209,7 +187,7 @@ class Trainer:
             loss, out = self.loss_for(frame, it)
             check_finite(it, loss=loss)
             (loss / len(frames)).backward()
-            total += float(loss) / len(frames)
+            total += float(loss.detach()) / len(frames)
             outs.append((out, frame))
         for name, v in self.model.params.items():
             check_finite(it, **{f"grad of {name}": v.grad})
@@ -247,7 +225,8 @@ class Trainer:
         for i in sorted(set(pick.tolist())):
             with torch.enable_grad():
                 ones = torch.ones(len(model), 1, requires_grad=True)
-                out, _ = render_frame(model, frames[i], self.scene.exposure, self.scene.dt, self.background, extra_colors=ones)
+                out, _ = render_model(model, frames[i].camera, frames[i].time, self.scene.exposure, self.scene.dt,
+                                      colors=ones, static=self.static_only)
                 out.image.sum().backward()
             total += ones.grad[:, 0]
         return total
@@ -278,8 +257,7 @@ class Trainer:
     # ------------------------------------------------------------ logging and checkpoints
 
     def log(self, it: int, loss: float, wall0: float) -> dict:
-        p = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background) if not self.static_only \
-            else self.static_psnr()
+        p = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
         counts = split_counts(self.model)
         row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(time.time() - wall0, 3),
                "loss": loss, "psnr_heldout": p, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}
@@ -290,17 +268,6 @@ class Trainer:
         if self.on_log:
             self.on_log(row)
         return row
-
-    @torch.no_grad()
-    def static_psnr(self) -> float:
-        vals = []
-        for frame, kind in self.eval_set:
-            g = self.model.at_static()
-            viewmat, K = torch_camera(frame)
-            out = rasterize(g.means, g.opacities, viewmat, K, frame.camera.width, frame.camera.height, covars=g.covars,
-                            sh_coeffs=g.sh, sh_degree=self.model.config.sh_degree, background=self.background)
-            vals.append(psnr(out.image, self.cache.get(frame, kind)))
-        return float(np.mean(vals))
 
     def checkpoint(self) -> Path:
         path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"

@@ -125,7 +125,7 @@ def synthesize(
                     sharp_path=paths["sharp"], mask_path=paths["mask"], motion_path=paths["motion"],
                 ))
                 if cam_id == 0 and i in point_frames:
-                    pts, cols = surface_points(world, sharp, cam_at(t), K, t, dynamic, keep_dynamic=i == frames // 2)
+                    pts, cols = surface_points(world, sharp, cam_at(t), K, t, dynamic, keep_dynamic=True)
                     point_sets.append(pts)
                     color_sets.append(cols)
         scene_frames.sort(key=lambda f: (f.camera_id, f.time))
@@ -136,7 +136,7 @@ def synthesize(
             extras={"generator": {"scene": name, "blur": blur, "exposure": exposure, "seed": seed, "size": size,
                                   "frames": frames, "subframes": n_sub,
                                   "dynamic_objects": [world.objects[k].name for k in sorted(dynamic)],
-                                  "points": "surface samples of the generator's geometry (stands in for SfM)"}},
+                                  "points": "surface samples of the visible geometry in 5 frames (stands in for SfM)"}},
         )
         scene.normalize()
         scene.extras["normalized"] = True
@@ -147,8 +147,9 @@ def synthesize(
 
 
 def surface_points(world: World, r: Rendered, viewmat, K, t, dynamic: set[int], keep_dynamic: bool, stride: int = 3):
-    """World points and colours of every `stride`-th pixel's surface (static ones always,
-    dynamic ones only when `keep_dynamic`): the generator's stand-in for SfM points."""
+    """World points and colours of every `stride`-th pixel's surface (dynamic ones only when
+    `keep_dynamic`): the generator's stand-in for SfM points. Taken from 5 frames, the moving
+    objects leave points along their path, as SfM's scattered dynamic points do."""
     obj = r.obj[::stride, ::stride].reshape(-1)
     depth = r.depth[::stride, ::stride].reshape(-1)
     color = r.color[::stride, ::stride].reshape(-1, 3)

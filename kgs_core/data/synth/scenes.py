@@ -200,7 +200,7 @@ def shaky_training_camera(seed: int, shake_deg: float = 0.6) -> Callable[[float]
 
 
 def heldout_camera() -> Callable[[float], np.ndarray]:
-    V = look_at((1.7, -2.5, 1.0), (0.0, 0.0, 0.45))
+    V = look_at((0.45, -2.8, 1.2), (0.05, 0.0, 0.45))
     return lambda _t: V
 
 

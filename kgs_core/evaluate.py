@@ -1,0 +1,138 @@
+"""`kgs-app eval RUN`: image metrics against sharp ground truth, inside the dynamic mask too,
+decomposition IoU, Gaussian counts and render speed per LoD level."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data.formats import load_scene
+from .data.scene import Frame, Scene
+from .io import atomic_write_text
+from .losses import psnr, ssim
+from .model.dynamic import KinematicsGS, split_counts
+from .model.render import render_model
+from .run import LoadedRun, load_run
+
+
+def lpips_status() -> tuple[object | None, str]:
+    """LPIPS needs pretrained backbone weights, which cannot be downloaded here. It is
+    computed only if the `lpips` package and its weights are already on this machine."""
+    try:
+        import lpips  # noqa: F401
+    except ImportError:
+        return None, "not computed: the lpips package is not installed (its weights cannot be downloaded here)"
+    try:
+        import lpips
+
+        return lpips.LPIPS(net="alex", verbose=False), "computed with lpips (AlexNet)"
+    except Exception as exc:  # missing weights
+        return None, f"not computed: LPIPS weights are not available locally ({type(exc).__name__})"
+
+
+def render_at(model: KinematicsGS, frame: Frame, exposure: float = 0.0, dt: float = 1.0, background=None,
+              colors: torch.Tensor | None = None):
+    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors)
+
+
+def dynamic_mask_render(model: KinematicsGS, frame: Frame, dt: float) -> np.ndarray:
+    """Pixels where dynamic Gaussians dominate: render the dynamic flag as a colour."""
+    flag = (model.dynamic if model.decomposed else torch.ones(len(model), dtype=torch.bool)).float()[:, None]
+    out, _ = render_at(model, frame, 0.0, dt, colors=flag)
+    return (out.image[..., 0] > 0.5 * out.alpha[..., 0].clamp_min(1e-6)).numpy() & (out.alpha[..., 0] > 0.5).numpy()
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = (a | b).sum()
+    return float("nan") if union == 0 else float((a & b).sum() / union)
+
+
+@torch.no_grad()
+def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None) -> dict:
+    """Metrics over the evaluation views: held-out sharp camera frames, and the training views'
+    sharp ground truth (deblurring) when the scene has it."""
+    groups = {}
+    if scene.test_frames:
+        groups["heldout"] = [(f, f.image()) for f in scene.test_frames]
+    train_gt = [f for f in scene.train_frames if f.sharp_path]
+    if train_gt:
+        groups["train_view_deblur"] = [(f, f.sharp()) for f in train_gt]
+    result = {}
+    ious = []
+    for name, items in groups.items():
+        ps, ss, mps, mss, lp = [], [], [], [], []
+        for f, gt_np in items:
+            gt = torch.from_numpy(gt_np)
+            out, _ = render_at(model, f, exposure=0.0, dt=scene.dt)
+            img = out.image.clamp(0, 1)
+            ps.append(psnr(img, gt))
+            ss.append(float(ssim(img, gt)))
+            m = f.mask()
+            if m is not None and m.any():
+                mps.append(psnr(img, gt, torch.from_numpy(m)))
+                ys, xs = np.nonzero(m)
+                y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+                if min(y1 - y0, x1 - x0) >= 11:  # SSIM on the mask's bounding box
+                    mss.append(float(ssim(img[y0:y1, x0:x1], gt[y0:y1, x0:x1])))
+                if model.decomposed:
+                    ious.append(iou(dynamic_mask_render(model, f, scene.dt), m))
+            if lpips_model is not None:
+                to = lambda x: x.permute(2, 0, 1)[None] * 2 - 1
+                lp.append(float(lpips_model(to(img), to(gt))))
+        mean = lambda v: float(np.mean(v)) if v else None
+        result[name] = {"frames": len(items), "psnr": mean(ps), "ssim": mean(ss), "psnr_dynamic": mean(mps),
+                        "ssim_dynamic": mean(mss), "lpips": mean(lp)}
+    result["decomposition_iou"] = float(np.nanmean(ious)) if ious and not all(math.isnan(v) for v in ious) else None
+    return result
+
+
+@torch.no_grad()
+def render_fps(model: KinematicsGS, frame: Frame, dt: float, repeats: int = 5) -> float:
+    render_at(model, frame, 0.0, dt)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        render_at(model, frame, 0.0, dt)
+    return repeats / (time.perf_counter() - t0)
+
+
+def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> dict:
+    run: LoadedRun = load_run(run_dir)
+    scene = load_scene(scene_dir or run.info["scene"])
+    lp_model, lp_note = lpips_status()
+    metrics = evaluate_model(run.model, scene, lp_model)
+    frame = (scene.test_frames or scene.train_frames)[0]
+    metrics["lpips_note"] = lp_note
+    metrics["levels"] = []
+    for level in range(1, run.n_levels + 1):
+        m = run.level(level)
+        metrics["levels"].append({"level": level, "gaussians": len(m), "render_fps": render_fps(m, frame, scene.dt)})
+    metrics.update(split_counts(run.model))
+    metrics["train_seconds"] = run.info.get("train_seconds")
+    metrics["scene"] = str(scene.root)
+    run_dir = Path(run_dir)
+    atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=1))
+    atomic_write_text(run_dir / "metrics.md", metrics_markdown(metrics, run.info))
+    return metrics
+
+
+def metrics_markdown(m: dict, info: dict) -> str:
+    f = lambda v, d=2: "—" if v is None else f"{v:.{d}f}"
+    lines = [f"# Evaluation of {info.get('scene_name', '')}", "",
+             f"Preset/ablations: {info['config'].get('ablate') or 'full method'}; training time {f(m.get('train_seconds'), 1)} s; "
+             f"{m['gaussians']:,} Gaussians, {m['dynamic_share']:.1%} dynamic.", "",
+             "| views | frames | PSNR | SSIM | PSNR (dynamic mask) | SSIM (dynamic mask) | LPIPS |", "|---|---|---|---|---|---|---|"]
+    for name in ("heldout", "train_view_deblur"):
+        if name in m:
+            r = m[name]
+            lines.append(f"| {name} | {r['frames']} | {f(r['psnr'])} | {f(r['ssim'], 3)} | {f(r['psnr_dynamic'])} | "
+                         f"{f(r['ssim_dynamic'], 3)} | {f(r['lpips'], 3)} |")
+    lines += ["", f"LPIPS: {m['lpips_note']}.", f"Decomposition IoU against the ground-truth dynamic masks: {f(m['decomposition_iou'], 3)}", "",
+              "| LoD level | Gaussians | render FPS (CPU) |", "|---|---|---|"]
+    for lv in m["levels"]:
+        lines.append(f"| {lv['level']} | {lv['gaussians']:,} | {lv['render_fps']:.1f} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,32 @@
+"""Rendering a model from a camera at a time: the one place that turns `KinematicsGS` into a
+`rasterize` call (training, evaluation, the server and the exporters all use it)."""
+
+from __future__ import annotations
+
+import torch
+
+from ..data.scene import Camera
+from ..render import rasterize
+from ..render.types import Rendered
+from .dynamic import GaussiansAt, KinematicsGS
+
+
+def camera_tensors(cam: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(cam.K, dtype=torch.float32)
+
+
+def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0.0, dt: float = 1.0,
+                 background: torch.Tensor | None = None, colors: torch.Tensor | None = None, noise: float = 0.0,
+                 static: bool = False) -> tuple[Rendered, GaussiansAt]:
+    """Renders `model` at time `t` from `cam`. `exposure` 0 renders sharp; `colors (N, C)`
+    replaces the SH colours (e.g. a dynamic-flag channel); `static` skips the deformation
+    (the static 3DGS baseline)."""
+    g = model.at_static() if static else model.at(t, exposure=exposure, dt=dt, noise=noise)
+    viewmat, K = camera_tensors(cam)
+    if colors is not None:
+        kw = dict(colors=colors)
+    else:
+        kw = dict(sh_coeffs=g.sh, sh_degree=model.config.sh_degree,
+                  background=background if background is not None else torch.zeros(3))
+    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars, **kw)
+    return out, g

@@ -1,0 +1,44 @@
+"""The command line: every listed command answers --help; bad arguments fail clearly."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+import pytest
+
+
+def kgs(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "kgs_app.cli", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def listed_commands() -> list[str]:
+    out = kgs("--help").stdout
+    block = out.split("positional arguments:")[1].split("options:")[0]
+    return re.findall(r"^\s{4}(\S+)", block, flags=re.M)
+
+
+def test_help_lists_working_commands():
+    cmds = listed_commands()
+    assert {"demo", "synth", "ingest", "train", "eval", "build-ext", "bench"} <= set(cmds)
+    for c in cmds:
+        r = kgs(c, "--help")
+        assert r.returncode == 0, (c, r.stderr)
+
+
+@pytest.mark.parametrize(
+    "args,needle",
+    [
+        (["train", "nowhere", "--out", "x"], "dataset not found"),
+        (["train", "nowhere", "--out", "x", "--ablate", "magic"], "unknown ablation 'magic'"),
+        (["eval", "."], "not a run directory"),
+        (["synth", "die", "--out", "x", "--frames", "1"], "frames >= 2"),
+        (["ingest", "missing.mp4", "--out", "x"], "video not found"),
+    ],
+)
+def test_bad_arguments_fail_with_a_message(args, needle, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "kgs_app.cli", *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2
+    assert needle in r.stderr, r.stderr
+    assert not (tmp_path / "x").exists()
