@@ -155,3 +155,22 @@ def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch)
     info = json.loads((tmp_path / "nan" / "run.json").read_text())
     assert info["status"] == "failed" and "NonFiniteError" in info["error"]
     assert (tmp_path / "nan" / "error.txt").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.67 here (0.83 at 96 px / 30 frames); the fast "
+                   "preset's warm-up does not yet learn the motion reliably")
+def test_split_finds_the_moving_object(tmp_path):
+    """On a scene with one moving object (a waving sheet in a static room), the static/dynamic
+    split matches the ground-truth dynamic mask (IoU >= 0.8)."""
+    from kgs_core.evaluate import evaluate_model
+
+    root = synthesize("sheet", tmp_path / "sheet", blur="mild", size=80, frames=24, subframes=4, progress=False)
+    scene = load_scene(root)
+    cfg = make_config("fast", iterations=600, decompose_at=400, decompose_every=0, densify_from=100,
+                      densify_every=100, densify_until=500, opacity_reset_at=(), lod_levels=1, lod_fractions=(1.0,),
+                      eval_every=600, checkpoint_every=10_000)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    tr.run()
+    metrics = evaluate_model(tr.model, scene)
+    assert metrics["decomposition_iou"] >= 0.8, metrics

@@ -109,7 +109,7 @@ def fast_preset() -> TrainConfig:
         densify_from=150, densify_until=int(0.7 * it), densify_every=150, grad_threshold=2e-4,
         opacity_reset_at=(int(0.3 * it),), decompose_at=int(0.2 * it), decompose_every=int(0.2 * it),
         eval_every=300, checkpoint_every=1000, lambda_tv=0.0,
-        lr_deform=1e-3, lr_deform_final=1e-5,
+        lr_deform=5e-3, lr_deform_final=5e-5, lr_grid=1e-2, lr_grid_final=1e-4,
         model=ModelConfig(sh_degree=1, deform_spatial=32, deform_temporal=16, deform_features=16, deform_multires=(1,)),
     )
 

@@ -18,7 +18,7 @@ from .raytrace import World
 from .scenes import SCENES, build_world, heldout_camera, intrinsics, shaky_training_camera
 
 BLUR_LEVELS = {"none": 0.0, "mild": 0.5, "severe": 1.0}
-DEFAULT_SCENE = "bounce"
+DEFAULT_SCENE = "sheet"
 
 
 @dataclass
