@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from kgs_core.data.formats import detect_format, load_scene, write_colmap, write_dnerf, write_nerfies
-from kgs_core.data.images import read_image, read_mask, read_motion
 from kgs_core.data.scene import SceneError
 from kgs_core.data.synth.generate import synthesize
 
@@ -193,9 +192,11 @@ def test_non_monotonic_time(copy):
     def swap(js):
         js["c0_00001"]["time"], js["c0_00003"]["time"] = js["c0_00003"]["time"], js["c0_00001"]["time"]
     break_json(copy / "metadata.json", swap)
-    # Frames are ordered by time, so swapped times alone are consistent; a time outside
-    # [0, 1] or a duplicate id are the inconsistencies a file can carry.
-    load_scene(copy)
+    with pytest.raises(SceneError, match=r"metadata\.json: camera 0: time goes backwards at frame c0_00002"):
+        load_scene(copy)
+
+
+def test_time_outside_unit_interval(copy):
     break_json(copy / "metadata.json", lambda js: js["c0_00002"].update(time=1.5))
     with pytest.raises(SceneError, match=r"c0_00002: time 1.5 outside \[0, 1\]"):
         load_scene(copy)

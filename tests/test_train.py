@@ -104,7 +104,7 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
 
 
 def test_resume_continues_where_it_stopped(scene, tmp_path):
-    full = train(scene, tmp_path / "full", tiny_config(iterations=80, checkpoint_every=40), progress=False)
+    train(scene, tmp_path / "full", tiny_config(iterations=80, checkpoint_every=40), progress=False)
     stop = {"n": 0}
 
     def stop_after_40():

@@ -178,9 +178,9 @@ def validate_frames(frames: list[Frame]) -> None:
         R = cam.viewmat[:3, :3]
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
             raise SceneError(f"frame {f.id}: camera rotation is not a rotation matrix")
-    # Time must increase with the frame order within each physical camera.
+    # Time must not go backwards along the frame order within each physical camera.
     for cam_id in sorted({f.camera_id for f in frames}):
-        times = [f.time for f in frames if f.camera_id == cam_id]
-        if any(b < a for a, b in zip(times, times[1:])):
-            bad = next(i for i, (a, b) in enumerate(zip(times, times[1:])) if b < a)
-            raise SceneError(f"camera {cam_id}: time is not monotonic at its frame {bad + 1} ({times[bad]} -> {times[bad + 1]})")
+        seq = [f for f in frames if f.camera_id == cam_id]
+        for a, b in zip(seq, seq[1:]):
+            if b.time < a.time:
+                raise SceneError(f"camera {cam_id}: time goes backwards at frame {b.id} ({a.time} after {a.id} -> {b.time})")

@@ -7,7 +7,6 @@ import math
 import random
 import time
 import traceback
-from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -19,7 +18,7 @@ from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
 from ..losses import photometric_loss, psnr
 from ..model.deformation import TimeNoise
-from ..model.dynamic import GaussiansAt, KinematicsGS, split_counts
+from ..model.dynamic import KinematicsGS, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
 from ..model.render import render_model
 from ..render.types import Rendered

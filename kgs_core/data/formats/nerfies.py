@@ -94,7 +94,8 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
             exposure=float(m.get("exposure", 0.0)), split=split, camera_id=int(m.get("camera_id", 0)),
             sharp_path=extra("sharp", ".png"), mask_path=extra("mask", ".png"), motion_path=extra("motion", ".npy"),
         ))
-    frames.sort(key=lambda f: (f.camera_id, f.time, f.id))
+    # `ids` is the capture order: a time that goes backwards along it is an error (raised by
+    # Scene's validation, prefixed with the file that holds the times below).
 
     points, colors = np.zeros((0, 3)), np.zeros((0, 3))
     if (root / "points.npy").is_file():
@@ -115,8 +116,11 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
         sc = read_json(root / "scene.json")
         norm = Normalization(center=np.asarray(sc.get("center", [0, 0, 0]), float), scale=float(sc.get("scale", 1.0)))
     extras = read_json(root / "kgs.json") if (root / "kgs.json").is_file() else {}
-    return Scene(name=root.name, root=root, frames=frames, points=points, point_colors=colors,
-                 normalization=norm, source_format="nerfies", extras=extras)
+    try:
+        return Scene(name=root.name, root=root, frames=frames, points=points, point_colors=colors,
+                     normalization=norm, source_format="nerfies", extras=extras)
+    except SceneError as exc:
+        raise SceneError(f"{meta_path}: {exc}") from None
 
 
 def camera_json(cam: Camera) -> dict:
