@@ -16,6 +16,9 @@ import math
 from typing import Callable
 
 import numpy as np
+import torch
+
+from ...render.camera import look_at as render_look_at
 
 from .raytrace import Box, DieTexture, Ellipsoid, Object, Plane, Sheet, Texture, World
 
@@ -167,16 +170,9 @@ def build_world(name: str, seed: int) -> World:
 # ---------------------------------------------------------------- cameras
 
 
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+def look_at(eye, target) -> np.ndarray:
     """World-to-camera (OpenCV axes) for a camera at `eye` looking at `target`, world z up."""
-    eye, target, up = (np.asarray(v, dtype=float) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return rigid(R, -R @ eye)
+    return render_look_at(eye, target, up=(0.0, 0.0, 1.0), dtype=torch.float64).numpy()
 
 
 def shaky_training_camera(seed: int, shake_deg: float = 0.6) -> Callable[[float], np.ndarray]:
