@@ -100,6 +100,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """Per-frame .ply / .splat, a .splatv, an mp4 or a .glb of ellipsoids from a run."""
+    from kgs_core.export import export_run
+
+    res = export_run(args.run, args.format, out=args.out, times=args.times, camera_path=args.camera_path,
+                     exposure=args.exposure, lod=args.lod, side_by_side=args.side_by_side, fps=args.fps,
+                     overwrite=args.force)
+    rep = res.report
+    print(f"wrote {res.path} ({len(res.files)} file{'s' if len(res.files) != 1 else ''}, "
+          f"{rep['gaussians']:,} Gaussians, LoD {rep['lod']})")
+    if "note" in rep:
+        print(rep["note"])
+    if "fit" in rep:
+        f = rep["fit"]
+        print(f"splatv motion fit over {f['dynamic']:,} dynamic Gaussians: position RMS {f['position_rms']:.2e} "
+              f"({f['position_rms_rel']:.2%} of the scene extent), max {f['position_max']:.2e}; covariance "
+              f"relative error mean {f['covariance_rel_mean']:.3f}, max {f['covariance_rel_max']:.3f}")
+    return 0
+
+
 def cmd_build_ext(args: argparse.Namespace) -> int:
     """Compile (or find cached) the C++ rasteriser and print where it lives."""
     from kgs_core.render import _ext
@@ -175,6 +195,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
     p.set_defaults(func=cmd_eval)
+
+    from kgs_core.export import FORMATS
+
+    p = sub.add_parser("export", help="export a run: per-frame .ply/.splat, .splatv, mp4 video, .glb ellipsoids")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("--out", help="output file or folder (default: RUN/exports/...)")
+    p.add_argument("--times", help="T, T1,T2,... or START:STOP:COUNT in [0, 1] (default: the training frames' times)")
+    p.add_argument("--camera-path", default="training", help="mp4: training, orbit or a keyframe JSON file")
+    p.add_argument("--exposure", type=float, default=0.0, help="shutter fraction to bake in (0 = sharp)")
+    p.add_argument("--lod", type=int, help="LoD level (default: the finest)")
+    p.add_argument("--side-by-side", action="store_true", help="mp4: the input frame beside each render")
+    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--force", action="store_true", help="replace an existing output")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("build-ext", help="compile the C++ CPU rasteriser (cached after the first time)")
     p.add_argument("--verbose", action="store_true")

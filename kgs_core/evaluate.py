@@ -102,7 +102,7 @@ def render_fps(model: KinematicsGS, frame: Frame, dt: float, repeats: int = 5) -
 
 def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> dict:
     run: LoadedRun = load_run(run_dir)
-    scene = load_scene(scene_dir or run.info["scene"])
+    scene = load_scene(scene_dir or run.scene_path())
     lp_model, lp_note = lpips_status()
     metrics = evaluate_model(run.model, scene, lp_model)
     frame = (scene.test_frames or scene.train_frames)[0]

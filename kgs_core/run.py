@@ -64,6 +64,22 @@ class LoadedRun:
     levels: list[dict]  # LoD snapshots, coarse to fine; the model itself is the finest
 
     @property
+    def static_only(self) -> bool:
+        """Trained without deformation (`--ablate deform`): render the canonical Gaussians."""
+        return "deform" in (self.info.get("config", {}).get("ablate") or ())
+
+    def scene_path(self) -> Path:
+        """The training scene: as recorded, else relative to the run's workspace (runs written
+        before paths were stored absolute, or a workspace that moved)."""
+        recorded = Path(self.info.get("scene", ""))
+        candidates = [recorded] if recorded.is_absolute() else [recorded, self.path.parent.parent.parent / recorded,
+                                                                self.path.parent.parent / "scenes" / recorded.name]
+        for c in candidates:
+            if (c / "scene.json").is_file() or c.is_dir():
+                return c
+        raise RunError(f"{self.path}/run.json: scene {recorded} not found (pass the scene folder explicitly)")
+
+    @property
     def n_levels(self) -> int:
         return len(self.levels) + 1
 

@@ -13,3 +13,35 @@ def ext():
     from kgs_core.render import _ext
 
     return _ext.load()
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """A small trained run (synthetic 'bounce', 48 px, 8 frames, 150 iterations, two LoD
+    levels, decomposed) shared by the export, server and viewer tests. Read-only: tests that
+    write edits copy it first (`copy_run`)."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.synth.generate import synthesize
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import train
+
+    root = tmp_path_factory.mktemp("tiny_run")
+    scene_dir = synthesize("bounce", root / "scenes" / "bounce", blur="mild", size=48, frames=8, subframes=4,
+                           progress=False)
+    cfg = make_config("fast", iterations=150, eval_every=50, checkpoint_every=1000, densify_from=30,
+                      densify_every=30, densify_until=120, decompose_at=60, decompose_every=0, opacity_reset_at=(),
+                      lod_fractions=(0.5, 1.0), lod_levels=2, lod_importance_views=2, init_points=1500,
+                      max_gaussians=4000, **{"model.tau": 5e-7})
+    run_dir = root / "runs" / "bounce-tiny"
+    train(load_scene(scene_dir), run_dir, cfg, progress=False)
+    return run_dir
+
+
+@pytest.fixture
+def copy_run(tiny_run, tmp_path):
+    """A private copy of `tiny_run` (with its scene) that a test may modify."""
+    import shutil
+
+    dst = tmp_path / "ws"
+    shutil.copytree(tiny_run.parent.parent, dst)
+    return dst / "runs" / tiny_run.name

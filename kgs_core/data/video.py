@@ -77,6 +77,7 @@ def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, pro
                     container.mux(packet)
             for packet in stream.encode():
                 container.mux(packet)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; results are meant to be shared
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

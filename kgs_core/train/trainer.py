@@ -303,7 +303,7 @@ class Trainer:
             self.restore(ckpts[-1])
         else:
             self.init_model()
-        info = {"status": "training", "scene": str(self.scene.root), "scene_name": self.scene.name,
+        info = {"status": "training", "scene": str(Path(self.scene.root).resolve()), "scene_name": self.scene.name,
                 "config": cfg.to_dict(), "normalization": self.scene.normalization.to_dict(),
                 "exposure": self.scene.exposure, "dt": self.scene.dt,
                 "frames": len(self.scene.frames), "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height]}

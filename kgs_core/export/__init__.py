@@ -1,0 +1,140 @@
+"""`kgs-app export`: a run as standard files.
+
+| format  | output                                   | reader                      |
+| ------- | ---------------------------------------- | --------------------------- |
+| ply-seq | folder of 3DGS `.ply`, one per time      | any 3DGS viewer, plyfile    |
+| splat   | folder of antimatter15 `.splat`, one per time | antimatter15/splat      |
+| splatv  | one splaTV `.splatv` (fitted motion)     | antimatter15/splaTV         |
+| mp4     | video along a camera path                | any player                  |
+| glb     | velocity-aligned ellipsoids at one time  | Blender, three.js, trimesh  |
+
+Every export honours the run's edit layer (`RUN/edits.json`), writes to a temporary path renamed
+into place, and writes `export.json` (what was exported, and the splatv fit error). A run that
+does not move (no dynamic Gaussians, or a static ablation) exports one frame, not N copies.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..data.formats import load_scene
+from ..io import atomic_directory, atomic_write_text
+from .bake import ExportSource, bake, open_source, parse_times
+
+FORMATS = ("ply-seq", "splat", "splatv", "mp4", "glb")
+SUFFIX = {"splatv": ".splatv", "mp4": ".mp4", "glb": ".glb"}
+
+
+@dataclass
+class ExportResult:
+    path: Path
+    files: list[Path]
+    report: dict = field(default_factory=dict)
+
+
+def _scene_frames(source: ExportSource, required: bool):
+    try:
+        return load_scene(source.run.scene_path()).train_frames
+    except Exception as exc:
+        if required:
+            raise ValueError(f"this export needs the run's training scene: {exc}") from None
+        return []
+
+
+def default_times(source: ExportSource, frames) -> list[float]:
+    if frames:
+        return sorted({f.time for f in frames})
+    n = int(source.run.info.get("frames", 30))
+    return np.linspace(0, 1, max(n, 2)).tolist()
+
+
+def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, times: str | None = None,
+               camera_path: str = "training", exposure: float = 0.0, lod: int | None = None,
+               side_by_side: bool = False, fps: float = 24.0, overwrite: bool = False,
+               progress: bool = True) -> ExportResult:
+    if fmt not in FORMATS:
+        raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if not (0.0 <= exposure <= 1.0):
+        raise ValueError(f"--exposure must be in [0, 1] (fraction of the frame interval), got {exposure}")
+    if not (0 < fps <= 240):
+        raise ValueError(f"--fps must be in (0, 240], got {fps}")
+    source = open_source(run_dir, lod)
+    if not source.keep.any():
+        raise ValueError("nothing to export: the edit layer removes every Gaussian")
+    run_dir = Path(run_dir)
+    name = f"{fmt}_lod{source.lod}" + (f"_exp{exposure:g}" if exposure else "")
+    out = Path(out) if out else run_dir / "exports" / (name + SUFFIX.get(fmt, ""))
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists (pass --force to replace it)")
+    report = {"format": fmt, "run": str(run_dir), "lod": source.lod, "exposure": exposure,
+              "gaussians": int(source.keep.sum()), "edited_out": int((~source.keep).sum()), "moves": source.moves}
+
+    if fmt in ("ply-seq", "splat"):
+        from .ply import write_ply
+        from .splat import write_splat
+
+        frames = _scene_frames(source, required=False) if times is None else []
+        ts = parse_times(times, default_times(source, frames))
+        if not source.moves:
+            report["note"] = f"the run does not move: one frame written instead of {len(ts)} identical ones"
+            ts = ts[:1]
+        writer, ext = (write_ply, ".ply") if fmt == "ply-seq" else (write_splat, ".splat")
+        files = []
+        with atomic_directory(out, overwrite=overwrite) as tmp:
+            from tqdm import tqdm
+
+            for i, t in enumerate(tqdm(ts, desc=f"export {fmt}", disable=not progress, unit="frame")):
+                fname = f"frame_{i:05d}{ext}"
+                writer(tmp / fname, bake(source, t, exposure))
+                files.append(fname)
+            report["frames"] = [{"file": f, "time": t} for f, t in zip(files, ts)]
+            atomic_write_text(tmp / "export.json", json.dumps(report, indent=1))
+        return ExportResult(out, [out / f for f in files], report)
+
+    if fmt == "splatv":
+        from .splatv import fit_splatv, splatv_cameras, write_splatv
+
+        frames = _scene_frames(source, required=False)
+        ts = parse_times(times, default_times(source, frames))
+        if len(ts) < 4 and source.moves:
+            ts = np.linspace(min(ts), max(ts), 32).tolist() if max(ts) > min(ts) else np.linspace(0, 1, 32).tolist()
+        words, fit = fit_splatv(source, ts, exposure, progress)
+        write_splatv(out, words, splatv_cameras(frames))
+        report["fit"] = fit.to_dict()
+    elif fmt == "glb":
+        from .glb import write_glb
+
+        ts = parse_times(times, [0.5])
+        if len(ts) != 1:
+            raise ValueError("--format glb exports one time: pass --times T")
+        report["time"] = ts[0]
+        report.update(write_glb(out, bake(source, ts[0], exposure)))
+    else:  # mp4
+        from .camera_path import keyframe_path, orbit_path, training_path
+        from .video import render_path, write_video
+
+        if camera_path == "training":
+            frames = _scene_frames(source, required=True)
+            steps = training_path(frames, None if times is None else parse_times(times, []))
+        elif camera_path == "orbit":
+            frames = _scene_frames(source, required=True)
+            centre = np.median(source.model.params.means.detach().numpy()[source.keep], axis=0)
+            steps = orbit_path(frames, centre, parse_times(times, np.linspace(0, 1, 120).tolist()))
+        else:
+            if times is not None:
+                raise ValueError("--times cannot be combined with a keyframe file (its keyframes carry the times)")
+            if side_by_side:
+                raise ValueError("--side-by-side needs --camera-path training")
+            steps = keyframe_path(camera_path)
+        if side_by_side and camera_path != "training":
+            raise ValueError("--side-by-side needs --camera-path training")
+        images = render_path(source, steps, exposure, side_by_side, progress=progress)
+        write_video(out, images, fps, progress)
+        report.update({"camera_path": camera_path, "frames": len(images), "fps": fps,
+                       "times": [s.time for s in steps][:1000]})
+    atomic_write_text(out.with_name(out.name + ".json"), json.dumps(report, indent=1))
+    return ExportResult(out, [out], report)

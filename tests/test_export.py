@@ -1,0 +1,241 @@
+"""Exports read back by independent readers: plyfile for .ply, the byte layout for .splat and
+.splatv (parsed here with struct/numpy, not with our writer's code), PyAV for mp4, trimesh for
+.glb. The edit layer is honoured, a run that does not move exports one frame, bad arguments
+fail clearly."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from kgs_app.cli import main as cli
+from kgs_core.edits import EditLayer, save_edits
+from kgs_core.export import export_run
+from kgs_core.export.bake import bake, open_source, parse_times, scales_quats_from_covars
+
+
+def quat_rotmat(q):
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
+
+
+def cov_from(scales, quats):
+    M = quat_rotmat(quats) * scales[:, None, :]
+    return M @ M.transpose(0, 2, 1)
+
+
+def rel_err(a, b):
+    return np.linalg.norm(a - b, axis=(1, 2)) / np.linalg.norm(b, axis=(1, 2))
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(-4, 2), st.floats(0, 4))
+def test_covariance_fit_is_exact(seed, log_scale, log_aniso):
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(16, 4))
+    s = 10.0 ** (log_scale + rng.uniform(0, log_aniso, size=(16, 3)))
+    cov = cov_from(s, q)
+    s2, q2 = scales_quats_from_covars(cov)
+    assert np.all(q2[:, 0] >= 0) and np.allclose(np.linalg.norm(q2, axis=1), 1)
+    assert rel_err(cov_from(s2, q2), cov).max() < 1e-9
+
+
+def test_ply_sequence_reads_back_with_plyfile(tiny_run, tmp_path):
+    from plyfile import PlyData
+
+    res = export_run(tiny_run, "ply-seq", out=tmp_path / "ply", times="0:1:3", progress=False)
+    assert len(res.files) == 3
+    src = open_source(tiny_run)
+    for f, t in zip(res.files, [0.0, 0.5, 1.0]):
+        v = PlyData.read(str(f))["vertex"]
+        names = [p.name for p in v.properties]
+        k = (src.sh_degree + 1) ** 2
+        assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                         + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+                         + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+        g = bake(src, t)
+        assert len(v) == len(g)
+        xyz = np.stack([v["x"], v["y"], v["z"]], 1)
+        np.testing.assert_allclose(xyz, g.means, atol=1e-6)
+        s = np.exp(np.stack([v[f"scale_{i}"] for i in range(3)], 1).astype(np.float64))
+        q = np.stack([v[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
+        assert rel_err(cov_from(s, q), g.covars).max() < 1e-4  # float32 storage
+        np.testing.assert_allclose(1 / (1 + np.exp(-v["opacity"])), g.opacities, atol=1e-5)
+        np.testing.assert_allclose(np.stack([v[f"f_dc_{i}"] for i in range(3)], 1), g.sh[:, 0], atol=1e-6)
+        # f_rest is channel-major: coefficient j of channel c at c * (k - 1) + j.
+        np.testing.assert_allclose(v["f_rest_1"], g.sh[:, 2, 0], atol=1e-6)
+        np.testing.assert_allclose(v[f"f_rest_{k - 1}"], g.sh[:, 1, 1], atol=1e-6)
+    frames = json.loads((tmp_path / "ply" / "export.json").read_text())["frames"]
+    assert [f["time"] for f in frames] == [0.0, 0.5, 1.0]
+    # The dynamic Gaussians moved between the first and last frame, the static ones did not.
+    a, b = (PlyData.read(str(f))["vertex"] for f in (res.files[0], res.files[-1]))
+    dyn = bake(src, 0.0).dynamic
+    moved = np.hypot(a["x"] - b["x"], a["y"] - b["y"])
+    assert dyn.any() and (~dyn).any()
+    assert moved[~dyn].max() == 0 and moved[dyn].max() > 1e-4
+
+
+def test_splat_byte_layout(tiny_run, tmp_path):
+    res = export_run(tiny_run, "splat", out=tmp_path / "splat", times="0.25", progress=False)
+    data = res.files[0].read_bytes()
+    g = bake(open_source(tiny_run), 0.25)
+    assert len(data) == 32 * len(g)
+    rec = np.frombuffer(data, dtype=[("p", "<f4", 3), ("s", "<f4", 3), ("c", "u1", 4), ("r", "u1", 4)])
+    vol = rec["s"].astype(np.float64).prod(1)
+    a = rec["c"][:, 3].astype(np.float64)
+    # Largest volume x opacity first (opacity is known to within half a quantisation step).
+    assert np.all(vol[1:] * (a[1:] - 0.5) / 255 <= vol[:-1] * (a[:-1] + 0.5) / 255 * (1 + 1e-6))
+    # The same set of Gaussians: match by position.
+    order = np.lexsort(rec["p"].T)
+    ref = np.lexsort(g.means.T)
+    np.testing.assert_allclose(rec["p"][order], g.means[ref], atol=1e-6)
+    q = (rec["r"][order].astype(np.float64) - 128) / 128
+    cov = cov_from(rec["s"][order].astype(np.float64), q)
+    assert np.median(rel_err(cov, g.covars[ref])) < 0.05  # 8-bit quaternions
+    np.testing.assert_allclose(rec["c"][order, 3] / 255, g.opacities[ref], atol=1 / 255)
+
+
+def test_splatv_container_and_fit(tiny_run, tmp_path):
+    out = tmp_path / "m.splatv"
+    res = export_run(tiny_run, "splatv", out=out, times="0:1:9", progress=False)
+    data = out.read_bytes()
+    magic, n = struct.unpack_from("<II", data, 0)
+    assert magic == 0x674B
+    header = json.loads(data[8:8 + n])
+    chunk = header[0]
+    assert chunk["type"] == "splat" and chunk["texwidth"] == 4096
+    assert chunk["size"] == chunk["texheight"] * 4096 * 4 * 4 == len(data) - 8 - n
+    words = np.frombuffer(data, dtype="<u4", offset=8 + n).reshape(-1, 16)
+    src = open_source(tiny_run)
+    g = bake(src, 0.5)
+    count = chunk["count"]
+    assert count == len(g) and not words[count:].any()
+    pos = words[:count, :3].copy().view(np.float32)
+    half = lambda w, hi: ((w >> 16) if hi else (w & 0xFFFF)).astype(np.uint16).view(np.float16).astype(np.float64)
+    # Static Gaussians: their position, no motion.
+    st_ = ~g.dynamic
+    np.testing.assert_allclose(pos[st_], g.means[st_], atol=1e-6)
+    assert not words[:count][st_, 8:15].any() or np.all(half(words[:count][st_, 8:13], 0) == 0)
+    # Dynamic Gaussians at t = 0.25 (between fitted samples): the player's cubic vs our field.
+    t = 0.25
+    dt = t - half(words[:count, 15], 0)
+    m = np.stack([half(words[:count, 8 + i // 2], i % 2) for i in range(9)], 1)
+    p = pos + m[:, 0:3] * dt[:, None] + m[:, 3:6] * dt[:, None] ** 2 + m[:, 6:9] * dt[:, None] ** 3
+    ref = bake(src, t).means
+    err = np.linalg.norm(p - ref, axis=1)[g.dynamic]
+    fit = res.report["fit"]
+    assert err.max() <= fit["position_max"] * 1.001 + 1e-7
+    extent = np.linalg.norm(g.means.max(0) - g.means.min(0))
+    assert fit["position_rms_rel"] < 0.05 and np.sqrt((err**2).mean()) < 0.05 * extent
+    assert 0 <= fit["covariance_rel_mean"] < 1
+    assert json.loads(out.with_name(out.name + ".json").read_text())["fit"] == fit
+
+
+def test_mp4_training_path_and_side_by_side(tiny_run, tmp_path):
+    import av
+
+    res = export_run(tiny_run, "mp4", out=tmp_path / "v.mp4", side_by_side=True, progress=False)
+    with av.open(str(res.path)) as c:
+        frames = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+    n_train = res.report["frames"]
+    assert len(frames) == n_train == 8
+    assert frames[0].shape == (48, 96, 3)
+    # Left half (the input) and right half (the render) both show the scene.
+    assert frames[0][:, :48].std() > 5 and frames[0][:, 48:].std() > 5
+    res = export_run(tiny_run, "mp4", out=tmp_path / "o.mp4", camera_path="orbit", times="0:1:6", progress=False)
+    with av.open(str(res.path)) as c:
+        orbit = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+    assert len(orbit) == 6 and np.abs(orbit[0].astype(int) - orbit[3].astype(int)).mean() > 3
+    keys = tmp_path / "path.json"
+    keys.write_text(json.dumps({"width": 64, "height": 32, "frames": 4, "keyframes": [
+        {"time": 0, "eye": [0, -3, 1], "target": [0, 0, 0], "up": [0, 0, 1]},
+        {"time": 1, "eye": [3, 0, 1], "target": [0, 0, 0], "up": [0, 0, 1]}]}))
+    res = export_run(tiny_run, "mp4", out=tmp_path / "k.mp4", camera_path=str(keys), progress=False)
+    assert res.report["times"] == [0.0, 1 / 3, 2 / 3, 1.0]
+
+
+def test_glb_ellipsoids_read_by_trimesh(tiny_run, tmp_path):
+    import trimesh
+
+    res = export_run(tiny_run, "glb", out=tmp_path / "e.glb", times="0.5", progress=False)
+    scene = trimesh.load(str(res.path), force="scene")
+    g = bake(open_source(tiny_run), 0.5)
+    counts = res.report["ellipsoids"]
+    assert counts["dynamic"] == g.dynamic.sum() and counts["static"] == (~g.dynamic).sum()
+    meshes = {name: geom for name, geom in scene.geometry.items()}
+    assert set(meshes) == {"static", "dynamic"}
+    verts_per = len(trimesh.creation.icosphere(subdivisions=1).vertices)
+    assert len(meshes["dynamic"].vertices) == verts_per * counts["dynamic"]
+    # Colours differ between the sets.
+    assert not np.array_equal(meshes["static"].visual.vertex_colors[0], meshes["dynamic"].visual.vertex_colors[0])
+    # Each ellipsoid's vertex cloud has the baked covariance's spread (2 sigma).
+    first = meshes["dynamic"].vertices[:verts_per]
+    np.testing.assert_allclose(first.mean(0), g.means[g.dynamic][0], atol=1e-5)
+
+
+def test_edits_are_honoured_and_static_exports_one_frame(copy_run, tmp_path):
+    src = open_source(copy_run)
+    n = len(src.model)
+    dyn = src.model.dynamic.numpy()
+    layer = EditLayer()
+    layer.level(src.lod).deleted.update([0, 1, 2])
+    layer.level(src.lod).hidden.add(3)
+    save_edits(copy_run, layer)
+    res = export_run(copy_run, "splat", out=tmp_path / "a", times="0", progress=False)
+    assert res.files[0].stat().st_size == 32 * (n - 4)
+    # Delete every dynamic Gaussian: nothing moves, so one frame, not five.
+    layer.level(src.lod).deleted.update(np.nonzero(dyn)[0].tolist())
+    save_edits(copy_run, layer)
+    res = export_run(copy_run, "ply-seq", out=tmp_path / "b", times="0:1:5", progress=False)
+    assert len(res.files) == 1 and "one frame" in res.report["note"]
+    # A crop box around nothing: a clear error.
+    layer.crop_min, layer.crop_max = np.full(3, 50.0), np.full(3, 51.0)
+    save_edits(copy_run, layer)
+    with pytest.raises(ValueError, match="edit layer removes every Gaussian"):
+        export_run(copy_run, "glb", out=tmp_path / "c.glb", progress=False)
+    (copy_run / "edits.json").write_text('{"levels": {"2": {"deleted": [999999]}}}')
+    with pytest.raises(ValueError, match="outside"):
+        export_run(copy_run, "splat", out=tmp_path / "d", progress=False)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--format", "obj"], "invalid choice"),
+    (["--format", "splat", "--times", "0,2"], "must lie in [0, 1]"),
+    (["--format", "splat", "--times", "a:b"], "START:STOP:COUNT"),
+    (["--format", "glb", "--times", "0,1"], "one time"),
+    (["--format", "mp4", "--exposure", "3"], "--exposure"),
+    (["--format", "splat", "--lod", "9"], "LoD level must be in"),
+    (["--format", "mp4", "--camera-path", "nope.json"], "not found"),
+])
+def test_bad_export_arguments(tiny_run, tmp_path, capsys, argv, message):
+    try:
+        rc = cli(["export", str(tiny_run), "--out", str(tmp_path / "x"), *argv])
+    except SystemExit as exc:  # argparse choices
+        rc = exc.code
+    assert rc == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_existing_output_needs_force(tiny_run, tmp_path, capsys):
+    out = tmp_path / "s"
+    assert cli(["export", str(tiny_run), "--format", "splat", "--times", "0", "--out", str(out)]) == 0
+    assert cli(["export", str(tiny_run), "--format", "splat", "--times", "0", "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert cli(["export", str(tiny_run), "--format", "splat", "--times", "0", "--out", str(out), "--force"]) == 0
+
+
+def test_parse_times():
+    assert parse_times(None, [0.1]) == [0.1]
+    assert parse_times("0:1:3", []) == [0.0, 0.5, 1.0]
+    assert parse_times("0.2,0.4", []) == [0.2, 0.4]
+    with pytest.raises(ValueError):
+        parse_times("0:1:0", [])
