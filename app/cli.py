@@ -120,6 +120,32 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Serve a workspace (runs, renders, splat streams) and the browser viewer."""
+    import secrets
+
+    from kgs_backend.main import serve
+    from kgs_backend.settings import Settings
+
+    settings = Settings(workspace=Path(args.workspace), host=args.host, port=args.port, token=args.token,
+                        cors_origins=args.cors or [], max_upload_mb=args.max_upload_mb,
+                        register=[Path(p) for p in args.paths])
+    if not settings.loopback and not settings.token:
+        settings.token = secrets.token_urlsafe(24)
+        print(f"binding {args.host} (not loopback): access token required, generated: {settings.token}")
+    if args.demo:
+        from kgs_backend.jobs import JobRunner
+        from kgs_backend.registry import Workspace
+        from kgs_backend.routers.system import start_demo
+
+        ws = Workspace(settings.workspace)
+        if not ws.list("runs"):
+            print("empty workspace: synthesizing the demo scene and training the fast preset (watch it in the browser)")
+            settings.start_demo = lambda app: start_demo(app.state.ws, app.state.jobs)
+    serve(settings)
+    return 0
+
+
 def cmd_build_ext(args: argparse.Namespace) -> int:
     """Compile (or find cached) the C++ rasteriser and print where it lives."""
     from kgs_core.render import _ext
@@ -210,6 +236,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=24.0)
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("serve", help="serve runs to the browser viewer: REST, WebSocket splat streams, live tau")
+    p.add_argument("paths", nargs="*", help="scene folders or run directories to add to the workspace")
+    p.add_argument("--workspace", default="workspace", help="workspace folder (created if missing)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind; anything but loopback needs a token")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--token", help="access token for the API (generated when binding beyond loopback)")
+    p.add_argument("--cors", action="append", metavar="ORIGIN", help="allow this browser origin (CORS is off by default)")
+    p.add_argument("--max-upload-mb", type=int, default=512)
+    p.add_argument("--demo", action="store_true", help="in an empty workspace, make and train the demo scene")
+    p.set_defaults(func=cmd_serve)
 
     p = sub.add_parser("build-ext", help="compile the C++ CPU rasteriser (cached after the first time)")
     p.add_argument("--verbose", action="store_true")

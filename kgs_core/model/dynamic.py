@@ -171,34 +171,52 @@ class KinematicsGS(nn.Module):
         means = p.means
         velocity = torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
-        if not self.decomposed:
-            idx = torch.arange(n)
-        else:
-            idx = torch.nonzero(self.dynamic).squeeze(1)
+        idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         if len(idx):
-            x_t, off = self.positions(idx, t, noise)
-            cov_pred = covars[idx]
-            if self.config.kinematic and self.decomposed:
-                v = self.velocity(idx, t, off, dt, exposure, noise)
-                speed = safe_norm(v)
-                R = quat_to_rotmat(p.quats[idx])
-                r_z = torch.gather(R, 2, scales[idx].argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
-                cov_dyn = refine_covariance(
-                    cov_pred, v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa, speed * dt,
-                    basis=self.config.basis, lambda_s=self.config.lambda_s, still_len=self.config.still_len)
-                velocity = velocity.index_put((idx,), v.detach())
-            else:
-                # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
-                R = quat_to_rotmat(p.quats[idx]) @ so3_exp(off.dr)
-                s = scales[idx] * torch.exp(self.config.lambda_s * off.ds)
-                M = R * s[:, None, :]
-                cov_dyn = M @ M.transpose(-1, -2)
+            x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], covars[idx])
             means = means.index_put((idx,), x_t)
             covars = covars.index_put((idx,), cov_dyn)
-            dx_all = dx_all.index_put((idx,), off.dx)
+            velocity = velocity.index_put((idx,), v.detach())
+            dx_all = dx_all.index_put((idx,), dx)
         return GaussiansAt(means=means, covars=covars, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocity, offsets_dx=dx_all)
+
+    def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0) -> tuple[Tensor, GaussiansAt]:
+        """Only the dynamic Gaussians at time `t` (what changes when a viewer scrubs time):
+        `(idx (D,), GaussiansAt of D)`; the static ones are `at_static()` restricted to the rest."""
+        p = self.params
+        idx = torch.arange(len(p)) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
+        scales = self.scales()[idx]
+        covars = covariance_from_quat_scale(p.quats[idx], scales)
+        if len(idx):
+            x_t, covars, v, dx = self._deform(idx, t, exposure, dt, 0.0, scales, covars)
+        else:
+            x_t, v, dx = p.means[idx], torch.zeros(0, 3), torch.zeros(0, 3)
+        return idx, GaussiansAt(means=x_t, covars=covars, opacities=p.opacities[idx], sh=p.sh()[idx],
+                                dynamic=torch.ones(len(idx), dtype=torch.bool), velocity=v.detach(), offsets_dx=dx)
+
+    def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
+                cov_pred: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Deformed positions, covariances, velocities and offsets `dx` of the Gaussians `idx`."""
+        p = self.params
+        x_t, off = self.positions(idx, t, noise)
+        if self.config.kinematic and self.decomposed:
+            v = self.velocity(idx, t, off, dt, exposure, noise)
+            speed = safe_norm(v)
+            R = quat_to_rotmat(p.quats[idx])
+            r_z = torch.gather(R, 2, scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
+            cov = refine_covariance(
+                cov_pred, v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa, speed * dt,
+                basis=self.config.basis, lambda_s=self.config.lambda_s, still_len=self.config.still_len)
+        else:
+            # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
+            v = torch.zeros_like(x_t)
+            R = quat_to_rotmat(p.quats[idx]) @ so3_exp(off.dr)
+            s = scales * torch.exp(self.config.lambda_s * off.ds)
+            M = R * s[:, None, :]
+            cov = M @ M.transpose(-1, -2)
+        return x_t, cov, v, off.dx
 
     def at_static(self) -> GaussiansAt:
         """The canonical Gaussians, no deformation (the static 3DGS baseline)."""

@@ -80,10 +80,11 @@ def check_finite(it: int, **tensors) -> None:
 
 class Trainer:
     def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
-                 on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None):
+                 on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
+                 on_step: Callable[[int, float], None] | None = None):
         self.scene, self.cfg = scene, cfg
         self.run_dir = Path(run_dir)
-        self.progress, self.on_log, self.should_stop = progress, on_log, should_stop
+        self.progress, self.on_log, self.should_stop, self.on_step = progress, on_log, should_stop, on_step
         self.background = torch.zeros(3)
         self.cache = ImageCache()
         self.eval_set = evaluation_frames(scene, cfg.eval_frames)
@@ -331,6 +332,8 @@ class Trainer:
                                     dynamic=f"{row['dynamic_share']:.0%}")
                 if self.iteration % cfg.checkpoint_every == 0:
                     self.checkpoint()
+                if self.on_step:
+                    self.on_step(self.iteration, loss)
                 bar.update(1)
         except Exception as exc:
             atomic_write_text(self.run_dir / "error.txt", f"{type(exc).__name__}: {exc}\n\n{traceback.format_exc()}")

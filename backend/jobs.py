@@ -1,0 +1,116 @@
+"""Starting, watching and cancelling job processes (`kgs_backend.worker`).
+
+A job is a registry row (a scene, run or export) with `status` queued → running → done | failed
+| cancelled, the `pid` of its process and, on failure, the error. A watcher thread per job
+waits for the process and records how it ended; at start-up `recover` marks jobs whose process
+is gone as `interrupted` (a training run keeps its checkpoints and can be resumed).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from .registry import Workspace
+
+
+def pid_alive(pid: int | None) -> bool:
+    if not pid:
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    try:  # a zombie child of ours counts as gone
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        return done == 0
+    except ChildProcessError:
+        return True
+
+
+class JobRunner:
+    def __init__(self, ws: Workspace):
+        self.ws = ws
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, table: str, id_: str, kind: str, spec: dict, on_done=None) -> None:
+        log = open(self.ws.root / "jobs" / f"{id_}.log", "ab")
+        proc = subprocess.Popen([sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec)],
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        log.close()
+        self.procs[id_] = proc
+        self.ws.update(table, id_, status="running", pid=proc.pid, error=None)
+        threading.Thread(target=self._watch, args=(table, id_, proc, on_done), daemon=True).start()
+
+    def _watch(self, table: str, id_: str, proc: subprocess.Popen, on_done) -> None:
+        rc = proc.wait()
+        self.procs.pop(id_, None)
+        row = self.ws.get(table, id_)
+        if row is None:  # deleted meanwhile
+            return
+        if row["status"] == "cancelling":
+            status, error = "cancelled", None
+        elif rc == 0:
+            status, error = "done", None
+        else:
+            status, error = "failed", self.last_error(id_) or f"job process exited with code {rc}"
+        self.ws.update(table, id_, status=status, error=error, pid=None)
+        if on_done:
+            on_done(status)
+
+    def last_error(self, id_: str) -> str | None:
+        """The last exception line of the job's log (what a user needs first)."""
+        path = self.ws.root / "jobs" / f"{id_}.log"
+        if not path.is_file():
+            return None
+        lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+        for ln in reversed(lines):
+            if ln and not ln.startswith(" ") and ("Error" in ln or "Exception" in ln):
+                return ln[-2000:]
+        return lines[-1][-2000:] if lines else None
+
+    def cancel(self, table: str, id_: str) -> bool:
+        row = self.ws.get(table, id_)
+        if row is None or row["status"] not in ("queued", "running") or not pid_alive(row["pid"]):
+            return False
+        self.ws.update(table, id_, status="cancelling")
+        try:
+            os.kill(row["pid"], signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        return True
+
+    def recover(self) -> None:
+        """After a server restart: jobs whose process survived keep running (watched by polling);
+        the others are marked interrupted."""
+        for table in ("scenes", "runs", "exports"):
+            for row in self.ws.list(table):
+                if row["status"] in ("queued", "running", "cancelling"):
+                    if pid_alive(row["pid"]):
+                        threading.Thread(target=self._poll_foreign, args=(table, row["id"], row["pid"]),
+                                         daemon=True).start()
+                    else:
+                        self.ws.update(table, row["id"], status="interrupted", pid=None,
+                                       error="the server stopped while this job ran; its last checkpoint is kept")
+
+    def _poll_foreign(self, table: str, id_: str, pid: int) -> None:
+        import time
+
+        while pid_alive(pid):
+            time.sleep(1.0)
+        row = self.ws.get(table, id_)
+        if row and table == "runs":
+            info_path = Path(row["path"]) / "run.json"
+            status = json.loads(info_path.read_text()).get("status") if info_path.is_file() else "failed"
+            self.ws.update(table, id_, status={"training": "interrupted"}.get(status, status), pid=None)
+        elif row:
+            self.ws.update(table, id_, status="interrupted", pid=None)
+
+    def shutdown(self) -> None:
+        """Leave training jobs running (they survive a server restart); nothing to do."""

@@ -1,0 +1,123 @@
+"""The FastAPI application behind `kgs-app serve`.
+
+`create_app(settings)` builds the app (routers under `/api`, the browser client at `/`, OpenAPI
+docs at `/docs`); `serve(settings)` runs it with uvicorn. Heavy work never runs on the event
+loop: renders and splat buffers go to the thread pool, training/ingest/export jobs to their own
+processes (`kgs_backend.worker`).
+"""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import Depends, FastAPI
+from fastapi.staticfiles import StaticFiles
+
+from .jobs import JobRunner
+from .registry import Workspace
+from .routers import exports, renders, runs, scenes, stream, system
+from .security import require_token
+from .settings import Settings
+from .splats import RunViews
+
+FRONTEND = Path(__file__).resolve().parent.parent / "frontend"
+
+
+def register_existing(ws: Workspace, extra: list[Path]) -> list[str]:
+    """Adds scene folders and run directories not yet in the registry: everything under the
+    workspace's scenes/ and runs/ (e.g. made by `kgs-app demo`) and the paths given on the
+    command line. Returns the ids of the command-line paths."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.run import RunError, load_run
+
+    ids = []
+
+    def add_scene(path: Path) -> str | None:
+        row = ws.find_path("scenes", path)
+        if row:
+            return row["id"]
+        try:
+            scene = load_scene(path)
+        except ValueError:
+            return None
+        return ws.insert("scenes", name=scene.name or path.name, path=str(path.resolve()), source="path",
+                         status="done")["id"]
+
+    def add_run(path: Path) -> str | None:
+        row = ws.find_path("runs", path)
+        if row:
+            return row["id"]
+        if not (path / "run.json").is_file():
+            return None
+        try:
+            run = load_run(path)
+            scene_id = add_scene(run.scene_path())
+        except (RunError, ValueError):
+            run, scene_id = None, None
+        status = run.info.get("status", "done") if run else "failed"
+        return ws.insert("runs", scene_id=scene_id, name=path.name, path=str(path.resolve()), status=status,
+                         error=None if run else "cannot load the run")["id"]
+
+    for p in sorted((ws.root / "scenes").iterdir()):
+        if p.is_dir() and not p.name.startswith("."):
+            add_scene(p)
+    for p in sorted((ws.root / "runs").iterdir()):
+        if p.is_dir() and not p.name.startswith(".") and (p / "model.pt").is_file():
+            add_run(p)
+    for p in extra:
+        p = Path(p)
+        if not p.exists():
+            raise FileNotFoundError(f"serve: {p} does not exist")
+        rid = add_run(p) if (p / "run.json").is_file() else add_scene(p)
+        if rid is None:
+            raise ValueError(f"serve: {p} is neither a run directory nor a readable scene folder")
+        ids.append(rid)
+    return ids
+
+
+def create_app(settings: Settings) -> FastAPI:
+    ws = Workspace(settings.workspace)
+    job_runner = JobRunner(ws)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        job_runner.recover()
+        if settings.start_demo:
+            settings.start_demo(app)
+        yield
+        job_runner.shutdown()
+
+    app = FastAPI(title="Kinematics-GS", summary="Dynamic Gaussians from blurry video: runs, renders, streams.",
+                  lifespan=lifespan)
+    app.state.settings = settings
+    app.state.ws = ws
+    app.state.jobs = job_runner
+    app.state.views = RunViews()
+    app.state.hub = stream.Hub()
+    app.state.registered = register_existing(ws, settings.register)
+    guard = [Depends(require_token)]
+    for r in (system.router, scenes.router, runs.router, renders.router, exports.router):
+        app.include_router(r, dependencies=guard)
+    app.include_router(stream.router)  # checks the token itself (WebSocket)
+    if settings.cors_origins:
+        from fastapi.middleware.cors import CORSMiddleware
+
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
+                           allow_headers=["*"])
+    if FRONTEND.is_dir():
+        app.mount("/", StaticFiles(directory=FRONTEND, html=True), name="frontend")
+    return app
+
+
+def serve(settings: Settings) -> None:
+    import uvicorn
+
+    app = create_app(settings)
+    host = f"[{settings.host}]" if ":" in settings.host else settings.host
+    url = f"http://{host}:{settings.port}/"
+    if settings.token:
+        url += f"?token={settings.token}"
+    print(f"Kinematics-GS serving workspace {app.state.ws.root}\n  open {url}\n  API docs http://{host}:{settings.port}/docs",
+          flush=True)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets")

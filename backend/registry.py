@@ -1,0 +1,119 @@
+"""The workspace: a folder plus a SQLite registry of scenes, runs and exports.
+
+```
+WORKSPACE/
+  workspace.db        the registry (this module)
+  scenes/<id>/        scene folders (synthesized, ingested, uploaded)
+  runs/<id>/          run directories (kgs_core.run), one per training job
+  exports/<id>/       export outputs
+  jobs/<id>.log       stdout/stderr of each job process
+```
+
+Resources are addressed by registry ids (12 hex digits), never by paths: a client cannot make
+the server read or write outside the workspace. Paths passed to `kgs-app serve PATH...` are
+registered at start-up (scene folders and run directories).
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS scenes (
+  id TEXT PRIMARY KEY, name TEXT NOT NULL, path TEXT NOT NULL UNIQUE, source TEXT NOT NULL,
+  status TEXT NOT NULL, error TEXT, created REAL NOT NULL, pid INTEGER);
+CREATE TABLE IF NOT EXISTS runs (
+  id TEXT PRIMARY KEY, scene_id TEXT, name TEXT NOT NULL, path TEXT NOT NULL UNIQUE, status TEXT NOT NULL,
+  error TEXT, params TEXT NOT NULL DEFAULT '{}', created REAL NOT NULL, pid INTEGER);
+CREATE TABLE IF NOT EXISTS exports (
+  id TEXT PRIMARY KEY, run_id TEXT NOT NULL, format TEXT NOT NULL, path TEXT NOT NULL, status TEXT NOT NULL,
+  error TEXT, params TEXT NOT NULL DEFAULT '{}', created REAL NOT NULL, pid INTEGER);
+"""
+
+TABLES = ("scenes", "runs", "exports")
+ACTIVE = ("queued", "running")
+
+
+def new_id() -> str:
+    return uuid.uuid4().hex[:12]
+
+
+@dataclass
+class Workspace:
+    root: Path
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root).resolve()
+        for sub in ("scenes", "runs", "exports", "jobs"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        with self._connect() as db:
+            db.executescript(SCHEMA)
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.root / "workspace.db", timeout=30)
+        db.row_factory = sqlite3.Row
+        return db
+
+    # ------------------------------------------------------------ generic rows
+
+    def insert(self, table: str, **row) -> dict:
+        assert table in TABLES
+        row.setdefault("id", new_id())
+        row.setdefault("created", time.time())
+        if "params" in row and not isinstance(row["params"], str):
+            row["params"] = json.dumps(row["params"])
+        cols = ", ".join(row)
+        with self._lock, self._connect() as db:
+            db.execute(f"INSERT INTO {table} ({cols}) VALUES ({', '.join('?' * len(row))})", tuple(row.values()))
+        return self.get(table, row["id"])
+
+    def get(self, table: str, id_: str) -> dict | None:
+        assert table in TABLES
+        with self._connect() as db:
+            r = db.execute(f"SELECT * FROM {table} WHERE id = ?", (id_,)).fetchone()
+        return _row(r)
+
+    def find_path(self, table: str, path: Path) -> dict | None:
+        with self._connect() as db:
+            r = db.execute(f"SELECT * FROM {table} WHERE path = ?", (str(Path(path).resolve()),)).fetchone()
+        return _row(r)
+
+    def list(self, table: str, **where) -> list[dict]:
+        assert table in TABLES
+        q, args = f"SELECT * FROM {table}", ()
+        if where:
+            q += " WHERE " + " AND ".join(f"{k} = ?" for k in where)
+            args = tuple(where.values())
+        with self._connect() as db:
+            return [_row(r) for r in db.execute(q + " ORDER BY created", args).fetchall()]
+
+    def update(self, table: str, id_: str, **fields) -> None:
+        assert table in TABLES
+        if "params" in fields and not isinstance(fields["params"], str):
+            fields["params"] = json.dumps(fields["params"])
+        with self._lock, self._connect() as db:
+            db.execute(f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?",
+                       (*fields.values(), id_))
+
+    def delete(self, table: str, id_: str) -> None:
+        with self._lock, self._connect() as db:
+            db.execute(f"DELETE FROM {table} WHERE id = ?", (id_,))
+
+    def new_dir(self, kind: str, id_: str) -> Path:
+        return self.root / kind / id_
+
+
+def _row(r) -> dict | None:
+    if r is None:
+        return None
+    d = dict(r)
+    if "params" in d:
+        d["params"] = json.loads(d["params"] or "{}")
+    return d

@@ -1,0 +1,83 @@
+"""Exports as jobs: start one for a run, poll it, download the result (a folder comes zipped)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Literal
+
+from fastapi import APIRouter, Depends, HTTPException
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, Field
+
+from kgs_core.export import SUFFIX
+
+from ..deps import get_or_404, jobs, workspace
+from ..jobs import JobRunner
+from ..registry import Workspace, new_id
+
+router = APIRouter(tags=["exports"])
+
+
+class ExportRequest(BaseModel):
+    format: Literal["ply-seq", "splat", "splatv", "mp4", "glb"]
+    times: str | None = Field(None, max_length=10000, description="T, T1,T2,... or START:STOP:COUNT")
+    camera_path: Literal["training", "orbit"] = "training"
+    exposure: float = Field(0.0, ge=0, le=1)
+    lod: int | None = Field(None, ge=1)
+    side_by_side: bool = False
+
+
+def public(row: dict) -> dict:
+    return {k: row[k] for k in ("id", "run_id", "format", "status", "error", "created", "params")}
+
+
+@router.post("/api/runs/{run_id}/exports", status_code=202)
+def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(workspace),
+                 jr: JobRunner = Depends(jobs)) -> dict:
+    run = get_or_404(ws, "runs", run_id)
+    if not (Path(run["path"]) / "model.pt").is_file():
+        raise HTTPException(409, f"run {run_id} has no model yet (status: {run['status']})")
+    eid = new_id()
+    out = ws.new_dir("exports", eid) / (f"{req.format}{SUFFIX.get(req.format, '')}")
+    ws.insert("exports", id=eid, run_id=run_id, format=req.format, path=str(out), status="queued",
+              params=req.model_dump())
+    jr.start("exports", eid, "export", {"run_dir": run["path"], "out": str(out), **req.model_dump()})
+    return public(ws.get("exports", eid))
+
+
+@router.get("/api/runs/{run_id}/exports")
+def list_exports(run_id: str, ws: Workspace = Depends(workspace)) -> list[dict]:
+    get_or_404(ws, "runs", run_id)
+    return [public(r) for r in ws.list("exports", run_id=run_id)]
+
+
+@router.get("/api/exports/{export_id}")
+def get_export(export_id: str, ws: Workspace = Depends(workspace)) -> dict:
+    return public(get_or_404(ws, "exports", export_id))
+
+
+@router.get("/api/exports/{export_id}/download")
+def download(export_id: str, ws: Workspace = Depends(workspace)) -> FileResponse:
+    row = get_or_404(ws, "exports", export_id)
+    if row["status"] != "done":
+        raise HTTPException(409, f"export {export_id} is {row['status']}")
+    path = Path(row["path"])
+    if path.is_dir():
+        archive = path.with_suffix(".zip")
+        if not archive.is_file():
+            tmp = shutil.make_archive(str(path.parent / f".{path.name}.tmp"), "zip", root_dir=path)
+            Path(tmp).replace(archive)
+        path = archive
+    if not path.is_file():
+        raise HTTPException(410, "the export's files are gone")
+    return FileResponse(path, filename=f"{row['run_id']}-{path.name}", media_type="application/octet-stream")
+
+
+@router.delete("/api/exports/{export_id}", status_code=204)
+def delete_export(export_id: str, ws: Workspace = Depends(workspace)) -> None:
+    row = get_or_404(ws, "exports", export_id)
+    if row["status"] in ("queued", "running"):
+        raise HTTPException(409, "the export is still running")
+    shutil.rmtree(Path(row["path"]).parent, ignore_errors=True)
+    ws.delete("exports", export_id)

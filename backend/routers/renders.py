@@ -1,0 +1,105 @@
+"""Server-side renders with the CPU rasteriser: PNG/JPEG of a run at a camera, time, exposure,
+LoD and set (all, static, dynamic); input frames for side-by-side comparison."""
+
+from __future__ import annotations
+
+import io
+from dataclasses import replace
+from typing import Literal
+
+import numpy as np
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from kgs_core.data.scene import Camera
+
+from ..deps import run_view
+
+router = APIRouter(prefix="/api/runs", tags=["renders"])
+
+
+def _encode(img: np.ndarray, fmt: str) -> tuple[bytes, str]:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    im = Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8))
+    if fmt == "png":
+        im.save(buf, format="PNG")
+    else:
+        im.save(buf, format="JPEG", quality=90)
+    return buf.getvalue(), f"image/{fmt}"
+
+
+def camera_for(view, frame: int | None, viewmat: str | None, width: int | None, height: int | None,
+               fx: float | None) -> Camera:
+    from kgs_core.data.formats import load_scene
+
+    try:
+        frames = load_scene(view.run.scene_path()).frames
+    except ValueError as exc:
+        raise HTTPException(409, f"the run's scene is not available: {exc}") from None
+    base = frames[min(frame or 0, len(frames) - 1)].camera
+    if frame is not None and not 0 <= frame < len(frames):
+        raise HTTPException(422, f"frame must be in 0..{len(frames) - 1}")
+    cam = base
+    if viewmat is not None:
+        try:
+            vm = np.array([float(v) for v in viewmat.split(",")], dtype=np.float64).reshape(4, 4)
+        except ValueError:
+            raise HTTPException(422, "viewmat: 16 comma-separated numbers (row-major world-to-camera)") from None
+        R = vm[:3, :3]
+        if not (np.isfinite(vm).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-3)):
+            raise HTTPException(422, "viewmat: the rotation part is not a rotation")
+        cam = replace(cam, viewmat=vm)
+    if width or height:
+        w, h = width or cam.width, height or cam.height
+        K = cam.K.copy()
+        K[0] *= w / cam.width
+        K[1] *= h / cam.height
+        cam = replace(cam, K=K, width=w, height=h)
+    if fx:
+        K = cam.K.copy()
+        K[0, 0] = K[1, 1] = fx
+        cam = replace(cam, K=K)
+    return cam
+
+
+@router.get("/{run_id}/render", responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}})
+async def render(request: Request, run_id: str, t: float = Query(0.0, ge=0, le=1), exposure: float = Query(0.0, ge=0, le=1),
+                 lod: int | None = Query(None, ge=1), set: Literal["all", "static", "dynamic"] = "all",
+                 frame: int | None = Query(None, ge=0, description="the camera of this scene frame (default 0)"),
+                 viewmat: str | None = Query(None, description="16 numbers, row-major world-to-camera"),
+                 width: int | None = Query(None, ge=8, le=4096), height: int | None = Query(None, ge=8, le=4096),
+                 fx: float | None = Query(None, gt=0), format: Literal["png", "jpeg"] = "png",
+                 background: Literal["black", "white"] = "black") -> Response:
+    view = run_view(request.app, run_id)
+    if lod is not None and lod > view.run.n_levels:
+        raise HTTPException(422, f"lod must be in 1..{view.run.n_levels}")
+    cam = camera_for(view, frame, viewmat, width, height, fx)
+
+    def work():
+        from kgs_core.export.bake import render_baked
+
+        g, _ = view.baked(t, exposure, lod, set)
+        bg = np.ones(3) if background == "white" else np.zeros(3)
+        return render_baked(g, cam, view.run.model.config.sh_degree, bg).image.numpy()
+
+    data, media = _encode(await run_in_threadpool(work), format)
+    return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
+
+
+@router.get("/{run_id}/frames/{index}/image", responses={200: {"content": {"image/jpeg": {}}}})
+async def frame_image(request: Request, run_id: str, index: int, which: Literal["input", "sharp"] = "input") -> Response:
+    """An input frame of the run's scene (or its sharp ground truth, when the scene has one)."""
+    from kgs_core.data.formats import load_scene
+
+    view = run_view(request.app, run_id)
+    frames = load_scene(view.run.scene_path()).frames
+    if not 0 <= index < len(frames):
+        raise HTTPException(404, f"frame {index} not in 0..{len(frames) - 1}")
+    img = frames[index].image() if which == "input" else frames[index].sharp()
+    if img is None:
+        raise HTTPException(404, f"frame {index} has no sharp ground truth")
+    data, media = _encode(img, "jpeg")
+    return Response(data, media_type=media)

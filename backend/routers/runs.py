@@ -1,0 +1,182 @@
+"""Runs: list, start training, status and metadata, cancel, delete, live τ, edits, training log."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from fastapi import APIRouter, Depends, HTTPException, Request
+from pydantic import BaseModel, Field
+
+from kgs_core.run import read_log
+from kgs_core.train.config import ABLATIONS, PRESETS
+
+from ..deps import get_or_404, jobs, run_view, workspace
+from ..jobs import JobRunner
+from ..registry import Workspace, new_id
+
+router = APIRouter(prefix="/api/runs", tags=["runs"])
+
+
+class TrainRequest(BaseModel):
+    scene_id: str
+    name: str | None = Field(None, max_length=80)
+    preset: str = "fast"
+    iterations: int | None = Field(None, ge=1, le=1_000_000)
+    tau: float | None = Field(None, gt=0)
+    velocity: Literal["paper", "physical"] | None = None
+    ablate: list[str] = []
+    seed: int | None = None
+
+
+class TauRequest(BaseModel):
+    tau: float = Field(..., gt=0, description="dynamic when the temporal variance K exceeds tau")
+
+
+class EditRequest(BaseModel):
+    op: Literal["delete", "hide", "unhide", "restore", "crop", "clear"]
+    lod: int | None = None
+    indices: list[int] = Field([], max_length=5_000_000)
+    crop: dict | None = None
+
+
+def read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def public(row: dict) -> dict:
+    path = Path(row["path"])
+    info = read_json(path / "run.json")
+    out = {k: row[k] for k in ("id", "scene_id", "name", "status", "error", "created")}
+    out["progress"] = read_json(path / "progress.json") or None
+    out["has_model"] = (path / "model.pt").is_file()
+    for k in ("iteration", "train_seconds", "final_psnr_heldout", "gaussians", "dynamic_share", "lod_levels"):
+        if k in info:
+            out[k] = info[k]
+    return out
+
+
+@router.get("")
+def list_runs(ws: Workspace = Depends(workspace)) -> list[dict]:
+    return [public(r) for r in ws.list("runs")]
+
+
+@router.post("", status_code=202)
+def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
+    scene = get_or_404(ws, "scenes", req.scene_id)
+    if scene["status"] != "done":
+        raise HTTPException(409, f"scene {req.scene_id} is not ready (status: {scene['status']})")
+    if req.preset not in PRESETS:
+        raise HTTPException(422, f"unknown preset {req.preset!r}; one of {sorted(PRESETS)}")
+    bad = [a for a in req.ablate if a not in ABLATIONS]
+    if bad:
+        raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
+    overrides = {}
+    if req.iterations:
+        overrides["iterations"] = req.iterations
+    if req.tau:
+        overrides["model.tau"] = req.tau
+    if req.velocity:
+        overrides["model.velocity"] = req.velocity
+    if req.seed is not None:
+        overrides["seed"] = req.seed
+    rid = new_id()
+    run_dir = ws.new_dir("runs", rid)
+    row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",
+                    path=str(run_dir), status="queued", params=req.model_dump())
+    jr.start("runs", rid, "train", {"scene_dir": scene["path"], "run_dir": str(run_dir), "preset": req.preset,
+                                     "ablate": req.ablate, "overrides": overrides})
+    return public(ws.get("runs", row["id"]))
+
+
+@router.get("/{run_id}")
+def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -> dict:
+    """Status, and for a trained run: frames (time, camera), τ, K histogram, LoD levels, counts."""
+    row = get_or_404(ws, "runs", run_id)
+    out = public(row)
+    if not out["has_model"]:
+        return out
+    view = run_view(request.app, run_id)
+    out["tau"] = view.tau
+    out["split"] = view.split()
+    out["histogram"] = view.histogram()
+    out["lod_levels"] = view.run.n_levels
+    out["levels"] = [{"level": lvl, "gaussians": len(view.run.level(lvl))} for lvl in range(1, view.run.n_levels + 1)]
+    out["dt"] = view.dt
+    out["exposure"] = view.run.info.get("exposure", 0.0)
+    out["static_only"] = view.run.static_only
+    out["sh_degree"] = view.run.model.config.sh_degree
+    out["frames"] = frames_of(view)
+    out["edits"] = view.edits.to_dict()
+    return out
+
+
+def frames_of(view) -> list[dict]:
+    from kgs_core.data.formats import load_scene
+
+    try:
+        scene = load_scene(view.run.scene_path())
+    except ValueError:
+        return []
+    return [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
+             "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
+            for i, f in enumerate(scene.frames)]
+
+
+@router.get("/{run_id}/log")
+def get_log(run_id: str, ws: Workspace = Depends(workspace)) -> list[dict]:
+    row = get_or_404(ws, "runs", run_id)
+    rows = read_log(Path(row["path"]))
+    return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()} for r in rows]
+
+
+@router.post("/{run_id}/cancel")
+def cancel_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
+    get_or_404(ws, "runs", run_id)
+    if not jr.cancel("runs", run_id):
+        raise HTTPException(409, "the run is not training")
+    return public(ws.get("runs", run_id))
+
+
+@router.delete("/{run_id}", status_code=204)
+def delete_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -> None:
+    row = get_or_404(ws, "runs", run_id)
+    if row["status"] in ("queued", "running", "cancelling"):
+        raise HTTPException(409, "the run is training: cancel it first")
+    request.app.state.views.drop(run_id)
+    path = Path(row["path"])
+    if path.is_relative_to(ws.root):
+        shutil.rmtree(path, ignore_errors=True)
+    ws.delete("runs", run_id)
+
+
+@router.post("/{run_id}/tau")
+async def set_tau(run_id: str, req: TauRequest, request: Request) -> dict:
+    """Recomputes the static/dynamic split from the stored K (no retraining) and pushes the new
+    sets to every viewer subscribed to the run."""
+    view = run_view(request.app, run_id)
+    split = view.set_tau(req.tau)
+    await request.app.state.hub.broadcast(run_id, {"type": "split", **split})
+    return split
+
+
+@router.get("/{run_id}/edits")
+def get_edits(run_id: str, request: Request) -> dict:
+    return run_view(request.app, run_id).edits.to_dict()
+
+
+@router.post("/{run_id}/edits")
+async def edit(run_id: str, req: EditRequest, request: Request) -> dict:
+    view = run_view(request.app, run_id)
+    try:
+        split = view.apply_edit(req.op, req.lod, req.indices, req.crop)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    await request.app.state.hub.broadcast(run_id, {"type": "split", **split})
+    return split

@@ -1,0 +1,187 @@
+"""WebSocket `/api/runs/{id}/stream`: splat buffers for scrubbing, live τ, training progress.
+
+Client → server (JSON text):
+* `{"type": "subscribe", "lod": L | null, "velocity": true}`: send the static set (once), then
+  answer time requests with dynamic sets.
+* `{"type": "time", "t": 0.42, "exposure": 0, "seq": 17}`: the dynamic set at `t`. Requests that
+  arrive while one is being computed coalesce: only the latest is answered (its `seq` is echoed).
+* `{"type": "tau", "tau": 2e-5}`: recompute the split (every subscriber gets the new sets).
+
+Server → client: binary buffers (layout in `kgs_backend.splats`), and JSON text messages
+`{"type": "progress", …}` (while the run trains, once a second), `{"type": "status", …}`,
+`{"type": "split", …}` (after τ changes and edits) and `{"type": "error", "message": …}`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi.concurrency import run_in_threadpool
+
+from ..security import websocket_token_ok
+
+router = APIRouter(tags=["stream"])
+MAX_MESSAGE = 64 * 1024
+
+
+class Hub:
+    """Who watches which run, so τ changes and edits reach every viewer."""
+
+    def __init__(self):
+        self.subs: dict[str, set] = defaultdict(set)
+
+    async def broadcast(self, run_id: str, msg: dict) -> None:
+        for conn in list(self.subs.get(run_id, ())):
+            conn.notify(msg)
+
+
+class Connection:
+    def __init__(self, ws: WebSocket, run_id: str):
+        self.ws, self.run_id = ws, run_id
+        self.lod: int | None = None
+        self.velocity = True
+        self.subscribed = False
+        self.static_version = -1
+        self.pending: dict | None = None  # latest time request (coalesced)
+        self.last_time: dict | None = None
+        self.notes: list[dict] = []
+        self.wake = asyncio.Event()
+
+    def notify(self, msg: dict) -> None:
+        self.notes.append(msg)
+        if msg.get("type") == "split" and self.last_time is not None and self.pending is None:
+            self.pending = dict(self.last_time)  # the dynamic set changed: resend it
+        self.wake.set()
+
+
+def _error(message: str) -> dict:
+    return {"type": "error", "message": message}
+
+
+async def receiver(conn: Connection, app) -> None:
+    while True:
+        text = await conn.ws.receive_text()
+        if len(text) > MAX_MESSAGE:
+            conn.notify(_error(f"message larger than {MAX_MESSAGE} bytes ignored"))
+            continue
+        try:
+            msg = json.loads(text)
+            kind = msg["type"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            conn.notify(_error("expected a JSON object with a 'type'"))
+            continue
+        try:
+            if kind == "subscribe":
+                lod = msg.get("lod")
+                conn.lod = None if lod is None else int(lod)
+                conn.velocity = bool(msg.get("velocity", True))
+                conn.subscribed = True
+                conn.static_version = -1
+                conn.wake.set()
+            elif kind == "time":
+                t, exposure = float(msg["t"]), float(msg.get("exposure", 0.0))
+                if not (0 <= t <= 1 and 0 <= exposure <= 1) or math.isnan(t) or math.isnan(exposure):
+                    raise ValueError("t and exposure must lie in [0, 1]")
+                conn.pending = {"t": t, "exposure": exposure, "seq": msg.get("seq")}
+                conn.wake.set()
+            elif kind == "tau":
+                from ..deps import run_view
+
+                view = run_view(app, conn.run_id)
+                split = await run_in_threadpool(view.set_tau, float(msg["tau"]))
+                await app.state.hub.broadcast(conn.run_id, {"type": "split", **split})
+            elif kind == "ping":
+                conn.notify({"type": "pong"})
+            else:
+                conn.notify(_error(f"unknown message type {kind!r}"))
+        except (KeyError, TypeError, ValueError) as exc:
+            conn.notify(_error(f"bad {kind!r} message: {exc}"))
+        except Exception as exc:  # HTTPException from run_view (no model yet, ...)
+            conn.notify(_error(getattr(exc, "detail", str(exc))))
+
+
+async def sender(conn: Connection, app) -> None:
+    from ..deps import run_view
+
+    while True:
+        await conn.wake.wait()
+        conn.wake.clear()
+        while conn.notes:
+            await conn.ws.send_text(json.dumps(conn.notes.pop(0)))
+        if not conn.subscribed:
+            continue
+        try:
+            view = run_view(app, conn.run_id)
+        except Exception as exc:
+            conn.subscribed = False
+            await conn.ws.send_text(json.dumps(_error(getattr(exc, "detail", str(exc)))))
+            continue
+        if conn.static_version != view.version:
+            conn.static_version = view.version
+            await conn.ws.send_bytes(await run_in_threadpool(view.static_buffer, conn.lod))
+        if conn.pending is not None:
+            req, conn.pending = conn.pending, None
+            try:
+                buf = await run_in_threadpool(view.dynamic_buffer, req["t"], req["exposure"], conn.lod, conn.velocity)
+            except ValueError as exc:
+                await conn.ws.send_text(json.dumps(_error(str(exc))))
+                continue
+            conn.last_time = req
+            await conn.ws.send_bytes(buf)
+            if req.get("seq") is not None:
+                await conn.ws.send_text(json.dumps({"type": "answered", "seq": req["seq"], "t": req["t"]}))
+        if conn.pending is not None or conn.notes:
+            conn.wake.set()
+
+
+async def progress(conn: Connection, app) -> None:
+    """While the run trains: its progress once a second, then its final status."""
+    from .runs import public
+
+    last = None
+    while True:
+        row = app.state.ws.get("runs", conn.run_id)
+        if row is None:
+            conn.notify(_error("the run was deleted"))
+            return
+        info = public(row)
+        if info["status"] in ("queued", "running", "cancelling"):
+            if info["progress"] and info["progress"] != last:
+                last = info["progress"]
+                conn.notify({"type": "progress", **info["progress"]})
+        else:
+            conn.notify({"type": "status", "status": info["status"], "error": info["error"],
+                         "has_model": info["has_model"]})
+            return
+        await asyncio.sleep(1.0)
+
+
+@router.websocket("/api/runs/{run_id}/stream")
+async def stream(ws: WebSocket, run_id: str) -> None:
+    if not await websocket_token_ok(ws):
+        await ws.close(code=4401, reason="missing or wrong access token")
+        return
+    app = ws.app
+    if app.state.ws.get("runs", run_id) is None:
+        await ws.close(code=4404, reason=f"no run with id {run_id!r}")
+        return
+    await ws.accept()
+    conn = Connection(ws, run_id)
+    hub = app.state.hub
+    hub.subs[run_id].add(conn)
+    tasks = [asyncio.create_task(f(conn, app)) for f in (receiver, sender, progress)]
+    try:
+        done, _ = await asyncio.wait(tasks[:2], return_when=asyncio.FIRST_COMPLETED)
+        for t in done:
+            exc = t.exception()
+            if exc and not isinstance(exc, (WebSocketDisconnect, RuntimeError)):
+                raise exc
+    finally:
+        for t in tasks:
+            t.cancel()
+        hub.subs[run_id].discard(conn)

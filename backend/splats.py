@@ -1,0 +1,318 @@
+"""Loaded runs and the binary splat buffers the viewers draw.
+
+## Buffer layout (one WebSocket binary message, little-endian)
+
+| bytes        | content |
+| ------------ | ------- |
+| 0-3          | `KGS1` |
+| 4-7          | uint32 H: length of the JSON header (padded with spaces to a multiple of 4) |
+| 8 .. 8+H     | header: `{"kind": "static" | "dynamic", "count": N, "t": …, "lod": …, "cov_scale": s, "velocity": bool, "seq": …}` |
+| then N × 32  | records: position 3 × float32, covariance (xx, xy, xz, yy, yz, zz) 6 × float16 in units of `cov_scale`, RGBA 4 × uint8 (SH DC colour, opacity), index uint32 (the Gaussian's id within the LoD level, for selection and edits) |
+| then N × 6   | if `velocity`: velocity 3 × float16 (scene units per unit time), padded to a multiple of 4 |
+
+The static set is sent once per subscription (and again after a τ change or an edit); each time
+change sends only the dynamic set. Covariances are divided by `cov_scale` (the median of their
+traces / 3) so that float16 keeps its precision for small Gaussians.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import threading
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from kgs_core.edits import EditLayer, load_edits, save_edits
+from kgs_core.export.bake import Baked
+from kgs_core.model.dynamic import split_counts, variance_histogram
+from kgs_core.render.sh import C0
+from kgs_core.run import LoadedRun, load_run
+
+MAGIC = b"KGS1"
+RECORD = np.dtype([("position", "<f4", 3), ("covariance", "<f2", 6), ("rgba", "u1", 4), ("index", "<u4")])
+assert RECORD.itemsize == 32
+TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
+def pack_buffer(header: dict, means: np.ndarray, covars: np.ndarray, rgba: np.ndarray, index: np.ndarray,
+                velocity: np.ndarray | None = None) -> bytes:
+    n = len(means)
+    cov6 = covars[:, TRIU[0], TRIU[1]] if n else np.zeros((0, 6))
+    scale = float(np.median(cov6[:, [0, 3, 5]].sum(1) / 3)) if n else 1.0
+    scale = scale if scale > 0 and np.isfinite(scale) else 1.0
+    rec = np.empty(n, dtype=RECORD)
+    rec["position"] = means
+    rec["covariance"] = np.clip(cov6 / scale, -65504, 65504)
+    rec["rgba"] = rgba
+    rec["index"] = index
+    header = {**header, "count": n, "cov_scale": scale, "velocity": velocity is not None}
+    hj = json.dumps(header).encode()
+    hj += b" " * (-len(hj) % 4)
+    parts = [MAGIC, struct.pack("<I", len(hj)), hj, rec.tobytes()]
+    if velocity is not None:
+        v = np.clip(velocity, -65504, 65504).astype("<f2").tobytes()
+        parts.append(v + b"\0" * (-len(v) % 4))
+    return b"".join(parts)
+
+
+def unpack_buffer(data: bytes) -> tuple[dict, np.ndarray, np.ndarray | None]:
+    """(header, records, velocity or None): the reference reader of the layout above."""
+    if data[:4] != MAGIC:
+        raise ValueError("not a KGS1 splat buffer")
+    (h,) = struct.unpack_from("<I", data, 4)
+    header = json.loads(data[8:8 + h])
+    n = header["count"]
+    rec = np.frombuffer(data, dtype=RECORD, count=n, offset=8 + h)
+    vel = None
+    if header["velocity"]:
+        vel = np.frombuffer(data, dtype="<f2", count=3 * n, offset=8 + h + 32 * n).reshape(n, 3)
+    return header, rec, vel
+
+
+def rgba_of(sh: torch.Tensor, opacities: torch.Tensor) -> np.ndarray:
+    rgb = (0.5 + C0 * sh[:, 0, :]).clamp(0, 1)
+    return (torch.cat([rgb, opacities[:, None]], 1) * 255 + 0.5).to(torch.uint8).numpy()
+
+
+class Trajectories:
+    """The dynamic set sampled once per frame interval (positions, covariances, velocities), so
+    that a time change is a linear interpolation between two samples instead of three
+    deformation-field evaluations. Built in a background thread; exact evaluation answers until
+    it is ready. Covariances interpolate linearly (a convex combination of SPD matrices stays
+    SPD). The interpolation error is measured by `kgs-app bench serve` (docs/serve.md)."""
+
+    def __init__(self, view: "RunView", lod: int, version: int, exposure: float):
+        self.key = (lod, version, exposure)
+        self.view = view
+        self.ready = threading.Event()
+        self.failed: str | None = None
+        self.times = None
+        threading.Thread(target=self._build, daemon=True).start()
+
+    @torch.no_grad()
+    def _build(self) -> None:
+        lod, version, exposure = self.key
+        try:
+            m = self.view._models[lod]
+            n = max(2, int(round(1.0 / max(self.view.dt, 1e-3))) + 1)
+            times = np.linspace(0.0, 1.0, n)
+            means, covs, vels = [], [], []
+            for t in times:
+                if self.view.version != version:
+                    return  # superseded by a tau change or an edit
+                with self.view.lock:
+                    idx, g = m.at_dynamic(float(t), exposure, self.view.dt)
+                means.append(g.means.numpy())
+                covs.append(g.covars.numpy())
+                vels.append(g.velocity.numpy())
+            self.idx = idx.numpy()
+            self.means, self.covs, self.vels = np.stack(means), np.stack(covs), np.stack(vels)
+            self.rgba = rgba_of(g.sh, g.opacities)
+            self.times = times
+            self.ready.set()
+        except Exception as exc:  # keep serving exact evaluations
+            self.failed = f"{type(exc).__name__}: {exc}"
+
+    def at(self, t: float):
+        """(idx, means, covars, velocity, rgba) at `t` by linear interpolation."""
+        times = self.times
+        k = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+        w = float((t - times[k]) / (times[k + 1] - times[k]))
+        lerp = lambda a: (1 - w) * a[k] + w * a[k + 1]  # noqa: E731
+        return self.idx, lerp(self.means), lerp(self.covs), lerp(self.vels), self.rgba
+
+
+class RunView:
+    """One run loaded for viewing: the model at each LoD, the live τ and the edit layer.
+    Thread-safe (one lock): the server computes buffers in worker threads."""
+
+    def __init__(self, run_dir: Path):
+        self.run: LoadedRun = load_run(run_dir)
+        self.lock = threading.Lock()
+        self.edits: EditLayer = load_edits(run_dir)
+        self.tau = float(self.run.model.config.tau)
+        self._models: dict[int, object] = {}
+        self._static: dict[tuple, bytes] = {}
+        self._trajectories: dict[tuple, Trajectories] = {}
+        self.use_trajectories = True  # False: always evaluate the deformation field exactly
+        self.version = 0  # bumped by τ changes and edits: clients re-request the static set
+
+    @property
+    def dt(self) -> float:
+        return float(self.run.info.get("dt", 1.0))
+
+    def model(self, lod: int | None):
+        lod = self.run.n_levels if lod is None else int(lod)
+        if lod not in self._models:
+            m = self.run.level(lod)
+            if m.decomposed and float(m.config.tau) != self.tau:
+                m.decompose(self.tau, recompute=False)
+            self._models[lod] = m
+        return lod, self._models[lod]
+
+    def keep(self, lod: int, model) -> np.ndarray:
+        return self.edits.keep_mask(lod, model.params.means.detach().numpy())
+
+    def _dynamic_mask(self, model) -> np.ndarray:
+        if self.run.static_only:
+            return np.zeros(len(model), dtype=bool)
+        return model.dynamic.numpy() if model.decomposed else np.ones(len(model), dtype=bool)
+
+    # ------------------------------------------------------------ buffers
+
+    @torch.no_grad()
+    def static_buffer(self, lod: int | None = None) -> bytes:
+        with self.lock:
+            lod, m = self.model(lod)
+            key = (lod, self.version)
+            if key not in self._static:
+                sel = ~self._dynamic_mask(m) & self.keep(lod, m)
+                g = m.at_static()
+                idx = torch.from_numpy(np.nonzero(sel)[0])
+                self._static[key] = pack_buffer(
+                    {"kind": "static", "lod": lod, "version": self.version},
+                    g.means[idx].numpy(), g.covars[idx].double().numpy(), rgba_of(g.sh[idx], g.opacities[idx]),
+                    idx.numpy().astype(np.uint32))
+            return self._static[key]
+
+    def trajectories(self, lod: int, exposure: float) -> Trajectories | None:
+        """The ready trajectory cache for (lod, exposure), starting its build if needed."""
+        key = (lod, self.version, round(float(exposure), 6))
+        tr = self._trajectories.get(key)
+        if tr is None:
+            self._trajectories = {k: v for k, v in self._trajectories.items() if k[1] == self.version}
+            tr = self._trajectories[key] = Trajectories(self, lod, self.version, key[2])
+        return tr if tr.ready.is_set() else None
+
+    @torch.no_grad()
+    def dynamic_buffer(self, t: float, exposure: float = 0.0, lod: int | None = None, velocity: bool = True,
+                       exact: bool = False) -> bytes:
+        """The dynamic set at `t`: interpolated from the trajectory cache when it is ready (and
+        `exact` is not asked for), else evaluated exactly."""
+        with self.lock:
+            lod, m = self.model(lod)
+        header = {"kind": "dynamic", "lod": lod, "t": t, "exposure": exposure, "version": self.version}
+        keep = self.keep(lod, m)
+        if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
+            return pack_buffer(header, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 4)), np.zeros(0),
+                               np.zeros((0, 3)) if velocity else None)
+        tr = None if (exact or not self.use_trajectories) else self.trajectories(lod, exposure)
+        if tr is not None:
+            idx, means, covs, vels, rgba = tr.at(float(t))
+            header["interpolated"] = True
+        else:
+            with self.lock:
+                idx_t, g = m.at_dynamic(float(t), exposure, self.dt)
+            idx, means, covs, vels = idx_t.numpy(), g.means.numpy(), g.covars.numpy(), g.velocity.numpy()
+            rgba = rgba_of(g.sh, g.opacities)
+            header["interpolated"] = False
+        sel = keep[idx]
+        return pack_buffer(header, means[sel], covs[sel], rgba[sel], idx[sel].astype(np.uint32),
+                           vels[sel] if velocity else None)
+
+    @torch.no_grad()
+    def baked(self, t: float, exposure: float = 0.0, lod: int | None = None, subset: str = "all") -> tuple[Baked, int]:
+        """All kept Gaussians at `t` (for server-side renders), optionally only one set."""
+        with self.lock:
+            lod, m = self.model(lod)
+            keep = self.keep(lod, m)
+            g = m.at_static() if self.run.static_only else m.at(float(t), exposure=exposure, dt=self.dt)
+            dyn = self._dynamic_mask(m)
+            sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
+            s = torch.from_numpy(sel)
+            return Baked(means=g.means[s].numpy(), covars=g.covars[s].double().numpy(),
+                         opacities=g.opacities[s].numpy(), sh=g.sh[s].numpy(), dynamic=dyn[sel],
+                         velocity=g.velocity[s].numpy() if g.velocity is not None else np.zeros((int(sel.sum()), 3)),
+                         index=np.nonzero(sel)[0]), lod
+
+    # ------------------------------------------------------------ live decomposition and edits
+
+    def set_tau(self, tau: float) -> dict:
+        if not (tau > 0 and np.isfinite(tau)):
+            raise ValueError(f"tau must be a positive number, got {tau}")
+        with self.lock:
+            self.tau = float(tau)
+            for m in self._models.values():
+                if m.decomposed:
+                    m.decompose(self.tau, recompute=False)
+            self._invalidate()
+        return self.split()
+
+    def split(self, lod: int | None = None) -> dict:
+        with self.lock:
+            lod, m = self.model(lod)
+            counts = split_counts(m)
+            keep = self.keep(lod, m)
+            dyn = self._dynamic_mask(m)
+            return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()),
+                    "dynamic_kept": int((dyn & keep).sum()), "static_kept": int((~dyn & keep).sum()),
+                    "version": self.version}
+
+    def histogram(self, lod: int | None = None) -> dict:
+        with self.lock:
+            _, m = self.model(lod)
+            return variance_histogram(m.variance.numpy())
+
+    def apply_edit(self, op: str, lod: int | None, indices: list[int] | None = None,
+                   crop: dict | None = None) -> dict:
+        with self.lock:
+            lod, m = self.model(lod)
+            n = len(m)
+            e = self.edits.level(lod)
+            ids = [int(i) for i in (indices or [])]
+            bad = [i for i in ids if not 0 <= i < n]
+            if bad:
+                raise ValueError(f"indices {bad[:5]} outside 0..{n - 1} for LoD {lod}")
+            if op == "delete":
+                e.deleted.update(ids)
+            elif op == "hide":
+                e.hidden.update(ids)
+            elif op == "unhide":
+                e.hidden.difference_update(ids) if ids else e.hidden.clear()
+            elif op == "restore":
+                e.deleted.difference_update(ids) if ids else e.deleted.clear()
+            elif op == "crop":
+                layer = EditLayer.from_dict({"crop": crop}, "crop")
+                self.edits.crop_min, self.edits.crop_max = layer.crop_min, layer.crop_max
+            elif op == "clear":
+                self.edits = EditLayer()
+            else:
+                raise ValueError(f"unknown edit op {op!r} (delete, hide, unhide, restore, crop, clear)")
+            save_edits(self.run.path, self.edits)
+            self._invalidate()
+        return self.split(lod)
+
+    def _invalidate(self) -> None:
+        self.version += 1
+        self._static.clear()
+        self._trajectories.clear()
+
+
+class RunViews:
+    """A small LRU of loaded runs (models are tens of MB)."""
+
+    def __init__(self, capacity: int = 4):
+        self.capacity = capacity
+        self.views: OrderedDict[str, RunView] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, run_id: str, run_dir: Path) -> RunView:
+        with self.lock:
+            v = self.views.get(run_id)
+            if v is not None:
+                self.views.move_to_end(run_id)
+                return v
+        v = RunView(run_dir)  # outside the lock: loading takes a moment
+        with self.lock:
+            self.views[run_id] = v
+            while len(self.views) > self.capacity:
+                self.views.popitem(last=False)
+        return v
+
+    def drop(self, run_id: str) -> None:
+        with self.lock:
+            self.views.pop(run_id, None)

@@ -1,0 +1,90 @@
+"""The job process: `python -m kgs_backend.worker KIND SPEC_JSON`.
+
+Every long job (synthesize, ingest, train, export) runs here, in its own process, so that a
+crash or a cancel never takes the server down and training survives a client (or server)
+restart. Progress goes to files the server polls: training writes `progress.json` in the run
+directory (plus the run's own log.csv/run.json); other jobs only succeed or fail. SIGTERM asks
+the job to stop: training then saves a checkpoint and the model as they are ("cancelled").
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+STOP = False
+
+
+def _on_term(signum, frame) -> None:
+    global STOP
+    STOP = True
+
+
+def run_train(spec: dict) -> None:
+    from kgs_core.data.formats import load_scene
+    from kgs_core.io import atomic_write_text
+    from kgs_core.model.dynamic import split_counts
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import Trainer
+
+    run_dir = Path(spec["run_dir"])
+    overrides = dict(spec.get("overrides") or {})
+    cfg = make_config(spec.get("preset", "fast"), ablate=tuple(spec.get("ablate") or ()), **overrides)
+    scene = load_scene(spec["scene_dir"])
+    t0 = time.time()
+    state = {"last": 0.0, "psnr": None}
+
+    def on_log(row: dict) -> None:
+        state["psnr"] = row.get("psnr_heldout")
+
+    def on_step(it: int, loss: float) -> None:
+        now = time.time()
+        if now - state["last"] < 0.5 and it < cfg.iterations:
+            return
+        state["last"] = now
+        counts = split_counts(trainer.model)
+        atomic_write_text(run_dir / "progress.json", json.dumps({
+            "iteration": it, "iterations": cfg.iterations, "loss": loss, "psnr_heldout": state["psnr"],
+            "elapsed": now - t0, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}))
+
+    trainer = Trainer(scene, run_dir, cfg, progress=False, on_log=on_log, should_stop=lambda: STOP, on_step=on_step)
+    trainer.run(resume=bool(spec.get("resume")))
+
+
+def run_synth(spec: dict) -> None:
+    from kgs_core.data.synth.generate import synthesize
+
+    synthesize(spec["name"], spec["out"], blur=spec.get("blur", "mild"), size=int(spec.get("size", 128)),
+               frames=int(spec.get("frames", 60)), subframes=int(spec.get("subframes", 16)), progress=False,
+               overwrite=True)
+
+
+def run_ingest(spec: dict) -> None:
+    from kgs_core.data.ingest import ingest
+
+    ingest(spec["video"], spec["out"], max_size=int(spec.get("max_size", 960)), overwrite=True)
+
+
+def run_export(spec: dict) -> None:
+    from kgs_core.export import export_run
+
+    export_run(spec["run_dir"], spec["format"], out=spec["out"], times=spec.get("times"),
+               camera_path=spec.get("camera_path", "training"), exposure=float(spec.get("exposure", 0.0)),
+               lod=spec.get("lod"), side_by_side=bool(spec.get("side_by_side")), overwrite=True, progress=False)
+
+
+JOBS = {"train": run_train, "synth": run_synth, "ingest": run_ingest, "export": run_export}
+
+
+def main(argv: list[str]) -> int:
+    signal.signal(signal.SIGTERM, _on_term)
+    kind, spec = argv[0], json.loads(argv[1])
+    JOBS[kind](spec)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

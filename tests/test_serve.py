@@ -1,0 +1,287 @@
+"""`kgs-app serve`: HTTP and WebSocket tests against the real FastAPI app (TestClient runs it
+in-process; training and export jobs run as real worker processes)."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from PIL import Image
+from starlette.websockets import WebSocketDisconnect
+
+from kgs_backend.main import create_app
+from kgs_backend.settings import Settings
+from kgs_backend.splats import unpack_buffer
+
+
+@pytest.fixture
+def ws_dir(tmp_path):
+    return tmp_path / "workspace"
+
+
+@pytest.fixture
+def client(ws_dir, copy_run):
+    app = create_app(Settings(workspace=ws_dir, register=[copy_run], max_upload_mb=1))
+    with TestClient(app) as c:
+        c.run_id = app.state.registered[0]
+        c.app_ = app
+        yield c
+
+
+def recv_bytes(w, texts: list | None = None) -> bytes:
+    while True:
+        m = w.receive()
+        if m.get("bytes") is not None:
+            return m["bytes"]
+        if m.get("type") == "websocket.close":
+            raise WebSocketDisconnect(m.get("code", 1000))
+        if texts is not None:
+            texts.append(json.loads(m["text"]))
+
+
+def recv_json_until(w, kind: str, texts: list | None = None) -> dict:
+    while True:
+        m = w.receive()
+        if m.get("text"):
+            msg = json.loads(m["text"])
+            if msg["type"] == kind:
+                return msg
+        elif texts is not None:
+            texts.append(m["bytes"])
+
+
+def wait_status(c, path: str, done=("done", "failed", "cancelled", "interrupted"), timeout=240) -> dict:
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        row = c.get(path).json()
+        if row["status"] in done:
+            return row
+        time.sleep(0.5)
+    raise AssertionError(f"{path} still {row['status']} after {timeout} s")
+
+
+def test_system_docs_and_run_metadata(client):
+    assert client.get("/api/system").json()["runs"] == 1
+    assert "/api/runs/{run_id}/render" in client.get("/openapi.json").json()["paths"]
+    runs = client.get("/api/runs").json()
+    assert [r["id"] for r in runs] == [client.run_id] and runs[0]["has_model"]
+    meta = client.get(f"/api/runs/{client.run_id}").json()
+    assert meta["lod_levels"] == 2 and len(meta["levels"]) == 2
+    assert len(meta["frames"]) >= 8 and all(0 <= f["time"] <= 1 for f in meta["frames"])
+    assert sum(meta["histogram"]["counts"]) == meta["split"]["gaussians"]
+    assert meta["split"]["dynamic"] + meta["split"]["static"] == meta["split"]["gaussians"]
+    assert 0 < meta["split"]["dynamic"] < meta["split"]["gaussians"]
+    assert meta["tau"] > 0
+
+
+def test_render_png_sets_and_bad_parameters(client):
+    rid = client.run_id
+    r = client.get(f"/api/runs/{rid}/render", params={"t": 0.5})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    full = np.asarray(Image.open(io.BytesIO(r.content)))
+    assert full.shape == (48, 48, 3) and full.std() > 5
+    stat = np.asarray(Image.open(io.BytesIO(client.get(f"/api/runs/{rid}/render", params={"t": 0.5, "set": "static"}).content)))
+    dyn = np.asarray(Image.open(io.BytesIO(client.get(f"/api/runs/{rid}/render", params={"t": 0.5, "set": "dynamic"}).content)))
+    assert np.abs(stat.astype(int) - full).mean() > 0.5 and np.abs(dyn.astype(int) - full).mean() > 0.5
+    big = client.get(f"/api/runs/{rid}/render", params={"t": 0.5, "width": 96, "height": 64, "format": "jpeg"})
+    assert np.asarray(Image.open(io.BytesIO(big.content))).shape == (64, 96, 3)
+    for params in ({"t": 2}, {"set": "moving"}, {"lod": 0}, {"viewmat": "1,2,3"}, {"frame": 10_000}, {"width": 100000}):
+        assert client.get(f"/api/runs/{rid}/render", params=params).status_code == 422, params
+    assert client.get("/api/runs/nope/render").status_code == 404
+    assert client.get(f"/api/runs/{rid}/frames/0/image").headers["content-type"] == "image/jpeg"
+    assert client.get(f"/api/runs/{rid}/frames/999/image").status_code == 404
+
+
+def test_stream_static_once_then_dynamic_and_coalescing(client):
+    rid = client.run_id
+    meta = client.get(f"/api/runs/{rid}").json()
+    with client.websocket_connect(f"/api/runs/{rid}/stream") as w:
+        w.send_json({"type": "subscribe", "velocity": True})
+        h, rec, _ = unpack_buffer(recv_bytes(w))
+        assert h["kind"] == "static" and h["count"] == meta["split"]["static_kept"]
+        assert len(set(rec["index"].tolist())) == len(rec)
+        w.send_json({"type": "time", "t": 0.0, "seq": 0})
+        h0, rec0, vel0 = unpack_buffer(recv_bytes(w))
+        assert h0["kind"] == "dynamic" and h0["count"] == meta["split"]["dynamic_kept"] and vel0.shape == (len(rec0), 3)
+        assert set(rec0["index"].tolist()).isdisjoint(rec["index"].tolist())
+        recv_json_until(w, "answered")
+        # A burst of scrub requests: the latest wins, the ones in between are dropped.
+        for i in range(1, 21):
+            w.send_json({"type": "time", "t": i / 20, "seq": i})
+        buffers = []
+        last = None
+        while last is None or last["seq"] != 20:
+            last = recv_json_until(w, "answered", buffers)
+        assert len(buffers) < 20
+        h1, rec1, _ = unpack_buffer(buffers[-1])
+        assert h1["t"] == 1.0
+        moved = np.linalg.norm(rec1["position"] - rec0["position"], axis=1)
+        assert moved.max() > 1e-3  # the dynamic set moves between t = 0 and t = 1
+        # Covariances survive the float16 packing: symmetric PSD diagonals.
+        cov = rec1["covariance"].astype(np.float64) * h1["cov_scale"]
+        assert np.all(cov[:, [0, 3, 5]] > 0)
+        # Malformed messages get an error and the socket stays usable.
+        w.send_text("{not json")
+        assert "JSON" in recv_json_until(w, "error")["message"]
+        w.send_json({"type": "time", "t": 7})
+        assert "[0, 1]" in recv_json_until(w, "error")["message"]
+        w.send_json({"type": "ping"})
+        recv_json_until(w, "pong")
+
+
+def test_live_tau_pushes_new_sets(client):
+    rid = client.run_id
+    before = client.get(f"/api/runs/{rid}").json()["split"]
+    with client.websocket_connect(f"/api/runs/{rid}/stream") as w:
+        w.send_json({"type": "subscribe"})
+        recv_bytes(w)
+        r = client.post(f"/api/runs/{rid}/tau", json={"tau": before["tau"] * 10})
+        after = r.json()
+        assert after["dynamic"] < before["dynamic"] and after["version"] == before["version"] + 1
+        split = recv_json_until(w, "split")
+        assert split["dynamic"] == after["dynamic"]
+        h, rec, _ = unpack_buffer(recv_bytes(w))
+        assert h["kind"] == "static" and h["count"] == after["static_kept"]
+        # tau over the socket too
+        w.send_json({"type": "tau", "tau": before["tau"]})
+        assert recv_json_until(w, "split")["dynamic"] == before["dynamic"]
+    assert client.post(f"/api/runs/{rid}/tau", json={"tau": -1}).status_code == 422
+    assert client.post(f"/api/runs/{rid}/tau", json={"tau": "x"}).status_code == 422
+    assert client.post(f"/api/runs/{rid}/tau", content=b"{oops", headers={"content-type": "application/json"}).status_code == 422
+
+
+def test_edits_change_sets_and_are_stored(client, copy_run):
+    rid = client.run_id
+    with client.websocket_connect(f"/api/runs/{rid}/stream") as w:
+        w.send_json({"type": "subscribe"})
+        _, rec, _ = unpack_buffer(recv_bytes(w))
+        victims = rec["index"][:5].tolist()
+        r = client.post(f"/api/runs/{rid}/edits", json={"op": "delete", "indices": victims})
+        assert r.status_code == 200 and r.json()["static_kept"] == len(rec) - 5
+        _, rec2, _ = unpack_buffer(recv_bytes(w))
+        assert len(rec2) == len(rec) - 5 and not set(victims) & set(rec2["index"].tolist())
+    stored = json.loads((copy_run / "edits.json").read_text())
+    assert sorted(stored["levels"]["2"]["deleted"]) == sorted(victims)
+    assert client.post(f"/api/runs/{rid}/edits", json={"op": "delete", "indices": [10**9]}).status_code == 422
+    assert client.post(f"/api/runs/{rid}/edits", json={"op": "explode"}).status_code == 422
+    assert client.post(f"/api/runs/{rid}/edits", json={"op": "restore"}).json()["kept"] == client.get(
+        f"/api/runs/{rid}").json()["split"]["gaussians"]
+
+
+def test_unknown_ids(client):
+    for path in ("/api/runs/abc", "/api/scenes/abc", "/api/exports/abc", "/api/exports/abc/download"):
+        assert client.get(path).status_code == 404, path
+    assert client.delete("/api/runs/abc").status_code == 404
+    assert client.post("/api/runs", json={"scene_id": "abc"}).status_code == 404
+    with pytest.raises(WebSocketDisconnect) as exc:
+        with client.websocket_connect("/api/runs/abc/stream") as w:
+            w.receive()
+    assert exc.value.code == 4404
+
+
+def test_token_required_when_set(ws_dir, copy_run):
+    app = create_app(Settings(workspace=ws_dir, register=[copy_run], token="s3cret"))
+    with TestClient(app) as c:
+        rid = app.state.registered[0]
+        assert c.get("/api/system").status_code == 401
+        assert c.get("/api/runs", headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert c.get("/api/runs", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+        assert c.get("/api/runs", params={"token": "s3cret"}).status_code == 200
+        assert c.get(f"/api/runs/{rid}/render", headers={"X-KGS-Token": "s3cret"}).status_code == 200
+        assert c.get("/index.html").status_code in (200, 404) and c.get("/api/system").status_code == 401
+        with pytest.raises(WebSocketDisconnect) as exc:
+            with c.websocket_connect(f"/api/runs/{rid}/stream") as w:
+                w.receive()
+        assert exc.value.code == 4401
+        with c.websocket_connect(f"/api/runs/{rid}/stream?token=s3cret") as w:
+            w.send_json({"type": "subscribe"})
+            assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
+
+
+def _zip_dir(folder: Path) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for p in folder.rglob("*"):
+            if p.is_file():
+                z.write(p, Path("data") / p.relative_to(folder))
+    return buf.getvalue()
+
+
+def test_uploads_limits_and_types(client, tiny_run, tmp_path):
+    scene_dir = tiny_run.parent.parent / "scenes" / "bounce"
+    small = tmp_path / "small"
+    shutil.copytree(scene_dir, small, ignore=shutil.ignore_patterns("sharp", "mask", "motion"))
+    blob = _zip_dir(small)
+    assert len(blob) < 1024 * 1024, "fixture scene must fit the 1 MB test limit"
+    r = client.post("/api/scenes/upload", params={"name": "up", "kind": "zip"}, content=blob)
+    assert r.status_code == 201, r.text
+    assert r.json()["frames"] >= 8 and r.json()["status"] == "done"
+    assert client.get(f"/api/scenes/{r.json()['id']}").json()["train_frames"] >= 8
+    big = b"PK\x03\x04" + b"\0" * (1024 * 1024 + 10)
+    assert client.post("/api/scenes/upload", params={"name": "big", "kind": "zip"}, content=big).status_code == 413
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"hello").status_code == 415
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "video"}, content=b"not a video").status_code == 415
+    assert client.post("/api/scenes/upload", params={"name": "../x", "kind": "zip"}, content=blob).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "exe"}, content=blob).status_code == 422
+    evil = io.BytesIO()
+    with zipfile.ZipFile(evil, "w") as z:
+        z.writestr("../../escape.txt", "x")
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue()).status_code == 422
+    junk = io.BytesIO()
+    with zipfile.ZipFile(junk, "w") as z:
+        z.writestr("readme.txt", "no dataset here")
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue()).status_code == 422
+    # Nothing half-written stays behind.
+    ws_root = client.app_.state.ws.root
+    assert not [p for p in (ws_root / "scenes").iterdir() if p.name.startswith(".upload")]
+    assert len(client.get("/api/scenes").json()) == 2  # the registered run's scene and the upload
+
+
+def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
+    scene_id = client.get(f"/api/runs/{client.run_id}").json()["scene_id"]
+    assert client.post("/api/runs", json={"scene_id": scene_id, "preset": "nope"}).status_code == 422
+    assert client.post("/api/runs", json={"scene_id": scene_id, "ablate": ["everything"]}).status_code == 422
+    r = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 40})
+    assert r.status_code == 202
+    done = wait_status(client, f"/api/runs/{r.json()['id']}")
+    assert done["status"] == "done" and done["has_model"] and done["iteration"] == 40
+    assert done["progress"]["iteration"] == 40 and done["progress"]["gaussians"] > 0
+    assert len(client.get(f"/api/runs/{done['id']}/log").json()) >= 2
+    # A long run: progress streams, cancel keeps a model.
+    long = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 100000}).json()
+    with client.websocket_connect(f"/api/runs/{long['id']}/stream") as w:
+        p = recv_json_until(w, "progress")
+        assert p["iteration"] >= 1 and p["iterations"] == 100000 and "loss" in p
+        assert client.post(f"/api/runs/{long['id']}/cancel").status_code == 200
+        st = recv_json_until(w, "status")
+        assert st["status"] == "cancelled"
+    assert client.post(f"/api/runs/{long['id']}/cancel").status_code == 409
+    assert client.get(f"/api/runs/{long['id']}").json()["has_model"]
+    # A failing job keeps its error.
+    bad = client.app_.state.ws.insert("scenes", name="broken", path=str(ws_dir / "scenes" / "broken"), source="upload",
+                                      status="done")
+    (ws_dir / "scenes" / "broken").mkdir()
+    (ws_dir / "scenes" / "broken" / "dataset.json").write_text("{")
+    failed = wait_status(client, f"/api/runs/{client.post('/api/runs', json={'scene_id': bad['id']}).json()['id']}")
+    assert failed["status"] == "failed" and "dataset.json" in failed["error"]
+    # Export as a job, then download.
+    e = client.post(f"/api/runs/{done['id']}/exports", json={"format": "splat", "times": "0.5"}).json()
+    e = wait_status(client, f"/api/exports/{e['id']}")
+    assert e["status"] == "done", e
+    blob = client.get(f"/api/exports/{e['id']}/download").content
+    with zipfile.ZipFile(io.BytesIO(blob)) as z:
+        names = z.namelist()
+        assert "frame_00000.splat" in names and len(z.read("frame_00000.splat")) % 32 == 0
+    assert client.post(f"/api/runs/{done['id']}/exports", json={"format": "obj"}).status_code == 422
+    # A restarted server lists the earlier runs and their states.
+    app2 = create_app(Settings(workspace=ws_dir))
+    with TestClient(app2) as c2:
+        statuses = {r["id"]: r["status"] for r in c2.get("/api/runs").json()}
+    assert statuses[done["id"]] == "done" and statuses[long["id"]] == "cancelled" and statuses[failed["id"]] == "failed"
