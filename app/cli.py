@@ -165,6 +165,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from kgs_app.bench.raster import main as bench_main
 
         return bench_main(args.rest)
+    if args.what == "serve":
+        from kgs_app.bench.serve import main as bench_main
+
+        return bench_main(args.rest)
     raise AssertionError(args.what)
 
 
@@ -253,7 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_build_ext)
 
     p = sub.add_parser("bench", help="benchmarks that print numbers (see docs/performance.md)")
-    p.add_argument("what", choices=["raster"], help="raster: rasteriser and training-step timings")
+    p.add_argument("what", choices=["raster", "serve"],
+                   help="raster: rasteriser and training-step timings; serve: scrubbing latency, 50 clients")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options of the benchmark (--help for them)")
     p.set_defaults(func=cmd_bench)
     return ap

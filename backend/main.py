@@ -120,4 +120,6 @@ def serve(settings: Settings) -> None:
         url += f"?token={settings.token}"
     print(f"Kinematics-GS serving workspace {app.state.ws.root}\n  open {url}\n  API docs http://{host}:{settings.port}/docs",
           flush=True)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets")
+    # No permessage-deflate: splat buffers barely compress and zlib would cost more than the scrub itself.
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets",
+                ws_per_message_deflate=False)

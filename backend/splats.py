@@ -17,6 +17,7 @@ traces / 3) so that float16 keeps its precision for small Gaussians.
 
 from __future__ import annotations
 
+import copy
 import json
 import struct
 import threading
@@ -85,9 +86,10 @@ class Trajectories:
     it is ready. Covariances interpolate linearly (a convex combination of SPD matrices stays
     SPD). The interpolation error is measured by `kgs-app bench serve` (docs/serve.md)."""
 
-    def __init__(self, view: "RunView", lod: int, version: int, exposure: float):
+    def __init__(self, view: "RunView", model, lod: int, version: int, exposure: float):
         self.key = (lod, version, exposure)
         self.view = view
+        self.model = model
         self.ready = threading.Event()
         self.failed: str | None = None
         self.times = None
@@ -97,15 +99,16 @@ class Trajectories:
     def _build(self) -> None:
         lod, version, exposure = self.key
         try:
-            m = self.view._models[lod]
+            m = self.model
             n = max(2, int(round(1.0 / max(self.view.dt, 1e-3))) + 1)
             times = np.linspace(0.0, 1.0, n)
             means, covs, vels = [], [], []
             for t in times:
                 if self.view.version != version:
                     return  # superseded by a tau change or an edit
-                with self.view.lock:
-                    idx, g = m.at_dynamic(float(t), exposure, self.view.dt)
+                # Not under `compute`: the build must not queue behind every client's exact
+                # evaluation, or it never finishes while many clients scrub.
+                idx, g = m.at_dynamic(float(t), exposure, self.view.dt)
                 means.append(g.means.numpy())
                 covs.append(g.covars.numpy())
                 vels.append(g.velocity.numpy())
@@ -126,13 +129,27 @@ class Trajectories:
         return self.idx, lerp(self.means), lerp(self.covs), lerp(self.vels), self.rgba
 
 
+def _with_tau(model, tau: float):
+    """A shallow copy of `model` split at `tau` (networks and Gaussians shared). Readers keep
+    whichever snapshot they started with, so a τ change never mutates a model in use."""
+    m = copy.copy(model)
+    m.config = copy.copy(model.config)
+    if m.decomposed:
+        m.decompose(tau, recompute=False)
+    return m
+
+
 class RunView:
     """One run loaded for viewing: the model at each LoD, the live τ and the edit layer.
-    Thread-safe (one lock): the server computes buffers in worker threads."""
+
+    Thread-safe: `lock` guards the bookkeeping only (which snapshot, which version); model
+    evaluation runs outside it on immutable snapshots, one at a time (`compute`), so 50
+    clients scrubbing do not oversubscribe two cores."""
 
     def __init__(self, run_dir: Path):
         self.run: LoadedRun = load_run(run_dir)
-        self.lock = threading.Lock()
+        self.lock = threading.RLock()
+        self.compute = threading.Lock()
         self.edits: EditLayer = load_edits(run_dir)
         self.tau = float(self.run.model.config.tau)
         self._models: dict[int, object] = {}
@@ -146,13 +163,20 @@ class RunView:
         return float(self.run.info.get("dt", 1.0))
 
     def model(self, lod: int | None):
-        lod = self.run.n_levels if lod is None else int(lod)
-        if lod not in self._models:
-            m = self.run.level(lod)
-            if m.decomposed and float(m.config.tau) != self.tau:
-                m.decompose(self.tau, recompute=False)
-            self._models[lod] = m
-        return lod, self._models[lod]
+        """(lod, model snapshot) for the current τ."""
+        with self.lock:
+            lod = self.run.n_levels if lod is None else int(lod)
+            if not 1 <= lod <= self.run.n_levels:
+                raise ValueError(f"lod must be in 1..{self.run.n_levels}, got {lod}")
+            if lod not in self._models:
+                self._models[lod] = _with_tau(self.run.level(lod), self.tau)
+            return lod, self._models[lod]
+
+    def state(self, lod: int | None):
+        """(lod, model, keep mask, version), consistent with each other."""
+        with self.lock:
+            lod, m = self.model(lod)
+            return lod, m, self.keep(lod, m), self.version
 
     def keep(self, lod: int, model) -> np.ndarray:
         return self.edits.keep_mask(lod, model.params.means.detach().numpy())
@@ -166,26 +190,35 @@ class RunView:
 
     @torch.no_grad()
     def static_buffer(self, lod: int | None = None) -> bytes:
-        with self.lock:
-            lod, m = self.model(lod)
-            key = (lod, self.version)
-            if key not in self._static:
-                sel = ~self._dynamic_mask(m) & self.keep(lod, m)
+        lod, m, keep, version = self.state(lod)
+        key = (lod, version)
+        buf = self._static.get(key)
+        if buf is None:
+            sel = ~self._dynamic_mask(m) & keep
+            with self.compute:
                 g = m.at_static()
-                idx = torch.from_numpy(np.nonzero(sel)[0])
-                self._static[key] = pack_buffer(
-                    {"kind": "static", "lod": lod, "version": self.version},
-                    g.means[idx].numpy(), g.covars[idx].double().numpy(), rgba_of(g.sh[idx], g.opacities[idx]),
-                    idx.numpy().astype(np.uint32))
-            return self._static[key]
+            idx = torch.from_numpy(np.nonzero(sel)[0])
+            buf = pack_buffer({"kind": "static", "lod": lod, "version": version},
+                              g.means[idx].numpy(), g.covars[idx].double().numpy(),
+                              rgba_of(g.sh[idx], g.opacities[idx]), idx.numpy().astype(np.uint32))
+            with self.lock:
+                if version == self.version:
+                    self._static[key] = buf
+        if self.use_trajectories:
+            self.trajectories(lod, 0.0)  # start building the cache as soon as someone watches
+        return buf
 
     def trajectories(self, lod: int, exposure: float) -> Trajectories | None:
         """The ready trajectory cache for (lod, exposure), starting its build if needed."""
-        key = (lod, self.version, round(float(exposure), 6))
-        tr = self._trajectories.get(key)
-        if tr is None:
-            self._trajectories = {k: v for k, v in self._trajectories.items() if k[1] == self.version}
-            tr = self._trajectories[key] = Trajectories(self, lod, self.version, key[2])
+        with self.lock:
+            lod, m = self.model(lod)
+            if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
+                return None
+            key = (lod, self.version, round(float(exposure), 6))
+            tr = self._trajectories.get(key)
+            if tr is None:
+                self._trajectories = {k: v for k, v in self._trajectories.items() if k[1] == self.version}
+                tr = self._trajectories[key] = Trajectories(self, m, lod, self.version, key[2])
         return tr if tr.ready.is_set() else None
 
     @torch.no_grad()
@@ -193,19 +226,17 @@ class RunView:
                        exact: bool = False) -> bytes:
         """The dynamic set at `t`: interpolated from the trajectory cache when it is ready (and
         `exact` is not asked for), else evaluated exactly."""
-        with self.lock:
-            lod, m = self.model(lod)
-        header = {"kind": "dynamic", "lod": lod, "t": t, "exposure": exposure, "version": self.version}
-        keep = self.keep(lod, m)
+        lod, m, keep, version = self.state(lod)
+        header = {"kind": "dynamic", "lod": lod, "t": t, "exposure": exposure, "version": version}
         if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
             return pack_buffer(header, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 4)), np.zeros(0),
                                np.zeros((0, 3)) if velocity else None)
         tr = None if (exact or not self.use_trajectories) else self.trajectories(lod, exposure)
-        if tr is not None:
+        if tr is not None and tr.key[1] == version:
             idx, means, covs, vels, rgba = tr.at(float(t))
             header["interpolated"] = True
         else:
-            with self.lock:
+            with self.compute:
                 idx_t, g = m.at_dynamic(float(t), exposure, self.dt)
             idx, means, covs, vels = idx_t.numpy(), g.means.numpy(), g.covars.numpy(), g.velocity.numpy()
             rgba = rgba_of(g.sh, g.opacities)
@@ -217,17 +248,15 @@ class RunView:
     @torch.no_grad()
     def baked(self, t: float, exposure: float = 0.0, lod: int | None = None, subset: str = "all") -> tuple[Baked, int]:
         """All kept Gaussians at `t` (for server-side renders), optionally only one set."""
-        with self.lock:
-            lod, m = self.model(lod)
-            keep = self.keep(lod, m)
+        lod, m, keep, _ = self.state(lod)
+        with self.compute:
             g = m.at_static() if self.run.static_only else m.at(float(t), exposure=exposure, dt=self.dt)
-            dyn = self._dynamic_mask(m)
-            sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
-            s = torch.from_numpy(sel)
-            return Baked(means=g.means[s].numpy(), covars=g.covars[s].double().numpy(),
-                         opacities=g.opacities[s].numpy(), sh=g.sh[s].numpy(), dynamic=dyn[sel],
-                         velocity=g.velocity[s].numpy() if g.velocity is not None else np.zeros((int(sel.sum()), 3)),
-                         index=np.nonzero(sel)[0]), lod
+        dyn = self._dynamic_mask(m)
+        sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
+        s = torch.from_numpy(sel)
+        velocity = g.velocity[s].numpy() if g.velocity is not None else np.zeros((int(sel.sum()), 3))
+        return Baked(means=g.means[s].numpy(), covars=g.covars[s].double().numpy(), opacities=g.opacities[s].numpy(),
+                     sh=g.sh[s].numpy(), dynamic=dyn[sel], velocity=velocity, index=np.nonzero(sel)[0]), lod
 
     # ------------------------------------------------------------ live decomposition and edits
 
@@ -236,37 +265,32 @@ class RunView:
             raise ValueError(f"tau must be a positive number, got {tau}")
         with self.lock:
             self.tau = float(tau)
-            for m in self._models.values():
-                if m.decomposed:
-                    m.decompose(self.tau, recompute=False)
+            self._models = {lod: _with_tau(m, self.tau) for lod, m in self._models.items()}
             self._invalidate()
         return self.split()
 
     def split(self, lod: int | None = None) -> dict:
-        with self.lock:
-            lod, m = self.model(lod)
-            counts = split_counts(m)
-            keep = self.keep(lod, m)
-            dyn = self._dynamic_mask(m)
-            return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()),
-                    "dynamic_kept": int((dyn & keep).sum()), "static_kept": int((~dyn & keep).sum()),
-                    "version": self.version}
+        lod, m, keep, version = self.state(lod)
+        counts = split_counts(m)
+        dyn = self._dynamic_mask(m)
+        return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()), "dynamic_kept": int((dyn & keep).sum()),
+                "static_kept": int((~dyn & keep).sum()), "version": version}
 
     def histogram(self, lod: int | None = None) -> dict:
-        with self.lock:
-            _, m = self.model(lod)
-            return variance_histogram(m.variance.numpy())
+        _, m = self.model(lod)
+        return variance_histogram(m.variance.numpy())
 
     def apply_edit(self, op: str, lod: int | None, indices: list[int] | None = None,
                    crop: dict | None = None) -> dict:
         with self.lock:
             lod, m = self.model(lod)
             n = len(m)
-            e = self.edits.level(lod)
             ids = [int(i) for i in (indices or [])]
             bad = [i for i in ids if not 0 <= i < n]
             if bad:
                 raise ValueError(f"indices {bad[:5]} outside 0..{n - 1} for LoD {lod}")
+            edits = EditLayer.from_dict(self.edits.to_dict())  # edit a copy: readers keep theirs
+            e = edits.level(lod)
             if op == "delete":
                 e.deleted.update(ids)
             elif op == "hide":
@@ -277,12 +301,13 @@ class RunView:
                 e.deleted.difference_update(ids) if ids else e.deleted.clear()
             elif op == "crop":
                 layer = EditLayer.from_dict({"crop": crop}, "crop")
-                self.edits.crop_min, self.edits.crop_max = layer.crop_min, layer.crop_max
+                edits.crop_min, edits.crop_max = layer.crop_min, layer.crop_max
             elif op == "clear":
-                self.edits = EditLayer()
+                edits = EditLayer()
             else:
                 raise ValueError(f"unknown edit op {op!r} (delete, hide, unhide, restore, crop, clear)")
-            save_edits(self.run.path, self.edits)
+            save_edits(self.run.path, edits)
+            self.edits = edits
             self._invalidate()
         return self.split(lod)
 

@@ -1,0 +1,29 @@
+// Entry point: `#/run/<id>` opens the viewer, anything else the runs page.
+
+import { Viewer } from "./viewer.js";
+import { makeDemoScene, showRuns } from "./train.js";
+
+const $ = (id) => document.getElementById(id);
+
+async function route() {
+  const m = location.hash.match(/^#\/run\/([0-9a-f]+)/);
+  document.body.dataset.page = m ? "viewer" : "runs";
+  if (m) {
+    try {
+      const viewer = new Viewer(m[1]);
+      window.kgs = viewer;  // for scripts and tests: kgs.setTime(t), kgs.drawn(), kgs.readPixels()...
+      await viewer.start();
+      document.body.dataset.ready = "1";
+    } catch (e) {
+      $("status").textContent = e.message;
+      throw e;
+    }
+  } else {
+    $("demo").onclick = makeDemoScene;
+    await showRuns();
+    document.body.dataset.ready = "1";
+  }
+}
+
+window.addEventListener("hashchange", () => location.reload());
+route();

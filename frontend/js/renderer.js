@@ -1,0 +1,258 @@
+// WebGL2 splat renderer. Splats live in one RGBA32UI texture (layout in pack.js); each is drawn
+// as an instanced quad covering its 2D footprint, front to back (order from the sort worker),
+// blended under what is already drawn: C += (1 - A) * alpha * c, A += (1 - A) * alpha. The
+// per-pixel alpha follows the CPU rasteriser: alpha = min(0.99, o * exp(-0.5 d^T S^-1 d)),
+// skipped below 1/255, with the same 0.3 px^2 low-pass added to the 2D covariance.
+
+import { TEX_WIDTH, SPLATS_PER_ROW } from "./pack.js";
+
+const VERT = `#version 300 es
+precision highp float;
+precision highp int;
+precision highp usampler2D;
+uniform usampler2D u_splats;
+uniform mat4 u_view;        // world-to-camera (OpenCV), column-major for GLSL
+uniform vec4 u_intr;        // fx, fy, cx, cy in pixels
+uniform vec2 u_size;        // viewport in pixels
+uniform int u_show;         // bit 0 static, bit 1 dynamic
+uniform int u_overlay;      // 0 none, 1 static/dynamic tint, 2 velocity ellipses (dynamic solid)
+uniform int u_stride;       // overlay density: every k-th dynamic splat in ellipse mode
+in vec2 a_corner;
+in uint a_index;
+out vec4 v_color;
+out vec2 v_offset;          // pixels from the centre
+out vec3 v_conic;
+flat out int v_solid;
+
+void main() {
+  gl_Position = vec4(0.0, 0.0, 2.0, 1.0);
+  int i = int(a_index);
+  ivec2 base = ivec2((i % ${SPLATS_PER_ROW}) * 3, i / ${SPLATS_PER_ROW});
+  uvec4 t0 = texelFetch(u_splats, base, 0);
+  uvec4 t1 = texelFetch(u_splats, base + ivec2(1, 0), 0);
+  uvec4 t2 = texelFetch(u_splats, base + ivec2(2, 0), 0);
+  uint flags = t2.z;
+  bool dyn = (flags & 1u) != 0u;
+  if (((u_show & 1) == 0 && !dyn) || ((u_show & 2) == 0 && dyn)) return;
+  vec3 p = uintBitsToFloat(t0.xyz);
+  vec4 c = u_view * vec4(p, 1.0);
+  if (c.z < 0.01) return;
+  float xx = uintBitsToFloat(t1.x), xy = uintBitsToFloat(t1.y), xz = uintBitsToFloat(t1.z);
+  float yy = uintBitsToFloat(t1.w), yz = uintBitsToFloat(t2.x), zz = uintBitsToFloat(t2.y);
+  mat3 S = mat3(xx, xy, xz, xy, yy, yz, xz, yz, zz);
+  mat3 W = mat3(u_view);
+  float iz = 1.0 / c.z;
+  // J rows: (fx/z, 0, -fx x/z^2), (0, fy/z, -fy y/z^2); GLSL mat3 is column-major.
+  mat3 J = mat3(u_intr.x * iz, 0.0, 0.0,  0.0, u_intr.y * iz, 0.0,  -u_intr.x * c.x * iz * iz, -u_intr.y * c.y * iz * iz, 0.0);
+  mat3 T = J * W;
+  mat3 C2 = T * S * transpose(T);
+  float a = C2[0][0] + 0.3, b = C2[0][1], d = C2[1][1] + 0.3;
+  float det = a * d - b * b;
+  if (det <= 0.0) return;
+  vec4 rgba = vec4(float(t0.w & 255u), float((t0.w >> 8) & 255u), float((t0.w >> 16) & 255u), float(t0.w >> 24)) / 255.0;
+  float o = rgba.a;
+  if (o < 1.0 / 255.0) return;
+  float level = 2.0 * log(255.0 * o);
+  float mid = 0.5 * (a + d);
+  float lam = mid + sqrt(max(0.1, mid * mid - det));
+  float r = ceil(sqrt(level * lam));
+  vec2 center = vec2(u_intr.x * c.x * iz + u_intr.z, u_intr.y * c.y * iz + u_intr.w);
+  vec2 off = a_corner * r;
+  vec2 pix = center + off;
+  gl_Position = vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0);
+  v_offset = off;
+  v_conic = vec3(d, -b, a) / det;
+  v_solid = 0;
+  vec3 col = rgba.rgb;
+  bool selected = (flags & 2u) != 0u;
+  if (u_overlay == 1) {
+    col = mix(col, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
+  } else if (u_overlay == 2) {
+    if (dyn && (int(t2.w) % max(u_stride, 1)) == 0) {
+      // velocity-aligned ellipse: solid, coloured by the major axis direction on screen
+      vec2 ax = normalize(vec2(b, lam - a) + vec2(1e-9, 0.0));
+      col = vec3(0.5 + 0.5 * ax.x, 0.5 + 0.5 * ax.y, 0.9);
+      v_solid = 1;
+    } else {
+      col *= 0.35;
+    }
+  }
+  if (selected) col = mix(col, vec3(1.0, 0.1, 0.6), 0.7);
+  v_color = vec4(col, o);
+}`;
+
+const FRAG = `#version 300 es
+precision highp float;
+in vec4 v_color;
+in vec2 v_offset;
+in vec3 v_conic;
+flat in int v_solid;
+out vec4 frag;
+void main() {
+  float power = -0.5 * (v_conic.x * v_offset.x * v_offset.x + v_conic.z * v_offset.y * v_offset.y) - v_conic.y * v_offset.x * v_offset.y;
+  if (power > 0.0) discard;
+  float alpha = min(0.99, v_color.a * exp(power));
+  if (v_solid == 1) alpha = power > -2.0 ? 0.9 : 0.0;  // the 2-sigma ellipse
+  if (alpha < 1.0 / 255.0) discard;
+  frag = vec4(v_color.rgb * alpha, alpha);
+}`;
+
+const LINE_VERT = `#version 300 es
+precision highp float;
+uniform mat4 u_view;
+uniform vec4 u_intr;
+uniform vec2 u_size;
+in vec3 a_pos;
+in float a_head;
+out float v_head;
+void main() {
+  vec4 c = u_view * vec4(a_pos, 1.0);
+  vec2 pix = vec2(u_intr.x * c.x / c.z + u_intr.z, u_intr.y * c.y / c.z + u_intr.w);
+  gl_Position = c.z > 0.01 ? vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0) : vec4(0, 0, 2, 1);
+  v_head = a_head;
+}`;
+
+const LINE_FRAG = `#version 300 es
+precision highp float;
+in float v_head;
+out vec4 frag;
+void main() { frag = vec4(mix(vec3(1.0, 0.9, 0.2), vec3(1.0, 0.2, 0.1), v_head), 1.0); }`;
+
+function compile(gl, vs, fs) {
+  const prog = gl.createProgram();
+  for (const [type, src] of [[gl.VERTEX_SHADER, vs], [gl.FRAGMENT_SHADER, fs]]) {
+    const sh = gl.createShader(type);
+    gl.shaderSource(sh, src);
+    gl.compileShader(sh);
+    if (!gl.getShaderParameter(sh, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(sh));
+    gl.attachShader(prog, sh);
+  }
+  gl.linkProgram(prog);
+  if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+  return prog;
+}
+
+// Row-major 4x4 (ours) -> column-major Float32Array (GLSL).
+function toGL(m) {
+  const o = new Float32Array(16);
+  for (let r = 0; r < 4; r++) for (let c = 0; c < 4; c++) o[4 * c + r] = m[4 * r + c];
+  return o;
+}
+
+export class SplatRenderer {
+  constructor(canvas) {
+    const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: true, preserveDrawingBuffer: true });
+    if (!gl) throw new Error("WebGL2 is not available in this browser");
+    this.gl = gl;
+    this.canvas = canvas;
+    this.prog = compile(gl, VERT, FRAG);
+    this.lineProg = compile(gl, LINE_VERT, LINE_FRAG);
+    this.tex = gl.createTexture();
+    this.count = 0;
+    this.order = new Uint32Array(0);
+    this.vao = gl.createVertexArray();
+    gl.bindVertexArray(this.vao);
+    const quad = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, quad);
+    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, 1, 1, -1, 1]), gl.STATIC_DRAW);
+    const aCorner = gl.getAttribLocation(this.prog, "a_corner");
+    gl.enableVertexAttribArray(aCorner);
+    gl.vertexAttribPointer(aCorner, 2, gl.FLOAT, false, 0, 0);
+    this.indexBuf = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.indexBuf);
+    const aIndex = gl.getAttribLocation(this.prog, "a_index");
+    gl.enableVertexAttribArray(aIndex);
+    gl.vertexAttribIPointer(aIndex, 1, gl.UNSIGNED_INT, 0, 0);
+    gl.vertexAttribDivisor(aIndex, 1);
+    gl.bindVertexArray(null);
+    this.lineVao = gl.createVertexArray();
+    this.lineBuf = gl.createBuffer();
+    gl.bindVertexArray(this.lineVao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.lineBuf);
+    const aPos = gl.getAttribLocation(this.lineProg, "a_pos");
+    const aHead = gl.getAttribLocation(this.lineProg, "a_head");
+    gl.enableVertexAttribArray(aPos);
+    gl.vertexAttribPointer(aPos, 3, gl.FLOAT, false, 16, 0);
+    gl.enableVertexAttribArray(aHead);
+    gl.vertexAttribPointer(aHead, 1, gl.FLOAT, false, 16, 12);
+    gl.bindVertexArray(null);
+    this.lineCount = 0;
+    this.uniforms = {};
+    for (const name of ["u_splats", "u_view", "u_intr", "u_size", "u_show", "u_overlay", "u_stride"]) {
+      this.uniforms[name] = gl.getUniformLocation(this.prog, name);
+    }
+    this.lineUniforms = {};
+    for (const name of ["u_view", "u_intr", "u_size"]) this.lineUniforms[name] = gl.getUniformLocation(this.lineProg, name);
+  }
+
+  // words: Uint32Array of rows x TEX_WIDTH x 4; rows: texture height.
+  upload(words, rows, count, fromRow = 0) {
+    const gl = this.gl;
+    gl.bindTexture(gl.TEXTURE_2D, this.tex);
+    if (fromRow === 0 || rows !== this.rows) {
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32UI, TEX_WIDTH, rows, 0, gl.RGBA_INTEGER, gl.UNSIGNED_INT, words);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      this.rows = rows;
+    } else {
+      const sub = words.subarray(fromRow * TEX_WIDTH * 4);
+      gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, fromRow, TEX_WIDTH, rows - fromRow, gl.RGBA_INTEGER, gl.UNSIGNED_INT, sub);
+    }
+    this.count = count;
+  }
+
+  setOrder(order) {
+    const gl = this.gl;
+    this.order = order;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.indexBuf);
+    gl.bufferData(gl.ARRAY_BUFFER, order, gl.DYNAMIC_DRAW);
+  }
+
+  // lines: Float32Array of (x, y, z, head) per vertex, two vertices a segment
+  setLines(lines) {
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.lineBuf);
+    gl.bufferData(gl.ARRAY_BUFFER, lines, gl.DYNAMIC_DRAW);
+    this.lineCount = lines.length / 4;
+  }
+
+  draw({ viewmat, K, show = 3, overlay = 0, stride = 1, arrows = false }) {
+    const gl = this.gl;
+    const w = this.canvas.width, h = this.canvas.height;
+    gl.viewport(0, 0, w, h);
+    gl.clearColor(0, 0, 0, 0);
+    gl.clear(gl.COLOR_BUFFER_BIT);
+    gl.disable(gl.DEPTH_TEST);
+    gl.enable(gl.BLEND);
+    gl.blendFuncSeparate(gl.ONE_MINUS_DST_ALPHA, gl.ONE, gl.ONE_MINUS_DST_ALPHA, gl.ONE);
+    const view = toGL(viewmat);
+    const intr = new Float32Array([K[0], K[4], K[2], K[5]]);
+    if (this.order.length && this.rows) {
+      gl.useProgram(this.prog);
+      gl.activeTexture(gl.TEXTURE0);
+      gl.bindTexture(gl.TEXTURE_2D, this.tex);
+      const u = this.uniforms;
+      gl.uniform1i(u.u_splats, 0);
+      gl.uniformMatrix4fv(u.u_view, false, view);
+      gl.uniform4fv(u.u_intr, intr);
+      gl.uniform2f(u.u_size, w, h);
+      gl.uniform1i(u.u_show, show);
+      gl.uniform1i(u.u_overlay, overlay);
+      gl.uniform1i(u.u_stride, stride);
+      gl.bindVertexArray(this.vao);
+      gl.drawArraysInstanced(gl.TRIANGLE_FAN, 0, 4, this.order.length);
+      gl.bindVertexArray(null);
+    }
+    if (arrows && this.lineCount) {
+      gl.disable(gl.BLEND);
+      gl.useProgram(this.lineProg);
+      const u = this.lineUniforms;
+      gl.uniformMatrix4fv(u.u_view, false, view);
+      gl.uniform4fv(u.u_intr, intr);
+      gl.uniform2f(u.u_size, w, h);
+      gl.bindVertexArray(this.lineVao);
+      gl.drawArrays(gl.LINES, 0, this.lineCount);
+      gl.bindVertexArray(null);
+    }
+  }
+}
