@@ -11,6 +11,7 @@ demo: setup
 	$(VENV)/bin/kgs-app demo
 
 test: setup
+	@if command -v node >/dev/null; then node --test frontend/tests/; else echo "node not found: JS unit tests skipped"; fi
 	$(PY) -m pytest -q tests
 
 bench: setup

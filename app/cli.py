@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """The main job: synthesize the built-in scene, train the fast preset, evaluate it."""
+    """The main job: synthesize the built-in scene, train the fast preset, evaluate it, serve the viewer."""
     from kgs_core.data.formats import load_scene
     from kgs_core.data.synth.generate import DEFAULT_SCENE, synthesize
     from kgs_core.evaluate import evaluate_run
@@ -19,24 +19,31 @@ def cmd_demo(args: argparse.Namespace) -> int:
     work = Path(args.workspace)
     scene_dir, run_dir = work / "scenes" / DEFAULT_SCENE, work / "runs" / f"{DEFAULT_SCENE}-fast"
     if not (scene_dir / "dataset.json").is_file():
-        print(f"[1/3] synthesizing the built-in scene '{DEFAULT_SCENE}' -> {scene_dir}")
+        print(f"[1/4] synthesizing the built-in scene '{DEFAULT_SCENE}' -> {scene_dir}")
         synthesize(DEFAULT_SCENE, scene_dir, blur="mild", overwrite=True)
     else:
-        print(f"[1/3] scene already there: {scene_dir}")
+        print(f"[1/4] scene already there: {scene_dir}")
     scene = load_scene(scene_dir)
     done = (run_dir / "model.pt").is_file() and not args.retrain
     if done:
-        print(f"[2/3] run already trained: {run_dir} (--retrain to train again)")
+        print(f"[2/4] run already trained: {run_dir} (--retrain to train again)")
     else:
-        print(f"[2/3] training the fast preset -> {run_dir}")
+        print(f"[2/4] training the fast preset -> {run_dir}")
         import shutil
 
         shutil.rmtree(run_dir, ignore_errors=True)
         train(scene, run_dir, make_config("fast", iterations=args.iterations) if args.iterations else make_config("fast"))
-    print("[3/3] evaluating")
+    print("[3/4] evaluating")
     evaluate_run(run_dir)
     print((run_dir / "metrics.md").read_text())
     print(f"PSNR against training time: {run_dir / 'psnr_vs_time.png'}")
+    if args.no_serve:
+        return 0
+    print("[4/4] serving the viewer (Ctrl-C to stop)")
+    from kgs_backend.main import serve
+    from kgs_backend.settings import Settings
+
+    serve(Settings(workspace=work, port=args.port))
     return 0
 
 
@@ -176,10 +183,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="kgs-app", description="Kinematics-GS: dynamic Gaussians from blurry video.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("demo", help="the main job: synthesize the built-in scene, train (fast preset), evaluate")
+    p = sub.add_parser("demo", help="the main job: synthesize the built-in scene, train (fast preset), evaluate, serve")
     p.add_argument("--workspace", default="workspace", help="folder for the demo's scene and run")
     p.add_argument("--iterations", type=int, help="override the preset's iteration count")
     p.add_argument("--retrain", action="store_true")
+    p.add_argument("--no-serve", action="store_true", help="stop after evaluating instead of serving the viewer")
+    p.add_argument("--port", type=int, default=8000)
     p.set_defaults(func=cmd_demo)
 
     from kgs_core.data.synth.generate import BLUR_LEVELS, DEFAULT_SCENE

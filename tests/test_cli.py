@@ -21,7 +21,7 @@ def listed_commands() -> list[str]:
 
 def test_help_lists_working_commands():
     cmds = listed_commands()
-    assert {"demo", "synth", "ingest", "train", "eval", "build-ext", "bench"} <= set(cmds)
+    assert {"demo", "synth", "ingest", "train", "eval", "export", "serve", "build-ext", "bench"} <= set(cmds)
     for c in cmds:
         r = kgs(c, "--help")
         assert r.returncode == 0, (c, r.stderr)
@@ -35,6 +35,8 @@ def test_help_lists_working_commands():
         (["eval", "."], "not a run directory"),
         (["synth", "die", "--out", "x", "--frames", "1"], "frames >= 2"),
         (["ingest", "missing.mp4", "--out", "x"], "video not found"),
+        (["export", ".", "--format", "splat"], "not a run directory"),
+        (["serve", "no/such/run", "--workspace", "ws"], "does not exist"),
     ],
 )
 def test_bad_arguments_fail_with_a_message(args, needle, tmp_path):

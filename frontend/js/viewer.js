@@ -208,7 +208,7 @@ export class Viewer {
     if (this.playing) {
       const dt = this.lastNow ? (now - this.lastNow) / 1000 : 0;
       const duration = Math.max(1, this.meta.frames.length) / 30;  // play at 30 frames per second
-      this.setTime((this.t + (dt * this.speed) / duration) % 1, false);
+      this.setTime((this.t + (dt * this.speed) / duration) % 1);
     }
     this.lastNow = now;
     this.fly();
@@ -242,7 +242,7 @@ export class Viewer {
     });
   }
 
-  setTime(t, fromSlider = true) {
+  setTime(t, fromSlider = false) {
     this.t = Math.min(1, Math.max(0, t));
     if (!fromSlider) $("time").value = Math.round(this.t * 1000);
     $("time-label").textContent = `t = ${this.t.toFixed(3)}`;
@@ -253,11 +253,11 @@ export class Viewer {
 
   initControls() {
     const m = this.meta;
-    $("time").oninput = (e) => this.setTime(e.target.value / 1000);
+    $("time").oninput = (e) => this.setTime(e.target.value / 1000, true);
     $("play").onclick = () => { this.playing = !this.playing; $("play").textContent = this.playing ? "Pause" : "Play"; };
     $("speed").onchange = (e) => (this.speed = parseFloat(e.target.value));
-    $("step-back").onclick = () => this.setTime(this.t - m.dt, false);
-    $("step-fwd").onclick = () => this.setTime(this.t + m.dt, false);
+    $("step-back").onclick = () => this.setTime(this.t - m.dt);
+    $("step-fwd").onclick = () => this.setTime(this.t + m.dt);
     $("show-static").onchange = $("show-dynamic").onchange = () => {
       this.show = ($("show-static").checked ? 1 : 0) | ($("show-dynamic").checked ? 2 : 0);
       this.dirty = true;
