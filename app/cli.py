@@ -83,6 +83,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["model.tau"] = args.tau
     if args.velocity:
         overrides["model.velocity"] = args.velocity
+    if args.basis:
+        overrides["model.basis"] = args.basis
+    if args.on_nonfinite:
+        overrides["on_nonfinite"] = args.on_nonfinite
     if args.seed is not None:
         overrides["seed"] = args.seed
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
@@ -225,6 +229,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ablate", help="comma-separated: " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()))
     p.add_argument("--tau", type=float, help="static/dynamic threshold on the temporal variance K")
     p.add_argument("--velocity", choices=["paper", "physical"], help="velocity estimate of the kinematic basis")
+    p.add_argument("--basis", choices=["paper", "duff", "principal"],
+                   help="kinematic frame: the paper's (reference-axis switch), branch-free, or continuous (principal)")
+    p.add_argument("--on-nonfinite", choices=["error", "restore"],
+                   help="NaN/Inf in training: stop with an error naming the tensor (default), or restore the last "
+                        "good checkpoint and continue with a lower learning rate")
     p.add_argument("--iterations", type=int)
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")

@@ -33,7 +33,7 @@ class ModelConfig:
     coarse_to_fine: bool = True  # C.F.
     kinematic: bool = True  # K.R.
     velocity: Velocity = "physical"
-    basis: str = "paper"
+    basis: str = "paper"  # kinematic frame: paper (e_x reference, switch at 0.99), duff, principal
     lambda_s: float = 0.1
     still_len: float = 1e-3  # per-frame motion below which the kinematic frame fades out
     kappa_init: float = -2.0  # sigmoid(-2) = 0.12: the lower bound of eta
@@ -99,7 +99,8 @@ class KinematicsGS(nn.Module):
         self._knn = None
 
     def scales(self) -> Tensor:
-        return torch.exp(self.params.log_scales) + self.min_scale
+        # Clamped so that exp cannot overflow float32 (e^88) or underflow to 0 at extreme logits.
+        return torch.exp(self.params.log_scales.clamp(-30.0, 30.0)) + self.min_scale
 
     # ------------------------------------------------------------ decomposition
 

@@ -11,9 +11,14 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-Basis = Literal["paper", "duff"]
+Basis = Literal["paper", "duff", "principal"]
 
-EPS = 1e-8  # the paper's epsilon in u_z = v / (|v| + eps)
+EPS = 1e-8  # normalisation guard of the in-plane axes
+# Direction of motion: u_z = v / sqrt(|v|^2 + EPS_DIR^2) instead of the paper's v / (|v| + 1e-8).
+# The paper's form is off unit length by eps/|v| (1 % at |v| = 1e-6); this one by
+# EPS_DIR^2 / (2 |v|^2) (5e-7 at |v| = 1e-6), with the same finite gradient at v = 0
+# (docs/stability.md).
+EPS_DIR = 1e-9
 
 
 def safe_norm(v: Tensor, eps: float = 1e-12) -> Tensor:
@@ -21,7 +26,7 @@ def safe_norm(v: Tensor, eps: float = 1e-12) -> Tensor:
     return torch.sqrt((v * v).sum(-1) + eps * eps)
 
 
-def kinematic_basis(v: Tensor, basis: Basis = "paper") -> Tensor:
+def kinematic_basis(v: Tensor, basis: Basis = "paper", sigma: Tensor | None = None) -> Tensor:
     """`(N, 3, 3)` rotation `[u_x | u_y | u_z]` with `u_z` along the velocity `v (N, 3)`.
 
     * `paper`: reference `e_x`, switched to `e_y` when `|u_z . e_x| > 0.99` (appendix A.1).
@@ -32,8 +37,8 @@ def kinematic_basis(v: Tensor, basis: Basis = "paper") -> Tensor:
     For `v = 0` `u_z` is 0 and the basis degenerates; callers blend it away (see
     `refine_covariance`).
     """
-    uz = v / (safe_norm(v)[..., None] + EPS)
-    if basis == "paper":
+    uz = v / safe_norm(v, EPS_DIR)[..., None]
+    if basis in ("paper", "principal"):
         ex = torch.zeros_like(uz)
         ex[..., 0] = 1.0
         ey = torch.zeros_like(uz)
@@ -41,10 +46,14 @@ def kinematic_basis(v: Tensor, basis: Basis = "paper") -> Tensor:
         switch = (uz[..., 0].abs() > 0.99)[..., None]
         ref = torch.where(switch, ey, ex)
         ux = torch.linalg.cross(uz, ref)
-        ux = ux / (safe_norm(ux)[..., None] + EPS)
+        ux = ux / safe_norm(ux, EPS)[..., None]
         uy = torch.linalg.cross(uz, ux)
+        if basis == "principal":
+            if sigma is None:
+                raise ValueError("basis 'principal' needs the covariance sigma")
+            ux, uy = principal_roll(ux, uy, sigma)
     elif basis == "duff":
-        n = uz / (safe_norm(uz)[..., None] + EPS)  # unit even where |v| ~ eps
+        n = uz / safe_norm(uz, EPS)[..., None]  # unit even where |v| ~ eps
         x, y, z = n.unbind(-1)
         sign = torch.where(z >= 0, torch.ones_like(z), -torch.ones_like(z))
         a = -1.0 / (sign + z)
@@ -54,8 +63,23 @@ def kinematic_basis(v: Tensor, basis: Basis = "paper") -> Tensor:
         scale = safe_norm(uz)[..., None]  # keeps the v = 0 degeneracy identical to `paper`
         ux, uy = ux * scale, uy * scale
     else:
-        raise ValueError(f"basis must be 'paper' or 'duff', got {basis!r}")
+        raise ValueError(f"basis must be 'paper', 'duff' or 'principal', got {basis!r}")
     return torch.stack([ux, uy, uz], dim=-1)
+
+
+def principal_roll(ux: Tensor, uy: Tensor, sigma: Tensor, eps: float = 1e-30) -> tuple[Tensor, Tensor]:
+    """Rotates `(ux, uy)` within their plane onto the principal axes of `sigma`'s projection
+    `[[a, b], [b, c]]`: angle `0.5 atan2(2b, a - c)`. Where the projection is isotropic the
+    angle is irrelevant (every roll gives the same refined covariance); the guard only keeps
+    atan2's gradient finite there."""
+    a = torch.einsum("ni,nij,nj->n", ux, sigma, ux)
+    b = torch.einsum("ni,nij,nj->n", ux, sigma, uy)
+    c = torch.einsum("ni,nij,nj->n", uy, sigma, uy)
+    num, den = 2 * b, a - c
+    iso = num.abs() + den.abs() <= eps
+    theta = 0.5 * torch.atan2(torch.where(iso, torch.zeros_like(num), num), torch.where(iso, torch.ones_like(den), den))
+    ct, st = torch.cos(theta)[..., None], torch.sin(theta)[..., None]
+    return ct * ux + st * uy, ct * uy - st * ux
 
 
 def so3_exp(w: Tensor) -> Tensor:
@@ -104,7 +128,7 @@ def refine_covariance(
     eta * blur_len)`; `eta = max(|r_z . u_z|, sigmoid(kappa))`; `log s = log s' + lambda_s *
     delta_s`; `R = R_kin exp(delta_r)`; `Sigma_kin = R S S^T R^T`.
     """
-    Rk = kinematic_basis(v, basis)
+    Rk = kinematic_basis(v, basis, sigma)
     var = torch.einsum("nik,nij,njk->nk", Rk, sigma, Rk)  # u_k^T Sigma u_k per column k
     s_prime = torch.sqrt(var.clamp_min(0) + 1e-20)
     uz = Rk[..., 2]

@@ -71,6 +71,10 @@ class TrainConfig:
     eval_every: int = 250
     eval_frames: int = 4
     checkpoint_every: int = 1000
+    # guards: what a NaN/Inf in the loss or a gradient does
+    on_nonfinite: str = "error"  # "error": stop, naming the tensor; "restore": last good checkpoint
+    nonfinite_lr_factor: float = 0.5  # "restore" multiplies every learning rate by this
+    nonfinite_max_restores: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
     ablate: tuple = ()
 

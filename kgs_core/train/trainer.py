@@ -85,6 +85,9 @@ class Trainer:
         self.scene, self.cfg = scene, cfg
         self.run_dir = Path(run_dir)
         self.progress, self.on_log, self.should_stop, self.on_step = progress, on_log, should_stop, on_step
+        self.lr_scale = 1.0  # lowered by NaN recoveries (on_nonfinite = "restore")
+        self.restores = 0
+        self.events: list[dict] = []
         self.background = torch.zeros(3)
         self.cache = ImageCache()
         self.eval_set = evaluation_frames(scene, cfg.eval_frames)
@@ -142,15 +145,17 @@ class Trainer:
         ], eps=1e-15)
 
     def set_learning_rates(self, it: int) -> None:
+        """Schedules (exponential decay) times `lr_scale` (lowered by each NaN recovery)."""
         c = self.cfg
-        for g in self.opt.param_groups:
-            if g["name"] == "means":
-                g["lr"] = lr_exp(it, c.iterations, c.lr_means, c.lr_means_final)
-        for g in self.net_opt.param_groups:
-            if g["name"] == "grid":
-                g["lr"] = lr_exp(it, c.iterations, c.lr_grid, c.lr_grid_final)
-            elif g["name"] == "mlp":
-                g["lr"] = lr_exp(it, c.iterations, c.lr_deform, c.lr_deform_final)
+        schedules = {"means": (c.lr_means, c.lr_means_final), "grid": (c.lr_grid, c.lr_grid_final),
+                     "mlp": (c.lr_deform, c.lr_deform_final)}
+        for g in [*self.opt.param_groups, *self.net_opt.param_groups]:
+            g.setdefault("base_lr", g["lr"])
+            if g["name"] in schedules:
+                lr = lr_exp(it, c.iterations, *schedules[g["name"]])
+            else:
+                lr = g["base_lr"]
+            g["lr"] = lr * self.lr_scale
 
     # ------------------------------------------------------------ one step
 
@@ -187,6 +192,7 @@ class Trainer:
             loss, out = self.loss_for(frame, it)
             check_finite(it, loss=loss)
             (loss / len(frames)).backward()
+            self.check_gradients(it)
             total += float(loss.detach()) / len(frames)
             outs.append((out, frame))
         for name, v in self.model.params.items():
@@ -269,6 +275,29 @@ class Trainer:
             self.on_log(row)
         return row
 
+    def check_gradients(self, it: int) -> None:
+        """NaN/Inf in any gradient: an error naming the parameter (a Gaussian attribute or a
+        network weight) and the iteration."""
+        named = {f"gaussians.{k}": v for k, v in self.model.params.items()}
+        named.update({f"network.{k}": p for k, p in self.model.named_parameters()})
+        for name, p in named.items():
+            if p.grad is not None and not torch.isfinite(p.grad).all():
+                bad = int((~torch.isfinite(p.grad)).sum())
+                raise NonFiniteError(f"non-finite gradient of {name} ({bad} values) at iteration {it}")
+
+    def recover(self, exc: "NonFiniteError") -> None:
+        """`on_nonfinite = "restore"`: reload the newest checkpoint and lower every learning rate."""
+        ckpts = sorted((self.run_dir / "checkpoints").glob("ckpt_*.pt"))
+        if not ckpts or self.restores >= self.cfg.nonfinite_max_restores:
+            raise exc
+        self.restores += 1
+        self.lr_scale *= self.cfg.nonfinite_lr_factor
+        self.restore(ckpts[-1])
+        self.events.append({"iteration": self.iteration, "event": "restored", "reason": str(exc),
+                            "lr_scale": self.lr_scale})
+        if self.progress:
+            print(f"{exc}: restored {ckpts[-1].name}, learning rates x{self.lr_scale:g}")
+
     def checkpoint(self) -> Path:
         path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"
         save_torch(path, {
@@ -310,6 +339,8 @@ class Trainer:
                 "frames": len(self.scene.frames), "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height]}
         write_run_json(self.run_dir, info)
         (self.run_dir / "error.txt").unlink(missing_ok=True)
+        if cfg.on_nonfinite == "restore" and not ckpts:
+            self.checkpoint()  # a good state to fall back to before the first scheduled checkpoint
         wall0 = time.time() - (self.log_rows[-1]["wall_seconds"] if self.log_rows else 0.0)
         if not self.log_rows:
             self.log(0, float("nan"), wall0)
@@ -322,7 +353,13 @@ class Trainer:
                     info["status"] = "cancelled"
                     break
                 t0 = time.perf_counter()
-                loss = self.train_step(self.iteration)
+                try:
+                    loss = self.train_step(self.iteration)
+                except NonFiniteError as exc:
+                    if cfg.on_nonfinite != "restore":
+                        raise
+                    self.recover(exc)
+                    continue
                 self.after_step(self.iteration)
                 self.iteration += 1
                 self.train_seconds += time.perf_counter() - t0
@@ -355,6 +392,8 @@ class Trainer:
             info["status"] = "done"
         info.update(iteration=self.iteration, train_seconds=round(self.train_seconds, 2), lod_levels=len(self.levels) + 1,
                     final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None, **counts)
+        if self.events:
+            info["guard_events"] = self.events
         write_run_json(self.run_dir, info)
 
 
