@@ -157,6 +157,47 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    """The desktop viewer: a run directory in process, or a run on a running `kgs-app serve`."""
+    if args.server:
+        if not args.run_id:
+            raise ValueError("--server needs --run-id (the run's id on that server)")
+        from kgs_app.viewer.source import RemoteSource
+
+        source = RemoteSource(args.server, args.run_id, args.token)
+    else:
+        if not args.run:
+            raise ValueError("give a run directory, or --server URL --run-id ID")
+        from kgs_app.viewer.source import LocalSource
+
+        source = LocalSource(args.run)
+    from kgs_app.viewer.model import ViewerModel
+
+    model = ViewerModel(source)
+    model.state.t = args.time
+    if args.frame is not None:
+        if not 0 <= args.frame < len(source.frames):
+            raise ValueError(f"--frame must be in 0..{len(source.frames) - 1}")
+        model.use_frame_camera(args.frame)
+    if args.offscreen:
+        if not args.screenshot:
+            raise ValueError("--offscreen renders one image: pass --screenshot PATH")
+        from kgs_app.viewer.gl_renderer import render_offscreen
+        from kgs_app.viewer.window import save_png
+
+        model.sync()
+        s = model.state
+        img = render_offscreen(model.static, model.dynamic, s.viewmat, s.K, model.width, model.height,
+                               show=s.show_mask, overlay=args.overlay)
+        print(f"screenshot: {save_png(args.screenshot, img)}")
+        return 0
+    from kgs_app.viewer.window import run_window
+
+    model.state.overlay = args.overlay
+    run_window(model, max_frames=args.frames, screenshot=args.screenshot)
+    return 0
+
+
 def cmd_build_ext(args: argparse.Namespace) -> int:
     """Compile (or find cached) the C++ rasteriser and print where it lives."""
     from kgs_core.render import _ext
@@ -174,6 +215,10 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "raster":
         from kgs_app.bench.raster import main as bench_main
+
+        return bench_main(args.rest)
+    if args.what == "stability":
+        from kgs_app.bench.stability import main as bench_main
 
         return bench_main(args.rest)
     if args.what == "serve":
@@ -270,13 +315,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--demo", action="store_true", help="in an empty workspace, make and train the demo scene")
     p.set_defaults(func=cmd_serve)
 
+    p = sub.add_parser("view", help="desktop viewer (imgui + moderngl): a run directory, or a run on a server")
+    p.add_argument("run", nargs="?", help="run directory (omit with --server)")
+    p.add_argument("--server", help="URL of a running kgs-app serve, e.g. http://127.0.0.1:8000")
+    p.add_argument("--run-id", help="the run's id on --server")
+    p.add_argument("--token", help="access token of --server")
+    p.add_argument("--time", type=float, default=0.0, help="initial time in [0, 1]")
+    p.add_argument("--frame", type=int, help="start from this scene frame's camera")
+    p.add_argument("--overlay", type=int, default=0, choices=[0, 1, 2], help="0 colours, 1 tint, 2 velocity ellipses")
+    p.add_argument("--screenshot", help="save the view as PNG (with --frames or --offscreen)")
+    p.add_argument("--frames", type=int, help="close the window after this many frames (scripted use)")
+    p.add_argument("--offscreen", action="store_true", help="no window: render one image with EGL (headless)")
+    p.set_defaults(func=cmd_view)
+
     p = sub.add_parser("build-ext", help="compile the C++ CPU rasteriser (cached after the first time)")
     p.add_argument("--verbose", action="store_true")
     p.set_defaults(func=cmd_build_ext)
 
     p = sub.add_parser("bench", help="benchmarks that print numbers (see docs/performance.md)")
-    p.add_argument("what", choices=["raster", "serve"],
-                   help="raster: rasteriser and training-step timings; serve: scrubbing latency, 50 clients")
+    p.add_argument("what", choices=["raster", "serve", "stability"],
+                   help="raster: rasteriser and training-step timings; serve: scrubbing latency, 50 clients; "
+                        "stability: float32 vs float64 and training on extreme sequences")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options of the benchmark (--help for them)")
     p.set_defaults(func=cmd_bench)
     return ap

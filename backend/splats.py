@@ -17,6 +17,7 @@ traces / 3) so that float16 keeps its precision for small Gaussians.
 
 from __future__ import annotations
 
+import atexit
 import copy
 import json
 import struct
@@ -79,6 +80,19 @@ def rgba_of(sh: torch.Tensor, opacities: torch.Tensor) -> np.ndarray:
     return (torch.cat([rgb, opacities[:, None]], 1) * 255 + 0.5).to(torch.uint8).numpy()
 
 
+_STOP = threading.Event()  # set at interpreter exit: builders stop between samples
+_BUILDERS: set[threading.Thread] = set()
+
+
+@atexit.register
+def _stop_builders() -> None:
+    """A daemon thread still inside torch when the interpreter tears down aborts the process
+    ("terminate called without an active exception"): stop the builders and wait for them."""
+    _STOP.set()
+    for th in list(_BUILDERS):
+        th.join(timeout=10)
+
+
 class Trajectories:
     """The dynamic set sampled once per frame interval (positions, covariances, velocities), so
     that a time change is a linear interpolation between two samples instead of three
@@ -93,7 +107,9 @@ class Trajectories:
         self.ready = threading.Event()
         self.failed: str | None = None
         self.times = None
-        threading.Thread(target=self._build, daemon=True).start()
+        th = threading.Thread(target=self._build, daemon=True)
+        _BUILDERS.add(th)
+        th.start()
 
     @torch.no_grad()
     def _build(self) -> None:
@@ -104,8 +120,8 @@ class Trajectories:
             times = np.linspace(0.0, 1.0, n)
             means, covs, vels = [], [], []
             for t in times:
-                if self.view.version != version:
-                    return  # superseded by a tau change or an edit
+                if self.view.version != version or _STOP.is_set():
+                    return  # superseded by a tau change or an edit, or shutting down
                 # Not under `compute`: the build must not queue behind every client's exact
                 # evaluation, or it never finishes while many clients scrub.
                 idx, g = m.at_dynamic(float(t), exposure, self.view.dt)
@@ -119,6 +135,8 @@ class Trajectories:
             self.ready.set()
         except Exception as exc:  # keep serving exact evaluations
             self.failed = f"{type(exc).__name__}: {exc}"
+        finally:
+            _BUILDERS.discard(threading.current_thread())
 
     def at(self, t: float):
         """(idx, means, covars, velocity, rgba) at `t` by linear interpolation."""

@@ -258,3 +258,23 @@ def test_nonfinite_restore_continues_with_lower_learning_rate(tiny_scene, tmp_pa
     assert events[0]["event"] == "restored" and events[0]["iteration"] == 10 and events[0]["lr_scale"] == 0.5
     assert "iteration 17" in events[0]["reason"]
     assert all(torch.isfinite(v).all() for v in tr.model.params.items() for v in [v[1]])
+
+
+@pytest.mark.parametrize("basis", BASES)
+def test_still_gaussians_blend_to_the_predicted_covariance_with_bounded_gradient(basis):
+    """v -> 0: the velocity direction is noise, so Sigma_kin fades into the predicted Sigma
+    (weight (|v| dt)^2 / ((|v| dt)^2 + still^2)) and the gradient stays bounded."""
+    sigma = spd(3, 1, 0.05, 10.0)
+    d = unit(4)
+    still = 1e-3
+    worst_grad = 0.0
+    for mag in [0.0, 1e-9, 1e-7, 1e-5, 1e-4, 3e-4, 1e-3, 3e-3]:
+        v = (d * mag).requires_grad_(True)
+        z = torch.zeros(1, 3, dtype=f64)
+        out = refine_covariance(sigma, v, torch.zeros(1, dtype=f64), z, z, unit(5), torch.tensor(-2.0, dtype=f64),
+                                v.norm(dim=-1), basis=basis, still_len=still)
+        dev = ((out - sigma).norm() / sigma.norm()).item()
+        assert dev <= 2.0 * (mag / still) ** 2 + 1e-12  # quadratic fade-out
+        out.sum().backward()
+        worst_grad = max(worst_grad, v.grad.norm().item())
+    assert worst_grad < 10.0 / still * sigma.norm().item()

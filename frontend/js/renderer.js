@@ -55,7 +55,9 @@ void main() {
   float level = 2.0 * log(255.0 * o);
   float mid = 0.5 * (a + d);
   float lam = mid + sqrt(max(0.1, mid * mid - det));
+  bool solid = u_overlay == 2 && dyn && (int(t2.w) % max(u_stride, 1)) == 0;
   float r = ceil(sqrt(level * lam));
+  if (solid) r = max(r, ceil(2.0 * sqrt(lam)));  // the whole 2-sigma ellipse
   vec2 center = vec2(u_intr.x * c.x * iz + u_intr.z, u_intr.y * c.y * iz + u_intr.w);
   vec2 off = a_corner * r;
   vec2 pix = center + off;
@@ -68,7 +70,7 @@ void main() {
   if (u_overlay == 1) {
     col = mix(col, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
   } else if (u_overlay == 2) {
-    if (dyn && (int(t2.w) % max(u_stride, 1)) == 0) {
+    if (solid) {
       // velocity-aligned ellipse: solid, coloured by the major axis direction on screen
       vec2 ax = normalize(vec2(b, lam - a) + vec2(1e-9, 0.0));
       col = vec3(0.5 + 0.5 * ax.x, 0.5 + 0.5 * ax.y, 0.9);

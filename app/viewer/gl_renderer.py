@@ -1,0 +1,222 @@
+"""Splats with OpenGL 3.3 through moderngl, in whatever context is current (a window's, or a
+headless EGL context): instanced quads over each splat's 2D footprint, drawn nearest first with
+front-to-back blending. The same rules as the CPU rasteriser and the browser: alpha =
+min(0.99, o exp(-1/2 d^T S^-1 d)), skipped below 1/255, 0.3 px^2 low-pass; SH DC colour only."""
+
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+
+from .source import SplatSet
+
+VERT = """
+#version 330
+uniform mat4 u_view;      // world-to-camera (OpenCV)
+uniform vec4 u_intr;      // fx, fy, cx, cy
+uniform vec2 u_size;
+uniform int u_show;
+uniform int u_overlay;
+uniform int u_stride;
+in vec2 a_corner;
+in vec3 i_pos;
+in vec3 i_cov_a;          // xx, xy, xz
+in vec3 i_cov_b;          // yy, yz, zz
+in vec4 i_rgba;
+in float i_dynamic;
+in float i_index;
+out vec4 v_color;
+out vec2 v_offset;
+out vec3 v_conic;
+flat out int v_solid;
+void main() {
+  gl_Position = vec4(0.0, 0.0, 2.0, 1.0);
+  bool dyn = i_dynamic > 0.5;
+  if (((u_show & 1) == 0 && !dyn) || ((u_show & 2) == 0 && dyn)) return;
+  vec4 c = u_view * vec4(i_pos, 1.0);
+  if (c.z < 0.01) return;
+  mat3 S = mat3(i_cov_a.x, i_cov_a.y, i_cov_a.z, i_cov_a.y, i_cov_b.x, i_cov_b.y, i_cov_a.z, i_cov_b.y, i_cov_b.z);
+  mat3 W = mat3(u_view);
+  float iz = 1.0 / c.z;
+  mat3 J = mat3(u_intr.x * iz, 0.0, 0.0, 0.0, u_intr.y * iz, 0.0, -u_intr.x * c.x * iz * iz, -u_intr.y * c.y * iz * iz, 0.0);
+  mat3 T = J * W;
+  mat3 C2 = T * S * transpose(T);
+  float a = C2[0][0] + 0.3, b = C2[0][1], d = C2[1][1] + 0.3;
+  float det = a * d - b * b;
+  if (det <= 0.0) return;
+  float o = i_rgba.a;
+  if (o < 1.0 / 255.0) return;
+  float mid = 0.5 * (a + d);
+  float lam = mid + sqrt(max(0.1, mid * mid - det));
+  bool solid = u_overlay == 2 && dyn && (int(i_index) % max(u_stride, 1)) == 0;
+  float r = ceil(sqrt(2.0 * log(255.0 * o) * lam));
+  if (solid) r = max(r, ceil(2.0 * sqrt(lam)));  // the whole 2-sigma ellipse
+  vec2 center = vec2(u_intr.x * c.x * iz + u_intr.z, u_intr.y * c.y * iz + u_intr.w);
+  vec2 off = a_corner * r;
+  vec2 pix = center + off;
+  gl_Position = vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0);
+  v_offset = off;
+  v_conic = vec3(d, -b, a) / det;
+  v_solid = 0;
+  vec3 col = i_rgba.rgb;
+  if (u_overlay == 1) {
+    col = mix(col, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
+  } else if (u_overlay == 2) {
+    if (solid) {
+      vec2 ax = normalize(vec2(b, lam - a) + vec2(1e-9, 0.0));
+      col = vec3(0.5 + 0.5 * ax.x, 0.5 + 0.5 * ax.y, 0.9);
+      v_solid = 1;
+    } else {
+      col *= 0.35;
+    }
+  }
+  v_color = vec4(col, o);
+}
+"""
+
+FRAG = """
+#version 330
+in vec4 v_color;
+in vec2 v_offset;
+in vec3 v_conic;
+flat in int v_solid;
+out vec4 frag;
+void main() {
+  float power = -0.5 * (v_conic.x * v_offset.x * v_offset.x + v_conic.z * v_offset.y * v_offset.y) - v_conic.y * v_offset.x * v_offset.y;
+  if (power > 0.0) discard;
+  float alpha = min(0.99, v_color.a * exp(power));
+  if (v_solid == 1) alpha = power > -2.0 ? 0.9 : 0.0;
+  if (alpha < 1.0 / 255.0) discard;
+  frag = vec4(v_color.rgb * alpha, alpha);
+}
+"""
+
+LINE_VERT = """
+#version 330
+uniform mat4 u_view;
+uniform vec4 u_intr;
+uniform vec2 u_size;
+in vec3 a_pos;
+void main() {
+  vec4 c = u_view * vec4(a_pos, 1.0);
+  vec2 pix = vec2(u_intr.x * c.x / c.z + u_intr.z, u_intr.y * c.y / c.z + u_intr.w);
+  gl_Position = c.z > 0.01 ? vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0) : vec4(0, 0, 2, 1);
+}
+"""
+
+LINE_FRAG = """
+#version 330
+out vec4 frag;
+void main() { frag = vec4(1.0, 0.85, 0.2, 1.0); }
+"""
+
+INSTANCE = np.dtype([("pos", "f4", 3), ("cov_a", "f4", 3), ("cov_b", "f4", 3), ("rgba", "f4", 4), ("dynamic", "f4"),
+                     ("index", "f4")])
+
+
+def instances(static: SplatSet | None, dynamic: SplatSet | None) -> np.ndarray:
+    parts = []
+    for s, dyn in ((static, 0.0), (dynamic, 1.0)):
+        if s is None or len(s) == 0:
+            continue
+        a = np.empty(len(s), dtype=INSTANCE)
+        a["pos"] = s.positions
+        a["cov_a"] = s.covars[:, 0:3]
+        a["cov_b"] = s.covars[:, 3:6]
+        a["rgba"] = s.rgba / 255.0
+        a["dynamic"] = dyn
+        a["index"] = s.index
+        parts.append(a)
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=INSTANCE)
+
+
+class GLSplatRenderer:
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self.prog = ctx.program(vertex_shader=VERT, fragment_shader=FRAG)
+        self.line_prog = ctx.program(vertex_shader=LINE_VERT, fragment_shader=LINE_FRAG)
+        self.quad = ctx.buffer(np.array([-1, -1, 1, -1, 1, 1, -1, 1], dtype="f4").tobytes())
+        self.inst = np.zeros(0, dtype=INSTANCE)
+        self.inst_buf = None
+        self.vao = None
+        self.lines = None
+        self._order_key = None
+
+    def set_splats(self, static: SplatSet | None, dynamic: SplatSet | None) -> None:
+        self.inst = instances(static, dynamic)
+        self._order_key = None
+        self.arrows_from(dynamic)
+
+    def arrows_from(self, dynamic: SplatSet | None, stride: int = 4, length: float = 0.05) -> None:
+        if dynamic is None or dynamic.velocity is None or len(dynamic) == 0:
+            self.lines = None
+            return
+        p = dynamic.positions[::stride]
+        q = p + length * dynamic.velocity[::stride]
+        seg = np.stack([p, q], 1).reshape(-1, 3).astype("f4")
+        buf = self.ctx.buffer(seg.tobytes())
+        self.lines = (self.ctx.vertex_array(self.line_prog, [(buf, "3f", "a_pos")]), len(seg))
+
+    def _sort(self, viewmat: np.ndarray) -> None:
+        """Front to back by camera depth; redone when the camera or the splats change."""
+        key = tuple(np.round(viewmat[2], 6))
+        if key == self._order_key:
+            return
+        self._order_key = key
+        depth = self.inst["pos"] @ viewmat[2, :3] + viewmat[2, 3]
+        order = np.argsort(depth, kind="stable")
+        data = self.inst[order[depth[order] > 0.01]]
+        self.count = len(data)
+        if self.count == 0:
+            self.vao = None
+            return
+        if self.inst_buf is None or self.inst_buf.size < data.nbytes:
+            self.inst_buf = self.ctx.buffer(reserve=max(data.nbytes, 1024))
+            self.vao = None
+        self.inst_buf.write(data.tobytes())
+        if self.vao is None:
+            self.vao = self.ctx.vertex_array(self.prog, [
+                (self.quad, "2f", "a_corner"),
+                (self.inst_buf, "3f 3f 3f 4f 1f 1f/i", "i_pos", "i_cov_a", "i_cov_b", "i_rgba", "i_dynamic", "i_index"),
+            ])
+
+    def draw(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, show: int = 3, overlay: int = 0,
+             stride: int = 4, arrows: bool = False) -> None:
+        ctx = self.ctx
+        ctx.viewport = (0, 0, width, height)
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        ctx.enable(moderngl.BLEND)
+        ctx.blend_func = (moderngl.ONE_MINUS_DST_ALPHA, moderngl.ONE, moderngl.ONE_MINUS_DST_ALPHA, moderngl.ONE)
+        self._sort(viewmat)
+        view = viewmat.astype("f4").T.tobytes()  # GLSL is column-major
+        intr = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        if self.vao is not None:
+            p = self.prog
+            p["u_view"].write(view)
+            p["u_intr"].value = intr
+            p["u_size"].value = (float(width), float(height))
+            p["u_show"].value = show
+            p["u_overlay"].value = overlay
+            p["u_stride"].value = stride
+            self.vao.render(moderngl.TRIANGLE_FAN, vertices=4, instances=self.count)
+        if arrows and self.lines is not None:
+            ctx.disable(moderngl.BLEND)
+            lp = self.line_prog
+            lp["u_view"].write(view)
+            lp["u_intr"].value = intr
+            lp["u_size"].value = (float(width), float(height))
+            self.lines[0].render(moderngl.LINES, vertices=self.lines[1])
+
+
+def render_offscreen(static: SplatSet | None, dynamic: SplatSet | None, viewmat, K, width: int, height: int,
+                     ctx: moderngl.Context | None = None, **kw) -> np.ndarray:
+    """`(H, W, 3)` uint8 from a headless context (EGL on Mesa when none is given)."""
+    ctx = ctx or moderngl.create_standalone_context(backend="egl")
+    fbo = ctx.framebuffer(color_attachments=[ctx.texture((width, height), 4)])
+    fbo.use()
+    fbo.clear(0.0, 0.0, 0.0, 0.0)
+    r = GLSplatRenderer(ctx)
+    r.set_splats(static, dynamic)
+    r.draw(np.asarray(viewmat, dtype=np.float64), np.asarray(K, dtype=np.float64), width, height, **kw)
+    data = np.frombuffer(fbo.read(components=3), dtype=np.uint8).reshape(height, width, 3)
+    return data[::-1].copy()  # GL rows go bottom-up
