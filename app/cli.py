@@ -73,22 +73,10 @@ def cmd_ingest(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     """Train Kinematics-GS on a scene folder; writes a run directory."""
     from kgs_core.data.formats import load_scene
-    from kgs_core.train.config import make_config
+    from kgs_core.train.config import make_config, overrides_from
     from kgs_core.train.trainer import train
 
-    overrides = {}
-    if args.iterations:
-        overrides["iterations"] = args.iterations
-    if args.tau is not None:
-        overrides["model.tau"] = args.tau
-    if args.velocity:
-        overrides["model.velocity"] = args.velocity
-    if args.basis:
-        overrides["model.basis"] = args.basis
-    if args.on_nonfinite:
-        overrides["on_nonfinite"] = args.on_nonfinite
-    if args.seed is not None:
-        overrides["seed"] = args.seed
+    overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite)
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
     cfg = make_config(args.preset, ablate=ablate, **overrides)
     scene = load_scene(args.scene)

@@ -5,14 +5,17 @@ min(0.99, o exp(-1/2 d^T S^-1 d)), skipped below 1/255, 0.3 px^2 low-pass; SH DC
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import moderngl
 import numpy as np
 
 from .source import SplatSet
 
-VERT = """
-#version 330
-uniform mat4 u_view;      // world-to-camera (OpenCV)
+SHADERS = Path(__file__).resolve().parents[2] / "frontend" / "shaders"  # shared with the browser
+
+VERT_MAIN = """
+uniform mat4 u_view;      // world-to-camera (OpenCV), column-major
 uniform vec4 u_intr;      // fx, fy, cx, cy
 uniform vec2 u_size;
 uniform int u_show;
@@ -34,62 +37,27 @@ void main() {
   bool dyn = i_dynamic > 0.5;
   if (((u_show & 1) == 0 && !dyn) || ((u_show & 2) == 0 && dyn)) return;
   vec4 c = u_view * vec4(i_pos, 1.0);
-  if (c.z < 0.01) return;
   mat3 S = mat3(i_cov_a.x, i_cov_a.y, i_cov_a.z, i_cov_a.y, i_cov_b.x, i_cov_b.y, i_cov_a.z, i_cov_b.y, i_cov_b.z);
-  mat3 W = mat3(u_view);
-  float iz = 1.0 / c.z;
-  mat3 J = mat3(u_intr.x * iz, 0.0, 0.0, 0.0, u_intr.y * iz, 0.0, -u_intr.x * c.x * iz * iz, -u_intr.y * c.y * iz * iz, 0.0);
-  mat3 T = J * W;
-  mat3 C2 = T * S * transpose(T);
-  float a = C2[0][0] + 0.3, b = C2[0][1], d = C2[1][1] + 0.3;
-  float det = a * d - b * b;
-  if (det <= 0.0) return;
-  float o = i_rgba.a;
-  if (o < 1.0 / 255.0) return;
-  float mid = 0.5 * (a + d);
-  float lam = mid + sqrt(max(0.1, mid * mid - det));
   bool solid = u_overlay == 2 && dyn && (int(i_index) % max(u_stride, 1)) == 0;
-  float r = ceil(sqrt(2.0 * log(255.0 * o) * lam));
-  if (solid) r = max(r, ceil(2.0 * sqrt(lam)));  // the whole 2-sigma ellipse
-  vec2 center = vec2(u_intr.x * c.x * iz + u_intr.z, u_intr.y * c.y * iz + u_intr.w);
+  vec2 center, major;
+  float r;
+  vec3 conic;
+  if (!splat_footprint(c, S, mat3(u_view), u_intr, i_rgba.a, solid, center, r, conic, major)) return;
   vec2 off = a_corner * r;
-  vec2 pix = center + off;
-  gl_Position = vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0);
+  gl_Position = clip_position(center + off, u_size);
   v_offset = off;
-  v_conic = vec3(d, -b, a) / det;
-  v_solid = 0;
-  vec3 col = i_rgba.rgb;
-  if (u_overlay == 1) {
-    col = mix(col, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
-  } else if (u_overlay == 2) {
-    if (solid) {
-      vec2 ax = normalize(vec2(b, lam - a) + vec2(1e-9, 0.0));
-      col = vec3(0.5 + 0.5 * ax.x, 0.5 + 0.5 * ax.y, 0.9);
-      v_solid = 1;
-    } else {
-      col *= 0.35;
-    }
-  }
-  v_color = vec4(col, o);
+  v_conic = conic;
+  v_solid = solid ? 1 : 0;
+  v_color = vec4(overlay_colour(i_rgba.rgb, dyn, solid, u_overlay, major), i_rgba.a);
 }
 """
 
-FRAG = """
-#version 330
-in vec4 v_color;
-in vec2 v_offset;
-in vec3 v_conic;
-flat in int v_solid;
-out vec4 frag;
-void main() {
-  float power = -0.5 * (v_conic.x * v_offset.x * v_offset.x + v_conic.z * v_offset.y * v_offset.y) - v_conic.y * v_offset.x * v_offset.y;
-  if (power > 0.0) discard;
-  float alpha = min(0.99, v_color.a * exp(power));
-  if (v_solid == 1) alpha = power > -2.0 ? 0.9 : 0.0;
-  if (alpha < 1.0 / 255.0) discard;
-  frag = vec4(v_color.rgb * alpha, alpha);
-}
-"""
+
+def shader_sources() -> tuple[str, str]:
+    common = (SHADERS / "splat_common.glsl").read_text()
+    frag = (SHADERS / "splat.frag.glsl").read_text()
+    return "#version 330\n" + common + VERT_MAIN, "#version 330\n" + frag
+
 
 LINE_VERT = """
 #version 330
@@ -133,7 +101,8 @@ def instances(static: SplatSet | None, dynamic: SplatSet | None) -> np.ndarray:
 class GLSplatRenderer:
     def __init__(self, ctx: moderngl.Context):
         self.ctx = ctx
-        self.prog = ctx.program(vertex_shader=VERT, fragment_shader=FRAG)
+        vert, frag = shader_sources()
+        self.prog = ctx.program(vertex_shader=vert, fragment_shader=frag)
         self.line_prog = ctx.program(vertex_shader=LINE_VERT, fragment_shader=LINE_FRAG)
         self.quad = ctx.buffer(np.array([-1, -1, 1, -1, 1, 1, -1, 1], dtype="f4").tobytes())
         self.inst = np.zeros(0, dtype=INSTANCE)

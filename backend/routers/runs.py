@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from pydantic import BaseModel, Field
 
 from kgs_core.run import read_log
-from kgs_core.train.config import ABLATIONS, PRESETS
+from kgs_core.train.config import ABLATIONS, PRESETS, overrides_from
 
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner
@@ -28,6 +28,7 @@ class TrainRequest(BaseModel):
     iterations: int | None = Field(None, ge=1, le=1_000_000)
     tau: float | None = Field(None, gt=0)
     velocity: Literal["paper", "physical"] | None = None
+    basis: Literal["paper", "duff", "principal"] | None = None
     ablate: list[str] = []
     seed: int | None = None
 
@@ -77,15 +78,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     bad = [a for a in req.ablate if a not in ABLATIONS]
     if bad:
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
-    overrides = {}
-    if req.iterations:
-        overrides["iterations"] = req.iterations
-    if req.tau:
-        overrides["model.tau"] = req.tau
-    if req.velocity:
-        overrides["model.velocity"] = req.velocity
-    if req.seed is not None:
-        overrides["seed"] = req.seed
+    overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed)
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",

@@ -6,16 +6,16 @@
 
 import { TEX_WIDTH, SPLATS_PER_ROW } from "./pack.js";
 
-const VERT = `#version 300 es
-precision highp float;
-precision highp int;
-precision highp usampler2D;
+// Inputs of the WebGL2 vertex shader; the footprint math and the overlay colours come from
+// shaders/splat_common.glsl (shared with the desktop viewer), the fragment shader from
+// shaders/splat.frag.glsl.
+const VERT_MAIN = `
 uniform usampler2D u_splats;
 uniform mat4 u_view;        // world-to-camera (OpenCV), column-major for GLSL
 uniform vec4 u_intr;        // fx, fy, cx, cy in pixels
 uniform vec2 u_size;        // viewport in pixels
 uniform int u_show;         // bit 0 static, bit 1 dynamic
-uniform int u_overlay;      // 0 none, 1 static/dynamic tint, 2 velocity ellipses (dynamic solid)
+uniform int u_overlay;      // 0 none, 1 static/dynamic tint, 2 velocity ellipses
 uniform int u_stride;       // overlay density: every k-th dynamic splat in ellipse mode
 in vec2 a_corner;
 in uint a_index;
@@ -34,70 +34,40 @@ void main() {
   uint flags = t2.z;
   bool dyn = (flags & 1u) != 0u;
   if (((u_show & 1) == 0 && !dyn) || ((u_show & 2) == 0 && dyn)) return;
-  vec3 p = uintBitsToFloat(t0.xyz);
-  vec4 c = u_view * vec4(p, 1.0);
-  if (c.z < 0.01) return;
+  vec4 c = u_view * vec4(uintBitsToFloat(t0.xyz), 1.0);
   float xx = uintBitsToFloat(t1.x), xy = uintBitsToFloat(t1.y), xz = uintBitsToFloat(t1.z);
   float yy = uintBitsToFloat(t1.w), yz = uintBitsToFloat(t2.x), zz = uintBitsToFloat(t2.y);
   mat3 S = mat3(xx, xy, xz, xy, yy, yz, xz, yz, zz);
-  mat3 W = mat3(u_view);
-  float iz = 1.0 / c.z;
-  // J rows: (fx/z, 0, -fx x/z^2), (0, fy/z, -fy y/z^2); GLSL mat3 is column-major.
-  mat3 J = mat3(u_intr.x * iz, 0.0, 0.0,  0.0, u_intr.y * iz, 0.0,  -u_intr.x * c.x * iz * iz, -u_intr.y * c.y * iz * iz, 0.0);
-  mat3 T = J * W;
-  mat3 C2 = T * S * transpose(T);
-  float a = C2[0][0] + 0.3, b = C2[0][1], d = C2[1][1] + 0.3;
-  float det = a * d - b * b;
-  if (det <= 0.0) return;
   vec4 rgba = vec4(float(t0.w & 255u), float((t0.w >> 8) & 255u), float((t0.w >> 16) & 255u), float(t0.w >> 24)) / 255.0;
-  float o = rgba.a;
-  if (o < 1.0 / 255.0) return;
-  float level = 2.0 * log(255.0 * o);
-  float mid = 0.5 * (a + d);
-  float lam = mid + sqrt(max(0.1, mid * mid - det));
   bool solid = u_overlay == 2 && dyn && (int(t2.w) % max(u_stride, 1)) == 0;
-  float r = ceil(sqrt(level * lam));
-  if (solid) r = max(r, ceil(2.0 * sqrt(lam)));  // the whole 2-sigma ellipse
-  vec2 center = vec2(u_intr.x * c.x * iz + u_intr.z, u_intr.y * c.y * iz + u_intr.w);
+  vec2 center, major;
+  float r;
+  vec3 conic;
+  if (!splat_footprint(c, S, mat3(u_view), u_intr, rgba.a, solid, center, r, conic, major)) return;
   vec2 off = a_corner * r;
-  vec2 pix = center + off;
-  gl_Position = vec4(2.0 * pix.x / u_size.x - 1.0, 1.0 - 2.0 * pix.y / u_size.y, 0.0, 1.0);
+  gl_Position = clip_position(center + off, u_size);
   v_offset = off;
-  v_conic = vec3(d, -b, a) / det;
-  v_solid = 0;
-  vec3 col = rgba.rgb;
-  bool selected = (flags & 2u) != 0u;
-  if (u_overlay == 1) {
-    col = mix(col, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
-  } else if (u_overlay == 2) {
-    if (solid) {
-      // velocity-aligned ellipse: solid, coloured by the major axis direction on screen
-      vec2 ax = normalize(vec2(b, lam - a) + vec2(1e-9, 0.0));
-      col = vec3(0.5 + 0.5 * ax.x, 0.5 + 0.5 * ax.y, 0.9);
-      v_solid = 1;
-    } else {
-      col *= 0.35;
-    }
-  }
-  if (selected) col = mix(col, vec3(1.0, 0.1, 0.6), 0.7);
-  v_color = vec4(col, o);
+  v_conic = conic;
+  v_solid = solid ? 1 : 0;
+  vec3 col = overlay_colour(rgba.rgb, dyn, solid, u_overlay, major);
+  if ((flags & 2u) != 0u) col = mix(col, vec3(1.0, 0.1, 0.6), 0.7);  // selected
+  v_color = vec4(col, rgba.a);
 }`;
 
-const FRAG = `#version 300 es
+const ES_HEADER = `#version 300 es
 precision highp float;
-in vec4 v_color;
-in vec2 v_offset;
-in vec3 v_conic;
-flat in int v_solid;
-out vec4 frag;
-void main() {
-  float power = -0.5 * (v_conic.x * v_offset.x * v_offset.x + v_conic.z * v_offset.y * v_offset.y) - v_conic.y * v_offset.x * v_offset.y;
-  if (power > 0.0) discard;
-  float alpha = min(0.99, v_color.a * exp(power));
-  if (v_solid == 1) alpha = power > -2.0 ? 0.9 : 0.0;  // the 2-sigma ellipse
-  if (alpha < 1.0 / 255.0) discard;
-  frag = vec4(v_color.rgb * alpha, alpha);
-}`;
+precision highp int;
+precision highp usampler2D;
+`;
+
+async function shaderSources() {
+  const [common, frag] = await Promise.all(["splat_common.glsl", "splat.frag.glsl"].map(async (name) => {
+    const r = await fetch(new URL(`../shaders/${name}`, import.meta.url));
+    if (!r.ok) throw new Error(`shader ${name}: ${r.status}`);
+    return r.text();
+  }));
+  return { vert: ES_HEADER + common + VERT_MAIN, frag: ES_HEADER + frag };
+}
 
 const LINE_VERT = `#version 300 es
 precision highp float;
@@ -142,12 +112,16 @@ function toGL(m) {
 }
 
 export class SplatRenderer {
-  constructor(canvas) {
+  static async create(canvas) {
+    return new SplatRenderer(canvas, await shaderSources());
+  }
+
+  constructor(canvas, sources) {
     const gl = canvas.getContext("webgl2", { antialias: false, premultipliedAlpha: true, preserveDrawingBuffer: true });
     if (!gl) throw new Error("WebGL2 is not available in this browser");
     this.gl = gl;
     this.canvas = canvas;
-    this.prog = compile(gl, VERT, FRAG);
+    this.prog = compile(gl, sources.vert, sources.frag);
     this.lineProg = compile(gl, LINE_VERT, LINE_FRAG);
     this.tex = gl.createTexture();
     this.count = 0;

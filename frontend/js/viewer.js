@@ -14,7 +14,6 @@ export class Viewer {
   constructor(runId) {
     this.runId = runId;
     this.canvas = $("canvas");
-    this.renderer = new SplatRenderer(this.canvas);
     this.worker = new Worker(new URL("./sort-worker.js", import.meta.url), { type: "module" });
     this.worker.onmessage = (e) => this.onSorted(e.data);
     this.sortId = 0;
@@ -39,6 +38,7 @@ export class Viewer {
   }
 
   async start() {
+    this.renderer = await SplatRenderer.create(this.canvas);
     this.meta = await api(`/api/runs/${this.runId}`);
     if (!this.meta.has_model) throw new Error(`run ${this.runId} has no model yet (${this.meta.status})`);
     const m = this.meta;

@@ -123,6 +123,14 @@ def fast_preset() -> TrainConfig:
 PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 
+def overrides_from(iterations: int | None = None, tau: float | None = None, velocity: str | None = None,
+                   basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None) -> dict:
+    """`make_config` overrides from the options the CLI and the server share (None = preset's)."""
+    named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis,
+             "seed": seed, "on_nonfinite": on_nonfinite}
+    return {k: v for k, v in named.items() if v is not None}
+
+
 def make_config(preset: str = "fast", ablate: tuple = (), **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")

@@ -1,0 +1,40 @@
+// Shared by the browser (WebGL2, GLSL ES 3.00: frontend/js/renderer.js) and the desktop viewer
+// (GLSL 3.30: app/viewer/gl_renderer.py); each prepends its #version line and its inputs.
+// The rules are the CPU rasteriser's: 0.3 px^2 low-pass, quad out to the level where
+// o * exp(-power) = 1/255, alpha = min(0.99, o * exp(power)).
+
+// The 2D footprint of a Gaussian with camera-space centre c, world covariance S, view rotation
+// W, intrinsics (fx, fy, cx, cy) and opacity o. False when it cannot show. `solid` (the
+// velocity-ellipse overlay) extends the quad to the whole 2-sigma ellipse.
+bool splat_footprint(vec4 c, mat3 S, mat3 W, vec4 intr, float o, bool solid,
+                     out vec2 center, out float r, out vec3 conic, out vec2 major) {
+  if (c.z < 0.01 || o < 1.0 / 255.0) return false;
+  float iz = 1.0 / c.z;
+  // J rows: (fx/z, 0, -fx x/z^2), (0, fy/z, -fy y/z^2); GLSL matrices are column-major.
+  mat3 J = mat3(intr.x * iz, 0.0, 0.0, 0.0, intr.y * iz, 0.0, -intr.x * c.x * iz * iz, -intr.y * c.y * iz * iz, 0.0);
+  mat3 T = J * W;
+  mat3 C2 = T * S * transpose(T);
+  float a = C2[0][0] + 0.3, b = C2[0][1], d = C2[1][1] + 0.3;
+  float det = a * d - b * b;
+  if (det <= 0.0) return false;
+  float mid = 0.5 * (a + d);
+  float lam = mid + sqrt(max(0.1, mid * mid - det));
+  r = ceil(sqrt(2.0 * log(255.0 * o) * lam));
+  if (solid) r = max(r, ceil(2.0 * sqrt(lam)));
+  center = vec2(intr.x * c.x * iz + intr.z, intr.y * c.y * iz + intr.w);
+  conic = vec3(d, -b, a) / det;
+  major = normalize(vec2(b, lam - a) + vec2(1e-9, 0.0));
+  return true;
+}
+
+// Overlay colours: 1 tints static blue and dynamic orange; 2 draws the chosen dynamic splats as
+// solid ellipses coloured by their screen-space major axis and dims everything else.
+vec3 overlay_colour(vec3 rgb, bool dyn, bool solid, int overlay, vec2 major) {
+  if (overlay == 1) return mix(rgb, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
+  if (overlay == 2) return solid ? vec3(0.5 + 0.5 * major.x, 0.5 + 0.5 * major.y, 0.9) : rgb * 0.35;
+  return rgb;
+}
+
+vec4 clip_position(vec2 pix, vec2 size) {
+  return vec4(2.0 * pix.x / size.x - 1.0, 1.0 - 2.0 * pix.y / size.y, 0.0, 1.0);
+}
