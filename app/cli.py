@@ -133,7 +133,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         settings.token = secrets.token_urlsafe(24)
         print(f"binding {args.host} (not loopback): access token required, generated: {settings.token}")
     if args.demo:
-        from kgs_backend.jobs import JobRunner
         from kgs_backend.registry import Workspace
         from kgs_backend.routers.system import start_demo
 
@@ -203,6 +202,10 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "raster":
         from kgs_app.bench.raster import main as bench_main
+
+        return bench_main(args.rest)
+    if args.what == "quality":
+        from kgs_app.bench.quality import main as bench_main
 
         return bench_main(args.rest)
     if args.what == "stability":
@@ -321,9 +324,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_build_ext)
 
     p = sub.add_parser("bench", help="benchmarks that print numbers (see docs/performance.md)")
-    p.add_argument("what", choices=["raster", "serve", "stability"],
+    p.add_argument("what", choices=["raster", "serve", "stability", "quality"],
                    help="raster: rasteriser and training-step timings; serve: scrubbing latency, 50 clients; "
-                        "stability: float32 vs float64 and training on extreme sequences")
+                        "stability: float32 vs float64 and training on extreme sequences; quality: each "
+                        "ablation and baseline on the same budget, tau sweep")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options of the benchmark (--help for them)")
     p.set_defaults(func=cmd_bench)
     return ap

@@ -36,8 +36,8 @@ def lpips_status() -> tuple[object | None, str]:
 
 
 def render_at(model: KinematicsGS, frame: Frame, exposure: float = 0.0, dt: float = 1.0, background=None,
-              colors: torch.Tensor | None = None):
-    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors)
+              colors: torch.Tensor | None = None, static: bool = False):
+    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static)
 
 
 def dynamic_mask_render(model: KinematicsGS, frame: Frame, dt: float) -> np.ndarray:
@@ -53,9 +53,10 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @torch.no_grad()
-def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None) -> dict:
+def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: bool = False) -> dict:
     """Metrics over the evaluation views: held-out sharp camera frames, and the training views'
-    sharp ground truth (deblurring) when the scene has it."""
+    sharp ground truth (deblurring) when the scene has it. `static`: the run was trained without
+    deformation (`--ablate deform`), so render the canonical Gaussians."""
     groups = {}
     if scene.test_frames:
         groups["heldout"] = [(f, f.image()) for f in scene.test_frames]
@@ -68,7 +69,7 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None) -> dict:
         ps, ss, mps, mss, lp = [], [], [], [], []
         for f, gt_np in items:
             gt = torch.from_numpy(gt_np)
-            out, _ = render_at(model, f, exposure=0.0, dt=scene.dt)
+            out, _ = render_at(model, f, exposure=0.0, dt=scene.dt, static=static)
             img = out.image.clamp(0, 1)
             ps.append(psnr(img, gt))
             ss.append(float(ssim(img, gt)))
@@ -79,7 +80,7 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None) -> dict:
                 y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
                 if min(y1 - y0, x1 - x0) >= 11:  # SSIM on the mask's bounding box
                     mss.append(float(ssim(img[y0:y1, x0:x1], gt[y0:y1, x0:x1])))
-                if model.decomposed:
+                if model.decomposed and not static:
                     ious.append(iou(dynamic_mask_render(model, f, scene.dt), m))
             if lpips_model is not None:
                 to = lambda x: x.permute(2, 0, 1)[None] * 2 - 1
@@ -104,7 +105,7 @@ def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> di
     run: LoadedRun = load_run(run_dir)
     scene = load_scene(scene_dir or run.scene_path())
     lp_model, lp_note = lpips_status()
-    metrics = evaluate_model(run.model, scene, lp_model)
+    metrics = evaluate_model(run.model, scene, lp_model, static=run.static_only)
     frame = (scene.test_frames or scene.train_frames)[0]
     metrics["lpips_note"] = lp_note
     metrics["levels"] = []

@@ -18,7 +18,6 @@ import asyncio
 import json
 import math
 from collections import defaultdict
-from pathlib import Path
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
