@@ -10,10 +10,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import socket
-import subprocess
-import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -34,35 +30,17 @@ playwright = pytest.importorskip("playwright.sync_api")
 MAX_MEAN_ERROR = 6.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server(tiny_run, tmp_path_factory):
     import shutil
 
+    from kgs_backend.launch import ServerProcess
+
     root = tmp_path_factory.mktemp("browser")
     shutil.copytree(tiny_run.parent.parent, root / "data")
     run = root / "data" / "runs" / tiny_run.name
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "kgs_app.cli", "serve", str(run), "--workspace", str(root / "ws"),
-                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    base = f"http://127.0.0.1:{port}"
-    for _ in range(300):
-        try:
-            runs = json.loads(urllib.request.urlopen(base + "/api/runs").read())
-            break
-        except OSError:
-            time.sleep(0.1)
-    else:
-        proc.kill()
-        raise RuntimeError(proc.stdout.read())
-    yield {"base": base, "run_id": runs[0]["id"], "run_dir": run}
-    proc.terminate()
-    proc.wait(10)
+    with ServerProcess([run], root / "ws") as srv:
+        yield {"base": srv.base, "run_id": srv.runs[0]["id"], "run_dir": run}
 
 
 @pytest.fixture(scope="module")

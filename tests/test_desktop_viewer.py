@@ -157,30 +157,14 @@ def test_window_under_xvfb(tiny_run, tmp_path):
 
 
 def test_remote_source_matches_local(tiny_run, tmp_path, egl):
-    import json
-    import socket
-    import time
-    import urllib.request
-
     from kgs_app.viewer.gl_renderer import render_offscreen
     from kgs_app.viewer.source import LocalSource, RemoteSource
+    from kgs_backend.launch import ServerProcess
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     run_copy = tmp_path / "data"
     shutil.copytree(tiny_run.parent.parent, run_copy)
-    proc = subprocess.Popen([sys.executable, "-m", "kgs_app.cli", "serve", str(run_copy / "runs" / tiny_run.name),
-                             "--workspace", str(tmp_path / "ws"), "--port", str(port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        for _ in range(300):
-            try:
-                runs = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/api/runs").read())
-                break
-            except OSError:
-                time.sleep(0.1)
-        remote = RemoteSource(f"http://127.0.0.1:{port}", runs[0]["id"])
+    with ServerProcess([run_copy / "runs" / tiny_run.name], tmp_path / "ws") as srv:
+        remote = RemoteSource(srv.base, srv.runs[0]["id"])
         local = LocalSource(run_copy / "runs" / tiny_run.name)
         f = local.frames[0]
         imgs = []
@@ -190,6 +174,4 @@ def test_remote_source_matches_local(tiny_run, tmp_path, egl):
                                          ctx=egl).astype(np.float64))
         assert np.abs(imgs[0] - imgs[1]).max() <= 2
         assert remote.set_tau(1.0)["dynamic"] == 0
-    finally:
-        proc.terminate()
-        proc.wait(10)
+        remote.close()

@@ -17,11 +17,8 @@ import asyncio
 import json
 import os
 import random
-import socket
 import statistics
 import struct
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -90,12 +87,6 @@ def load_run_means(run: Path) -> np.ndarray:
     return load_run(run).model.params.means.detach().numpy()
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 async def scrub_client(url: str, seconds: float, lat: list, seed: int) -> None:
     import websockets
 
@@ -147,29 +138,13 @@ async def clients(url: str, n: int, seconds: float) -> list[float]:
 
 
 def bench_clients(run: Path, n_clients: int, seconds: float, warm_cache: bool) -> dict:
-    port = free_port()
-    ws_dir = Path(tempfile.mkdtemp(prefix="kgs-bench-ws-"))
-    proc = subprocess.Popen([sys.executable, "-m", "kgs_app.cli", "serve", str(run), "--workspace", str(ws_dir),
-                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        import urllib.request
+    from kgs_backend.launch import ServerProcess
 
-        for _ in range(200):
-            try:
-                runs = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/api/runs").read())
-                break
-            except OSError:
-                time.sleep(0.2)
-        else:
-            raise RuntimeError("server did not start: " + (proc.stdout.read() if proc.stdout else ""))
-        rid = runs[0]["id"]
-        url = f"ws://127.0.0.1:{port}/api/runs/{rid}/stream"
+    with ServerProcess([run], Path(tempfile.mkdtemp(prefix="kgs-bench-ws-"))) as srv:
+        url = srv.base.replace("http", "ws", 1) + f"/api/runs/{srv.runs[0]['id']}/stream"
         asyncio.run(clients(url, 1, 1.0))  # load the model
         cache_s = asyncio.run(wait_for_cache(url)) if warm_cache else None
         lat = asyncio.run(clients(url, n_clients, seconds))
-    finally:
-        proc.terminate()
-        proc.wait(10)
     lat.sort()
     return {"clients": n_clients, "seconds": seconds, "requests": len(lat),
             "p50_ms": statistics.median(lat), "p95_ms": lat[int(0.95 * (len(lat) - 1))],
