@@ -27,12 +27,15 @@ def run_train(spec: dict) -> None:
     from kgs_core.data.formats import load_scene
     from kgs_core.io import atomic_write_text
     from kgs_core.model.dynamic import split_counts
-    from kgs_core.train.config import make_config
+    from kgs_core.train.config import TrainConfig, make_config
     from kgs_core.train.trainer import Trainer
 
     run_dir = Path(spec["run_dir"])
-    overrides = dict(spec.get("overrides") or {})
-    cfg = make_config(spec.get("preset", "fast"), ablate=tuple(spec.get("ablate") or ()), **overrides)
+    if spec.get("config"):  # a full configuration (fine-tuning builds one from the parent run)
+        cfg = TrainConfig.from_dict(spec["config"])
+    else:
+        overrides = dict(spec.get("overrides") or {})
+        cfg = make_config(spec.get("preset", "fast"), ablate=tuple(spec.get("ablate") or ()), **overrides)
     scene = load_scene(spec["scene_dir"])
     t0 = time.time()
     state = {"last": 0.0, "psnr": None}

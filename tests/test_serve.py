@@ -280,6 +280,14 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
         names = z.namelist()
         assert "frame_00000.splat" in names and len(z.read("frame_00000.splat")) % 32 == 0
     assert client.post(f"/api/runs/{done['id']}/exports", json={"format": "obj"}).status_code == 422
+    # Fine-tune from a new split: a new run starting from this model, split at the given tau.
+    tau = client.get(f"/api/runs/{done['id']}").json()["tau"] * 5
+    ft = client.post(f"/api/runs/{done['id']}/finetune", json={"tau": tau, "iterations": 20}).json()
+    ft = wait_status(client, f"/api/runs/{ft['id']}")
+    assert ft["status"] == "done" and ft["iteration"] == 20, ft
+    meta = client.get(f"/api/runs/{ft['id']}").json()
+    assert meta["tau"] == pytest.approx(tau) and meta["split"]["gaussians"] == done["gaussians"]
+    assert client.post("/api/runs/nope/finetune", json={}).status_code == 404
     # A restarted server lists the earlier runs and their states.
     app2 = create_app(Settings(workspace=ws_dir))
     with TestClient(app2) as c2:

@@ -37,6 +37,11 @@ class TauRequest(BaseModel):
     tau: float = Field(..., gt=0, description="dynamic when the temporal variance K exceeds tau")
 
 
+class FinetuneRequest(BaseModel):
+    tau: float | None = Field(None, gt=0, description="split threshold (default: the viewer's live τ)")
+    iterations: int = Field(300, ge=1, le=100_000)
+
+
 class EditRequest(BaseModel):
     op: Literal["delete", "hide", "unhide", "restore", "crop", "clear"]
     lod: int | None = None
@@ -157,6 +162,31 @@ async def set_tau(run_id: str, req: TauRequest, request: Request) -> dict:
     split = view.set_tau(req.tau)
     await request.app.state.hub.broadcast(run_id, {"type": "split", **split})
     return split
+
+
+@router.post("/{run_id}/finetune", status_code=202)
+def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace = Depends(workspace),
+             jr: JobRunner = Depends(jobs)) -> dict:
+    """A new run that continues this one's model with the split at `tau` (the live τ when not
+    given): the decomposition chosen in the viewer, then trained further."""
+    from kgs_core.train.config import finetune_config
+
+    parent = get_or_404(ws, "runs", run_id)
+    path = Path(parent["path"])
+    if not (path / "model.pt").is_file():
+        raise HTTPException(409, f"run {run_id} has no model to fine-tune (status: {parent['status']})")
+    info = read_json(path / "run.json")
+    tau = req.tau if req.tau is not None else run_view(request.app, run_id).tau
+    cfg = finetune_config(info["config"], req.iterations, tau)
+    cfg.init_from = str(path)
+    rid = new_id()
+    run_dir = ws.new_dir("runs", rid)
+    scene = ws.get("scenes", parent["scene_id"]) if parent["scene_id"] else None
+    scene_dir = scene["path"] if scene else info.get("scene")
+    ws.insert("runs", id=rid, scene_id=parent["scene_id"], name=f"{parent['name']}-ft", path=str(run_dir),
+              status="queued", params={"finetune_of": run_id, "tau": tau, "iterations": req.iterations})
+    jr.start("runs", rid, "train", {"scene_dir": scene_dir, "run_dir": str(run_dir), "config": cfg.to_dict()})
+    return public(ws.get("runs", rid))
 
 
 @router.get("/{run_id}/edits")

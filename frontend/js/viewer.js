@@ -284,6 +284,10 @@ export class Viewer {
       tauTimer = setTimeout(() => this.setTau(value), 150);
     };
     $("tau-label").textContent = `τ = ${m.tau.toExponential(2)}`;
+    $("finetune").onclick = async () => {
+      const run = await api(`/api/runs/${this.runId}/finetune`, { method: "POST", body: { tau: this.meta.tau } });
+      $("finetune-status").innerHTML = `training <a href="#/">${run.name}</a> (runs page)`;
+    };
     drawHistogram($("histogram"), m.histogram, m.tau);
     this.updateCounts();
     $("mode").onchange = (e) => {

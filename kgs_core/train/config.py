@@ -77,6 +77,7 @@ class TrainConfig:
     nonfinite_max_restores: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
     ablate: tuple = ()
+    init_from: str = ""  # a run directory: start from its final model (fine-tuning), not from points
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -129,6 +130,19 @@ def overrides_from(iterations: int | None = None, tau: float | None = None, velo
     named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis,
              "seed": seed, "on_nonfinite": on_nonfinite}
     return {k: v for k, v in named.items() if v is not None}
+
+
+def finetune_config(parent: dict, iterations: int, tau: float | None = None) -> "TrainConfig":
+    """Fine-tuning a finished run (its `run.json` config) for `iterations` more, keeping its
+    split (at `tau` when given): no densification, no re-split, no opacity reset, one LoD level,
+    the position learning rate at its final value."""
+    cfg = TrainConfig.from_dict(parent)
+    cfg = replace(cfg, iterations=iterations, densify_from=iterations + 1, densify_until=0, opacity_reset_at=(),
+                  decompose_at=iterations + 1, decompose_every=0, lod_levels=1, lod_fractions=(1.0,),
+                  lr_means=cfg.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations)
+    if tau is not None:
+        cfg.model.tau = tau
+    return cfg
 
 
 def make_config(preset: str = "fast", ablate: tuple = (), **overrides) -> TrainConfig:

@@ -109,12 +109,30 @@ class Trainer:
         cfg, scene = self.cfg, self.scene
         torch.manual_seed(cfg.seed)
         random.seed(cfg.seed)
+        if cfg.init_from:
+            self.init_from_run(Path(cfg.init_from))
+            return
         pts, cols = scene.points, scene.point_colors
         if len(pts) < 4:
             pts, cols = random_points(cfg.init_points, 1.0, cfg.seed)
         params = init_from_points(pts, cols, cfg.model.sh_degree, cfg.model.feature_dim, cfg.init_points, cfg.seed)
         self.model = KinematicsGS(params.requires_grad_(True), cfg.model)
         self.model.min_scale = self.level_min_scale(0)
+        self.make_optimizers()
+        self.strategy = self.make_strategy()
+
+    def init_from_run(self, parent: Path) -> None:
+        """Fine-tuning: the parent run's final model, split at this config's τ, then trained as
+        it is."""
+        from ..run import load_run
+
+        model = load_run(parent).model
+        # Split at this config's τ: from the stored K, or (a parent stopped before its split)
+        # from K computed now.
+        model.decompose(self.cfg.model.tau, recompute=not model.decomposed)
+        model.params.requires_grad_(True)
+        model.train()
+        self.model = model
         self.make_optimizers()
         self.strategy = self.make_strategy()
 
