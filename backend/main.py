@@ -121,5 +121,5 @@ def serve(settings: Settings) -> None:
     print(f"Kinematics-GS serving workspace {app.state.ws.root}\n  open {url}\n  API docs http://{host}:{settings.port}/docs",
           flush=True)
     # No permessage-deflate: splat buffers barely compress and zlib would cost more than the scrub itself.
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets",
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets-sansio",
                 ws_per_message_deflate=False)

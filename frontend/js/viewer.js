@@ -264,7 +264,12 @@ export class Viewer {
     };
     $("overlay").onchange = (e) => { this.overlay = parseInt(e.target.value, 10); this.dirty = true; };
     $("arrows").onchange = (e) => { this.arrows = e.target.checked; this.dirty = true; };
-    $("density").oninput = (e) => { this.stride = parseInt(e.target.value, 10); this.buildArrows(); this.dirty = true; };
+    $("density").oninput = (e) => {
+      this.stride = parseInt(e.target.value, 10);
+      $("density-label").textContent = e.target.value;
+      this.buildArrows();
+      this.dirty = true;
+    };
     $("exposure").onchange = (e) => {
       this.exposure = e.target.value === "captured" ? m.exposure : 0;
       this.requestTime();
