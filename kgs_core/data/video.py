@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
+from ..io import atomic_file
 from .scene import SceneError
 
 
@@ -61,25 +60,17 @@ def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, pro
         raise ValueError("encode_video: no frames")
     h, w = frames[0].shape[:2]
     H, W = h + h % 2, w + w % 2
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".mp4")
-    os.close(fd)
-    try:
-        with av.open(tmp, mode="w") as container:
-            codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
-            stream = container.add_stream(codec, rate=round(fps))
-            stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
-            if codec == "libx264":
-                stream.options = {"crf": str(crf)}
-            for img in tqdm(frames, desc=f"encode {path.name}", disable=not progress, unit="frame"):
-                if img.shape[:2] != (H, W):
-                    img = np.pad(img, ((0, H - img.shape[0]), (0, W - img.shape[1]), (0, 0)), mode="edge")
-                for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")):
-                    container.mux(packet)
-            for packet in stream.encode():
+    with atomic_file(path, suffix=".mp4") as tmp, av.open(str(tmp), mode="w") as container:
+        codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
+        stream = container.add_stream(codec, rate=round(fps))
+        stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+        if codec == "libx264":
+            stream.options = {"crf": str(crf)}
+        for img in tqdm(frames, desc=f"encode {path.name}", disable=not progress, unit="frame"):
+            if img.shape[:2] != (H, W):
+                img = np.pad(img, ((0, H - img.shape[0]), (0, W - img.shape[1]), (0, 0)), mode="edge")
+            for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")):
                 container.mux(packet)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; results are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        for packet in stream.encode():
+            container.mux(packet)
     return path
