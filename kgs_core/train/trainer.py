@@ -298,6 +298,11 @@ class Trainer:
         network weight) and the iteration."""
         named = {f"gaussians.{k}": v for k, v in self.model.params.items()}
         named.update({f"network.{k}": p for k, p in self.model.named_parameters()})
+        grads = [p.grad for p in named.values() if p.grad is not None]
+        # One sum per tensor (NaN and Inf propagate into it) instead of an isfinite mask each:
+        # the names are looked up only when something is wrong.
+        if not grads or bool(torch.isfinite(torch.stack([g.sum() for g in grads])).all()):
+            return
         for name, p in named.items():
             if p.grad is not None and not torch.isfinite(p.grad).all():
                 bad = int((~torch.isfinite(p.grad)).sum())
