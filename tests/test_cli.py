@@ -37,6 +37,8 @@ def test_help_lists_working_commands():
         (["ingest", "missing.mp4", "--out", "x"], "video not found"),
         (["export", ".", "--format", "splat"], "not a run directory"),
         (["serve", "no/such/run", "--workspace", "ws"], "does not exist"),
+        (["view", "--server", "http://127.0.0.1:9", "--run-id", "abc"], "cannot reach kgs-app serve"),
+        (["view", "."], "not a run directory"),
     ],
 )
 def test_bad_arguments_fail_with_a_message(args, needle, tmp_path):

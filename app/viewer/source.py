@@ -5,6 +5,7 @@ from the same KGS1 buffers the browser gets."""
 from __future__ import annotations
 
 import json
+import urllib.error
 import urllib.parse
 import urllib.request
 from dataclasses import dataclass
@@ -35,24 +36,14 @@ class SplatSet:
                    None if vel is None else vel.astype(np.float32), header)
 
 
-def _frames_meta(frames) -> list[dict]:
-    return [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
-             "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
-            for i, f in enumerate(frames)]
-
-
 class LocalSource:
     """A run directory, evaluated in this process (the server's RunView, without the server)."""
 
     def __init__(self, run_dir: str | Path):
         from kgs_backend.splats import RunView
-        from kgs_core.data.formats import load_scene
 
         self.view = RunView(Path(run_dir))
-        try:
-            self.frames = _frames_meta(load_scene(self.view.run.scene_path()).frames)
-        except ValueError:
-            self.frames = []
+        self.frames = self.view.frames()
         run = self.view.run
         self.meta = {"name": run.path.name, "dt": self.view.dt, "exposure": float(run.info.get("exposure", 0.0)),
                      "lod_levels": run.n_levels, "tau": self.view.tau, "histogram": self.view.histogram(),
@@ -75,7 +66,12 @@ class RemoteSource:
 
     def __init__(self, url: str, run_id: str, token: str | None = None):
         self.url, self.run_id, self.token = url.rstrip("/"), run_id, token
-        meta = self._get(f"/api/runs/{run_id}")
+        try:
+            meta = self._get(f"/api/runs/{run_id}")
+        except urllib.error.HTTPError as exc:
+            raise ValueError(f"{url}: run {run_id!r}: HTTP {exc.code} {exc.reason}") from None
+        except OSError as exc:  # refused, unreachable, bad URL
+            raise ValueError(f"cannot reach kgs-app serve at {url}: {exc}") from None
         if not meta.get("has_model"):
             raise ValueError(f"run {run_id} on {url} has no model yet (status {meta.get('status')})")
         self.frames = meta["frames"]
