@@ -175,10 +175,26 @@ class RunView:
         self._trajectories: dict[tuple, Trajectories] = {}
         self.use_trajectories = True  # False: always evaluate the deformation field exactly
         self.version = 0  # bumped by τ changes and edits: clients re-request the static set
+        self._frames: list[dict] | None = None
 
     @property
     def dt(self) -> float:
         return float(self.run.info.get("dt", 1.0))
+
+    def frames(self) -> list[dict]:
+        """The run's scene frames as the viewers need them (index, id, time, split, camera);
+        empty when the scene is gone. Loaded once."""
+        if self._frames is None:
+            from kgs_core.data.formats import load_scene
+
+            try:
+                frames = load_scene(self.run.scene_path()).frames
+            except ValueError:
+                frames = []
+            self._frames = [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
+                             "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
+                            for i, f in enumerate(frames)]
+        return self._frames
 
     def model(self, lod: int | None):
         """(lod, model snapshot) for the current τ."""

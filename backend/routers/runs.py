@@ -110,21 +110,9 @@ def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -
     out["exposure"] = view.run.info.get("exposure", 0.0)
     out["static_only"] = view.run.static_only
     out["sh_degree"] = view.run.model.config.sh_degree
-    out["frames"] = frames_of(view)
+    out["frames"] = view.frames()
     out["edits"] = view.edits.to_dict()
     return out
-
-
-def frames_of(view) -> list[dict]:
-    from kgs_core.data.formats import load_scene
-
-    try:
-        scene = load_scene(view.run.scene_path())
-    except ValueError:
-        return []
-    return [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
-             "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
-            for i, f in enumerate(scene.frames)]
 
 
 @router.get("/{run_id}/log")
