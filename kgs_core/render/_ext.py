@@ -21,7 +21,7 @@ import torch
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "raster.cpp"]
-HEADERS = ["kernels.h"]
+HEADERS = ["kernels.h", "simd.h"]
 CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno", "-Wno-psabi"]
 LDFLAGS = ["-fopenmp"]
 

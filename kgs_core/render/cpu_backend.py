@@ -53,26 +53,27 @@ class _Project(torch.autograd.Function):
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, offsets, ranks, order, width, height, info):
-        image, alpha, depth, t_final, n_contrib = _ext.load().raster_forward(
-            means2d, conics, opacities, colors, depths, bbox, background, offsets, ranks, order, width, height
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, lists, width, height, info):
+        image, alpha, depth, t_final, n_contrib, records = _ext.load().raster_forward(
+            means2d, conics, opacities, colors, depths, bbox, background, *lists, width, height,
         )
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, bbox, offsets, ranks, order, t_final, n_contrib)
-        ctx.size = (width, height)
+        # The backward reads the per-pair records (parameters + colour) instead of the inputs.
+        ctx.save_for_backward(records, background, *lists, t_final, n_contrib)
+        ctx.size = (means2d.shape[0], width, height)
         ctx.info = info
         return image, alpha, depth
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_image, g_alpha, g_depth):
-        (means2d, conics, opacities, colors, depths, background, bbox, offsets, ranks, order, t_final, n_contrib) = ctx.saved_tensors
+        records, background, *lists, t_final, n_contrib = ctx.saved_tensors
         g_m2d, g_con, g_op, g_col, g_dep, abs_g = _ext.load().raster_backward(
-            means2d, conics, opacities, colors, depths, bbox, background, offsets, ranks, order, t_final, n_contrib,
+            records, background, *lists, t_final, n_contrib,
             g_image.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), *ctx.size,
         )
         ctx.info["means2d_absgrad"] = abs_g
         g_bg = (g_image * t_final.unsqueeze(-1)).sum(dim=(0, 1)) if ctx.needs_input_grad[5] else None
-        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 7)
+        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 5)
 
 
 def project(means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased) -> Projection:
@@ -90,10 +91,10 @@ def rasterize_to_pixels(
     proj: Projection, colors: Tensor, background: Tensor, width: int, height: int
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     ext = _ext.load()
-    offsets, ranks, order = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
-    info: dict = {"tile_offsets": offsets, "tile_ranks": ranks, "depth_order": order}
+    lists = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
+    info: dict = {"tile_offsets": lists[0], "tile_ranks": lists[1], "depth_order": lists[2]}
     image, alpha, depth = _Rasterize.apply(
         proj.means2d, proj.conics, proj.opacities, colors.contiguous(), proj.depths,
-        background.contiguous(), proj.bbox, offsets, ranks, order, int(width), int(height), info,
+        background.contiguous(), proj.bbox, tuple(lists), int(width), int(height), info,
     )
     return image, alpha, depth, info

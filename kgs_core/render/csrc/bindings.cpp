@@ -118,13 +118,16 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
   TORCH_CHECK(pairs < (int64_t(1) << 31), "too many tile/Gaussian pairs: ", pairs);
   auto ranks = torch::empty({pairs}, bbox.options());
   auto order = torch::empty({n_visible}, bbox.options());
+  auto rank_start = torch::empty({n_visible + 1}, bbox.options());
+  auto rank_pairs = torch::empty({pairs}, bbox.options());
   AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "bin_fill", [&] {
     kgs::bin_fill<scalar_t>(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
                             depths.data_ptr<scalar_t>(), int(width), int(height),
                             offsets.data_ptr<int32_t>(), order.data_ptr<int32_t>(),
-                            ranks.data_ptr<int32_t>());
+                            ranks.data_ptr<int32_t>(), rank_start.data_ptr<int32_t>(),
+                            rank_pairs.data_ptr<int32_t>());
   });
-  return {offsets, ranks, order};
+  return {offsets, ranks, order, rank_start, rank_pairs};
 }
 
 kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
@@ -132,55 +135,73 @@ kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
           int((height + kgs::TILE - 1) / kgs::TILE)};
 }
 
+kgs::TileLists lists_of(const Tensor& offsets, const Tensor& ranks, const Tensor& order,
+                        const Tensor& rank_start, const Tensor& rank_pairs, int64_t width,
+                        int64_t height) {
+  check(offsets, "tile_offsets", torch::kInt32);
+  check(ranks, "tile_ranks", torch::kInt32);
+  check(order, "order", torch::kInt32);
+  check(rank_start, "rank_start", torch::kInt32);
+  check(rank_pairs, "rank_pairs", torch::kInt32);
+  const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
+  TORCH_CHECK(offsets.numel() == tiles + 1, "tile_offsets does not match the image size");
+  TORCH_CHECK(rank_start.numel() == order.numel() + 1, "rank_start must have n_visible + 1 entries");
+  const int64_t n_pairs = offsets.data_ptr<int32_t>()[tiles];
+  TORCH_CHECK(rank_pairs.numel() == n_pairs && ranks.numel() == n_pairs,
+              "tile_ranks and rank_pairs must have one entry per pair");
+  return {order.numel(), n_pairs, order.data_ptr<int32_t>(), offsets.data_ptr<int32_t>(),
+          ranks.data_ptr<int32_t>(), rank_start.data_ptr<int32_t>(), rank_pairs.data_ptr<int32_t>()};
+}
+
 std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
                                    Tensor depths, Tensor bbox, Tensor background,
                                    Tensor tile_offsets, Tensor tile_ranks, Tensor order,
-                                   int64_t width, int64_t height) {
+                                   Tensor rank_start, Tensor rank_pairs, int64_t width,
+                                   int64_t height) {
   const auto dt = means2d.scalar_type();
   for (auto* t : {&means2d, &conics, &opac, &colors, &depths, &background}) check(*t, "raster input", dt);
   check(bbox, "bbox", torch::kInt32);
-  check(tile_offsets, "tile_offsets", torch::kInt32);
-  check(tile_ranks, "tile_ranks", torch::kInt32);
-  check(order, "order", torch::kInt32);
   const int64_t C = colors.size(1);
   TORCH_CHECK(background.numel() == C, "background must have ", C, " channels");
   const auto shape = shape_of(width, height, C);
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, rank_start, rank_pairs, width, height);
   auto opts = means2d.options();
+  auto records = torch::empty({lists.n_pairs, kgs::RECORD_HEAD + C}, opts);
   auto image = torch::empty({height, width, C}, opts);
   auto alpha = torch::empty({height, width}, opts), depth = torch::empty({height, width}, opts);
   auto t_final = torch::empty({height, width}, opts);
   auto n_contrib = torch::empty({height, width}, opts.dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(dt, "raster_forward", [&] {
     kgs::raster_forward<scalar_t>(
-        shape, order.numel(), order.data_ptr<int32_t>(), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+        shape, lists, means2d.size(0), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
         opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(),
-        tile_offsets.data_ptr<int32_t>(), tile_ranks.data_ptr<int32_t>(),
+        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(), records.data_ptr<scalar_t>(),
         image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>());
   });
-  return {image, alpha, depth, t_final, n_contrib};
+  return {image, alpha, depth, t_final, n_contrib, records};
 }
 
-std::vector<Tensor> raster_backward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
-                                    Tensor depths, Tensor bbox, Tensor background,
-                                    Tensor tile_offsets, Tensor tile_ranks, Tensor order,
-                                    Tensor t_final,
-                                    Tensor n_contrib, Tensor g_image, Tensor g_alpha,
-                                    Tensor g_depth, int64_t width, int64_t height) {
-  const auto dt = means2d.scalar_type();
-  for (auto* t : {&g_image, &g_alpha, &g_depth}) check(*t, "raster gradient", dt);
-  const int64_t n = means2d.size(0), C = colors.size(1);
+std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor tile_offsets,
+                                    Tensor tile_ranks, Tensor order, Tensor rank_start, Tensor rank_pairs,
+                                    Tensor t_final, Tensor n_contrib, Tensor g_image,
+                                    Tensor g_alpha, Tensor g_depth, int64_t n, int64_t width,
+                                    int64_t height) {
+  const auto dt = records.scalar_type();
+  for (auto* t : {&records, &background, &t_final, &g_image, &g_alpha, &g_depth}) check(*t, "raster backward input", dt);
+  check(n_contrib, "n_contrib", torch::kInt32);
+  const int64_t C = background.numel();
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, rank_start, rank_pairs, width, height);
+  TORCH_CHECK(records.dim() == 2 && records.size(0) == lists.n_pairs && records.size(1) == kgs::RECORD_HEAD + C,
+              "records do not match the tile lists");
   const auto shape = shape_of(width, height, C);
-  auto g_means2d = torch::empty_like(means2d), g_conics = torch::empty_like(conics);
-  auto g_opac = torch::empty_like(opac), g_colors = torch::empty_like(colors);
-  auto g_depths = torch::empty_like(depths), abs_g = torch::empty_like(means2d);
+  auto opts = records.options();
+  auto g_means2d = torch::empty({n, 2}, opts), g_conics = torch::empty({n, 3}, opts);
+  auto g_opac = torch::empty({n}, opts), g_colors = torch::empty({n, C}, opts);
+  auto g_depths = torch::empty({n}, opts), abs_g = torch::empty({n, 2}, opts);
   AT_DISPATCH_FLOATING_TYPES(dt, "raster_backward", [&] {
     kgs::raster_backward<scalar_t>(
-        shape, n, order.numel(), order.data_ptr<int32_t>(), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
-        opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(),
-        tile_offsets.data_ptr<int32_t>(), tile_ranks.data_ptr<int32_t>(),
+        shape, lists, n, records.data_ptr<scalar_t>(), background.data_ptr<scalar_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(), g_image.data_ptr<scalar_t>(),
         g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
         g_conics.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),

@@ -48,34 +48,48 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
 
 // Depth-sorted tile lists. bin_count_pairs fills tile_offsets (n_tiles + 1) and returns
 // the number of (tile, Gaussian) pairs and, through n_visible, the number of visible
-// Gaussians. bin_fill writes `order` (visible ids, front to back: rank -> id) and
-// `tile_ranks` (per tile, ranks in increasing depth).
+// Gaussians. bin_fill writes `order` (visible ids, front to back: rank -> id),
+// `tile_ranks` (per tile, ranks in increasing depth: the pair lists) and the same pairs
+// indexed by rank: rank r's pairs sit at positions rank_pairs[rank_start[r] ..
+// rank_start[r + 1]) of the pair lists (rank_start has n_visible + 1 entries).
 int64_t bin_count_pairs(int64_t n, const int32_t* bbox, const int32_t* radii, int width,
                         int height, int32_t* tile_offsets, int64_t* n_visible);
 template <typename S>
 void bin_fill(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
               int width, int height, const int32_t* tile_offsets, int32_t* order,
-              int32_t* tile_ranks);
+              int32_t* tile_ranks, int32_t* rank_start, int32_t* rank_pairs);
 
 struct RasterShape {
   int width, height, channels;
   int tiles_x, tiles_y;
 };
 
+// Tile lists as binning left them.
+struct TileLists {
+  int64_t n_visible, n_pairs;
+  const int32_t* order;        // (n_visible,) rank -> Gaussian id
+  const int32_t* tile_offsets; // (n_tiles + 1,)
+  const int32_t* tile_ranks;   // (n_pairs,)
+  const int32_t* rank_start;   // (n_visible + 1,)
+  const int32_t* rank_pairs;   // (n_pairs,)
+};
+
+// Per-pair records (see raster.cpp): RECORD_HEAD scalars then the pair's colour channels.
+constexpr int RECORD_HEAD = 9;
+
+// The forward also writes `records` (n_pairs * (RECORD_HEAD + channels) scalars), which the
+// backward reads instead of the per-Gaussian inputs.
 template <typename S>
-void raster_forward(const RasterShape& shape, int64_t n_visible, const int32_t* order,
-                    const S* means2d, const S* conics, const S* opac, const S* colors,
-                    const S* depths, const int32_t* bbox, const S* background,
-                    const int32_t* tile_offsets, const int32_t* tile_ranks, S* image, S* alpha,
+void raster_forward(const RasterShape& shape, const TileLists& lists, int64_t n, const S* means2d,
+                    const S* conics, const S* opac, const S* colors, const S* depths,
+                    const int32_t* bbox, const S* background, S* records, S* image, S* alpha,
                     S* depth_acc, S* t_final, int32_t* n_contrib);
 
 template <typename S>
-void raster_backward(const RasterShape& shape, int64_t n, int64_t n_visible,
-                     const int32_t* order, const S* means2d, const S* conics, const S* opac,
-                     const S* colors, const S* depths, const int32_t* bbox,
-                     const S* background, const int32_t* tile_offsets,
-                     const int32_t* tile_ranks, const S* t_final, const int32_t* n_contrib,
-                     const S* g_image, const S* g_alpha, const S* g_depth, S* g_means2d,
-                     S* g_conics, S* g_opac, S* g_colors, S* g_depths, S* abs_g_means2d);
+void raster_backward(const RasterShape& shape, const TileLists& lists, int64_t n,
+                     const S* records, const S* background, const S* t_final,
+                     const int32_t* n_contrib, const S* g_image, const S* g_alpha,
+                     const S* g_depth, S* g_means2d, S* g_conics, S* g_opac, S* g_colors,
+                     S* g_depths, S* abs_g_means2d);
 
 }  // namespace kgs
