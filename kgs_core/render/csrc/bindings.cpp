@@ -210,6 +210,38 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
   return {g_means2d, g_conics, g_opac, g_colors, g_depths, abs_g};
 }
 
+std::vector<Tensor> ssim_forward(Tensor x, Tensor y, Tensor window) {
+  const auto dt = x.scalar_type();
+  check(x, "img", dt);
+  check(y, "ref", dt);
+  check(window, "window", dt);
+  TORCH_CHECK(x.dim() == 3 && x.sizes() == y.sizes(), "ssim: img and ref must be equal (H, W, C)");
+  const int64_t H = x.size(0), W = x.size(1), C = x.size(2), k = window.numel();
+  TORCH_CHECK(k >= 1 && k <= H && k <= W, "ssim: window larger than the image");
+  auto maps = torch::empty({5, H - k + 1, W - k + 1, C}, x.options());
+  auto out = torch::empty({}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(dt, "ssim_forward", [&] {
+    out.fill_(kgs::ssim_forward<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), int(H), int(W),
+                                         int(C), window.data_ptr<scalar_t>(), int(k), maps.data_ptr<scalar_t>()));
+  });
+  return {out, maps};
+}
+
+Tensor ssim_backward(Tensor x, Tensor y, Tensor window, Tensor maps, double grad) {
+  const auto dt = x.scalar_type();
+  for (auto* t : {&x, &y, &window, &maps}) check(*t, "ssim backward input", dt);
+  const int64_t H = x.size(0), W = x.size(1), C = x.size(2), k = window.numel();
+  TORCH_CHECK(maps.dim() == 4 && maps.size(0) == 5 && maps.size(1) == H - k + 1 && maps.size(2) == W - k + 1,
+              "ssim: maps do not match the image");
+  auto g = torch::empty_like(x);
+  AT_DISPATCH_FLOATING_TYPES(dt, "ssim_backward", [&] {
+    kgs::ssim_backward<scalar_t>(x.data_ptr<scalar_t>(), y.data_ptr<scalar_t>(), int(H), int(W), int(C),
+                                 window.data_ptr<scalar_t>(), int(k), maps.data_ptr<scalar_t>(),
+                                 scalar_t(grad), g.data_ptr<scalar_t>());
+  });
+  return g;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -221,5 +253,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_gaussians", &bin_gaussians);
   m.def("raster_forward", &raster_forward);
   m.def("raster_backward", &raster_backward);
+  m.def("ssim_forward", &ssim_forward);
+  m.def("ssim_backward", &ssim_backward);
   m.attr("TILE") = kgs::TILE;
 }

@@ -92,4 +92,13 @@ void raster_backward(const RasterShape& shape, const TileLists& lists, int64_t n
                      const S* g_depth, S* g_means2d, S* g_conics, S* g_opac, S* g_colors,
                      S* g_depths, S* abs_g_means2d);
 
+// Fused SSIM over valid pixels of (H, W, C) images with a separable window w (k taps).
+// The forward returns the mean and fills `maps` (5 x (H-k+1) x (W-k+1) x C: mu_x, mu_y,
+// E[xx], E[yy], E[xy]); the backward writes d(grad * mean)/dx.
+template <typename S>
+S ssim_forward(const S* x, const S* y, int H, int W, int C, const S* w, int k, S* maps);
+template <typename S>
+void ssim_backward(const S* x, const S* y, int H, int W, int C, const S* w, int k,
+                   const S* maps, S grad, S* g_x);
+
 }  // namespace kgs
