@@ -206,14 +206,30 @@ def test_fully_opaque_stack_terminates():
 def test_means2d_gradient_and_absgrad_for_densification():
     s = random_scene(200, 32, 32, seed=9)
     leaves = [t.clone().requires_grad_(True) for t in s.tensors()]
-    out = rasterize(leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2], colors=leaves[4], backend="cpu")
-    out.image.sum().backward()
-    g = out.means2d.grad
+    weights = torch.randn(32, 32, 3, generator=torch.Generator().manual_seed(2))
+    grads = {}
+    for absgrad in (False, True):
+        for t in leaves:
+            t.grad = None
+        out = rasterize(leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2],
+                        colors=leaves[4], backend="cpu", absgrad=absgrad)
+        (out.image * weights).sum().backward()
+        grads[absgrad] = (out.means2d.grad, [t.grad.clone() for t in leaves])
+        assert ("means2d_absgrad" in out.info) == absgrad
+    g = grads[True][0]
     assert g is not None and g.shape == (200, 2)
     vis = out.radii > 0
     assert torch.count_nonzero(g[vis]) > 0 and torch.count_nonzero(g[~vis]) == 0
     absg = out.info["means2d_absgrad"]
-    assert (absg >= g.abs() - 1e-6).all()
+    # Signed weights make pixel contributions cancel: the sum of |.| is strictly larger.
+    assert (absg >= g.abs() - 1e-6).all() and bool((absg > g.abs() + 1e-6).any())
+    # Asking for it changes nothing else.
+    assert torch.allclose(grads[False][0], g, rtol=1e-5, atol=1e-7)
+    for a, b in zip(grads[False][1], grads[True][1]):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="absgrad"):
+        rasterize(leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2],
+                  colors=leaves[4], backend="torch", absgrad=True)
 
 
 @pytest.mark.parametrize(

@@ -53,7 +53,7 @@ class _Project(torch.autograd.Function):
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, lists, width, height, info):
+    def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, lists, width, height, info, absgrad):
         image, alpha, depth, t_final, n_contrib, records = _ext.load().raster_forward(
             means2d, conics, opacities, colors, depths, bbox, background, *lists, width, height,
         )
@@ -61,6 +61,7 @@ class _Rasterize(torch.autograd.Function):
         ctx.save_for_backward(records, background, *lists, t_final, n_contrib)
         ctx.size = (means2d.shape[0], width, height)
         ctx.info = info
+        ctx.absgrad = absgrad
         return image, alpha, depth
 
     @staticmethod
@@ -69,11 +70,12 @@ class _Rasterize(torch.autograd.Function):
         records, background, *lists, t_final, n_contrib = ctx.saved_tensors
         g_m2d, g_con, g_op, g_col, g_dep, abs_g = _ext.load().raster_backward(
             records, background, *lists, t_final, n_contrib,
-            g_image.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), *ctx.size,
+            g_image.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), *ctx.size, ctx.absgrad,
         )
-        ctx.info["means2d_absgrad"] = abs_g
+        if ctx.absgrad:
+            ctx.info["means2d_absgrad"] = abs_g
         g_bg = (g_image * t_final.unsqueeze(-1)).sum(dim=(0, 1)) if ctx.needs_input_grad[5] else None
-        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 5)
+        return g_m2d, g_con, g_op, g_col, g_dep, g_bg, *([None] * 6)
 
 
 def project(means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased) -> Projection:
@@ -88,13 +90,13 @@ def project(means, covars6, opacities, viewmat, K, width, height, near, far, eps
 
 
 def rasterize_to_pixels(
-    proj: Projection, colors: Tensor, background: Tensor, width: int, height: int
+    proj: Projection, colors: Tensor, background: Tensor, width: int, height: int, absgrad: bool = False
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     ext = _ext.load()
     lists = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
     info: dict = {"tile_offsets": lists[0], "tile_ranks": lists[1], "depth_order": lists[2]}
     image, alpha, depth = _Rasterize.apply(
         proj.means2d, proj.conics, proj.opacities, colors.contiguous(), proj.depths,
-        background.contiguous(), proj.bbox, tuple(lists), int(width), int(height), info,
+        background.contiguous(), proj.bbox, tuple(lists), int(width), int(height), info, bool(absgrad),
     )
     return image, alpha, depth, info

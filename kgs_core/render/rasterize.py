@@ -53,6 +53,7 @@ def rasterize(
     far: float = 1e10,
     eps2d: float = 0.3,
     antialiased: bool = False,
+    absgrad: bool = False,
     backend: Backend = "auto",
 ) -> Rendered:
     """Renders N 3D Gaussians from one pinhole camera, differentiably.
@@ -74,6 +75,9 @@ def rasterize(
         eps2d: screen-space low-pass added to the 2D covariance diagonal (pixels^2).
         antialiased: scale opacity by `sqrt(det(cov2d) / det(cov2d + eps2d I))` (Mip-Splatting)
             so that the dilation does not brighten small Gaussians.
+        absgrad: after backward, also leave `info["means2d_absgrad"]` `(N, 2)`: per Gaussian
+            the sum over pixels of |dL/dmean2d| (AbsGS densification). `cpu` backend only;
+            it costs the backward about a fifth more, so it is off unless asked for.
         backend: `"cpu"` (C++), `"torch"` (reference) or `"auto"`.
 
     Returns:
@@ -96,6 +100,8 @@ def rasterize(
         raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
     opacities = opacities.reshape(n)
     impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
+    if absgrad and impl is not cpu_backend:
+        raise ValueError("absgrad needs the cpu backend")
     if covars is None:
         if quats.shape != (n, 4) or scales.shape != (n, 3):
             raise ValueError(f"quats must be (N, 4) and scales (N, 3), got {tuple(quats.shape)}, {tuple(scales.shape)}")
@@ -122,8 +128,9 @@ def rasterize(
     )
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
+    extra = {"absgrad": True} if absgrad else {}
     image, alpha, depth_acc, info = impl.rasterize_to_pixels(
-        proj, colors.to(means.dtype), background.to(means.dtype), width, height
+        proj, colors.to(means.dtype), background.to(means.dtype), width, height, **extra
     )
     # Expected depth: a pixel's alpha-weighted depth divided by its alpha.
     depth = torch.where(alpha > 1e-6, depth_acc / alpha.clamp_min(1e-6), torch.zeros_like(depth_acc))

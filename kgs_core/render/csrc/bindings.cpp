@@ -186,7 +186,7 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
                                     Tensor tile_ranks, Tensor order, Tensor rank_start, Tensor rank_pairs,
                                     Tensor t_final, Tensor n_contrib, Tensor g_image,
                                     Tensor g_alpha, Tensor g_depth, int64_t n, int64_t width,
-                                    int64_t height) {
+                                    int64_t height, bool absgrad) {
   const auto dt = records.scalar_type();
   for (auto* t : {&records, &background, &t_final, &g_image, &g_alpha, &g_depth}) check(*t, "raster backward input", dt);
   check(n_contrib, "n_contrib", torch::kInt32);
@@ -205,7 +205,7 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(), g_image.data_ptr<scalar_t>(),
         g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
         g_conics.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),
-        g_depths.data_ptr<scalar_t>(), abs_g.data_ptr<scalar_t>());
+        g_depths.data_ptr<scalar_t>(), abs_g.data_ptr<scalar_t>(), absgrad);
   });
   return {g_means2d, g_conics, g_opac, g_colors, g_depths, abs_g};
 }

@@ -90,7 +90,7 @@ void raster_backward(const RasterShape& shape, const TileLists& lists, int64_t n
                      const S* records, const S* background, const S* t_final,
                      const int32_t* n_contrib, const S* g_image, const S* g_alpha,
                      const S* g_depth, S* g_means2d, S* g_conics, S* g_opac, S* g_colors,
-                     S* g_depths, S* abs_g_means2d);
+                     S* g_depths, S* abs_g_means2d, bool absgrad);
 
 // Fused SSIM over valid pixels of (H, W, C) images with a separable window w (k taps).
 // The forward returns the mean and fills `maps` (5 x (H-k+1) x (W-k+1) x C: mu_x, mu_y,

@@ -266,7 +266,10 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
 enum Slot { MX = 0, MY, CA, CB, CC, OP, DEPTH, ABS_MX, ABS_MY, COLOR0 };
 inline int slot_stride(int channels) { return (COLOR0 + channels + LANES - 1) / LANES * LANES; }
 
-template <typename S>
+// ABS: also accumulate |dL/dmean2d| per pixel (AbsGS densification); without it the mean
+// and conic gradients come from five moments of gp (per-Gaussian constants factored out
+// of the row loop), which halves that part of the loop.
+template <typename S, bool ABS>
 void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
                    const S* background, const S* t_final,
                    const int32_t* n_contrib, const S* g_image, const S* g_alpha,
@@ -278,13 +281,17 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
   const int C = s.channels;
   const int stride = slot_stride(C);
   const V px = lane_px<S>(t);
-  // Per-pixel state, channel-major: the image gradient and the colour accumulated behind
-  // the current Gaussian (starting with the background seen through T_final).
-  scratch.assign(size_t(2 * C + 1) * TILE, X::zero());
-  V* gC = scratch.data();
-  V* behind = gC + size_t(C) * TILE;
-  V* s_col = behind + size_t(C) * TILE;  // per-Gaussian colour gradient, per lane
-  V gA[TILE], gD[TILE], Tfin[TILE], Tcur[TILE], behind_d[TILE];
+  // Per-pixel state. dL/dalpha of a Gaussian at a pixel is
+  //   gA T_final / (1 - a) + sum_c gC_c (c_c T_i - behind_c / (1 - a)) + (same for depth)
+  // = (gAT - Bg) / (1 - a) + T_i gcc,
+  // with gAT = gA T_final, gcc = sum_c gC_c c_c + gD z (this Gaussian's colour and depth
+  // seen through the image gradient) and Bg = sum_c gC_c behind_c + gD behind_depth (what
+  // lies behind it, seen the same way): one running value per pixel instead of one per
+  // channel, which halves the row loop's work.
+  scratch.assign(size_t(2 * C) * TILE, X::zero());
+  V* gC = scratch.data();              // image gradient, channel-major
+  V* s_col = gC + size_t(C) * TILE;   // per-Gaussian colour gradient, per lane
+  V gAT[TILE], gD[TILE], Tcur[TILE], Bg[TILE];
   Idx last[TILE];
   {
     S tf[TILE], ga[TILE], gd[TILE], gc[TILE];
@@ -303,17 +310,18 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
           nc[i] = n_contrib[row + i];
         }
       }
-      Tfin[r] = Tcur[r] = X::load(tf);
-      gA[r] = X::load(ga);
+      const V Tfin = X::load(tf);
+      Tcur[r] = Tfin;
+      gAT[r] = X::load(ga) * Tfin;
       gD[r] = X::load(gd);
-      behind_d[r] = X::zero();
       last[r] = X::iload(nc);
+      Bg[r] = X::zero();
       for (int ch = 0; ch < C; ++ch) {
         std::fill(gc, gc + TILE, S(0));
         if (r < t.h)
           for (int i = 0; i < t.w; ++i) gc[i] = g_image[(row + i) * C + ch];
         gC[size_t(ch) * TILE + r] = X::load(gc);
-        behind[size_t(ch) * TILE + r] = Tfin[r] * X::set1(background[ch]);
+        Bg[r] += gC[size_t(ch) * TILE + r] * Tfin * X::set1(background[ch]);
       }
     }
   }
@@ -322,8 +330,9 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     const S* col = p.col;
     S* slot = slots + size_t(p.rank_slot) * stride;  // rank-major: summed sequentially
     const Idx list_pos = X::iset1(k - t.begin);  // contributes where list_pos < last
-    V a_mx = X::zero(), a_my = a_mx, a_ca = a_mx, a_cb = a_mx, a_cc = a_mx, a_op = a_mx;
-    V a_d = a_mx, a_amx = a_mx, a_amy = a_mx;
+    // Moments of gp = dL/dpower over the pixels: sum gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2.
+    V m_x = X::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x;
+    V a_d = m_x, a_amx = m_x, a_amy = m_x;
     for (int ch = 0; ch < C; ++ch) s_col[ch] = X::zero();
     const GaussLanes<S> gl(px, p);
     const V& dx = gl.dx;
@@ -337,39 +346,41 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
       const V inv = X::rcp(X::set1(S(1)) - e.alpha);
       const V Ti = Tcur[r] * inv;  // transmittance in front of this Gaussian
       const V w = X::keep(use, e.alpha * Ti);
-      // dL/dalpha = sum_c gC (c T_i - behind_c / (1 - alpha)) + the same for depth
-      //             + gA T_final / (1 - alpha)
-      V dal = gA[r] * Tfin[r] * inv + gD[r] * (gz * Ti - behind_d[r] * inv);
+      V gcc = gD[r] * gz;
       for (int ch = 0; ch < C; ++ch) {
         const V gc = gC[size_t(ch) * TILE + r];
-        V& bh = behind[size_t(ch) * TILE + r];
-        const V c = X::set1(col[ch]);
-        dal += gc * (c * Ti - bh * inv);
+        gcc += gc * X::set1(col[ch]);
         s_col[ch] += w * gc;
-        bh += w * c;
       }
+      const V dal = inv * (gAT[r] - Bg[r]) + Ti * gcc;
+      Bg[r] += w * gcc;
       a_d += w * gD[r];
-      behind_d[r] += w * gz;
       Tcur[r] = X::select(use, Ti, Tcur[r]);
       // Through alpha = min(ALPHA_MAX, o * exp(power)) to the 2D Gaussian.
       const V da = X::keep(X::mand(use, X::lt(e.a_raw, X::set1(S(ALPHA_MAX)))), dal);
       const V gp = da * e.a_raw;
       a_op += da * e.G;
-      const V gmx = gp * (ca * dx + cb * dy), gmy = gp * (cb * dx + cc * dy);
-      a_mx += gmx;
-      a_my += gmy;
-      a_amx += X::abs(gmx);
-      a_amy += X::abs(gmy);
       const V gpdx = gp * dx;
-      a_ca += gpdx * dx;
-      a_cb += gpdx * dy;
-      a_cc += gp * dy * dy;
+      m_x += gpdx;
+      m_y += gp * dy;
+      m_xx += gpdx * dx;
+      m_xy += gpdx * dy;
+      m_yy += gp * X::set1(dy_s * dy_s);
+      if constexpr (ABS) {
+        a_amx += X::abs(gp * (ca * dx + cb * dy));
+        a_amy += X::abs(gp * (cb * dx + cc * dy));
+      }
     }
-    slot[MX] = X::hsum(a_mx); slot[MY] = X::hsum(a_my);
-    slot[CA] = S(-0.5) * X::hsum(a_ca); slot[CB] = -X::hsum(a_cb);
-    slot[CC] = S(-0.5) * X::hsum(a_cc);
-    slot[OP] = X::hsum(a_op); slot[DEPTH] = X::hsum(a_d);
-    slot[ABS_MX] = X::hsum(a_amx); slot[ABS_MY] = X::hsum(a_amy);
+    const S sx = X::hsum(m_x), sy = X::hsum(m_y);
+    slot[MX] = p.ca * sx + p.cb * sy;
+    slot[MY] = p.cb * sx + p.cc * sy;
+    slot[CA] = S(-0.5) * X::hsum(m_xx);
+    slot[CB] = -X::hsum(m_xy);
+    slot[CC] = S(-0.5) * X::hsum(m_yy);
+    slot[OP] = X::hsum(a_op);
+    slot[DEPTH] = X::hsum(a_d);
+    slot[ABS_MX] = ABS ? X::hsum(a_amx) : S(0);
+    slot[ABS_MY] = ABS ? X::hsum(a_amy) : S(0);
     for (int ch = 0; ch < C; ++ch) slot[COLOR0 + ch] = X::hsum(s_col[ch]);
   }
 }
@@ -407,7 +418,8 @@ template <typename S>
 void raster_backward(const RasterShape& s, const TileLists& L, int64_t n, const S* records,
                      const S* background, const S* t_final, const int32_t* n_contrib,
                      const S* g_image, const S* g_alpha, const S* g_depth, S* g_means2d,
-                     S* g_conics, S* g_opac, S* g_colors, S* g_depths, S* abs_g_means2d) {
+                     S* g_conics, S* g_opac, S* g_colors, S* g_depths, S* abs_g_means2d,
+                     bool absgrad) {
   const int n_tiles = s.tiles_x * s.tiles_y;
   const int C = s.channels;
   const int stride = slot_stride(C);
@@ -418,32 +430,54 @@ void raster_backward(const RasterShape& s, const TileLists& L, int64_t n, const 
     std::vector<typename Simd<S>::V> scratch;
 #pragma omp for schedule(dynamic, 1)
     for (int tile = 0; tile < n_tiles; ++tile) {
-      backward_tile(s, tile_geom(s, L.tile_offsets, tile), records, background, t_final,
-                    n_contrib, g_image, g_alpha, g_depth, slots.data(), scratch);
+      const TileGeom t = tile_geom(s, L.tile_offsets, tile);
+      if (absgrad)
+        backward_tile<S, true>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
+                               g_depth, slots.data(), scratch);
+      else
+        backward_tile<S, false>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
+                                g_depth, slots.data(), scratch);
     }
   }
-  std::fill(g_means2d, g_means2d + 2 * n, S(0));
-  std::fill(abs_g_means2d, abs_g_means2d + 2 * n, S(0));
-  std::fill(g_conics, g_conics + 3 * n, S(0));
-  std::fill(g_opac, g_opac + n, S(0));
-  std::fill(g_depths, g_depths + n, S(0));
-  std::fill(g_colors, g_colors + n * C, S(0));
-  // Each Gaussian's slots are contiguous (rank-major) and summed in list order.
+  // Each Gaussian's slots are contiguous (rank-major) and summed in list order, into one
+  // line per rank; the outputs are then written in id order, reading each Gaussian's line
+  // once (scattering six output arrays by depth order missed the cache on every store).
   using X = Simd<S>;
   const int n_vec = stride / LANES;
+  // (thread_local buffers are the calling thread's: inside the parallel regions below they
+  // are reached only through these pointers, never by name.)
+  thread_local std::vector<S, AlignedAllocator<S>> per_rank_buf;
+  thread_local std::vector<int32_t> rank_of_buf;
+  per_rank_buf.resize(size_t(L.n_visible) * stride);
+  rank_of_buf.assign(size_t(n), -1);
+  S* per_rank = per_rank_buf.data();
+  int32_t* rank_of = rank_of_buf.data();
 #pragma omp parallel
   {
     std::vector<typename X::V> acc(n_vec);
-    std::vector<S> a(stride);
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait
     for (int64_t i = 0; i < L.n_visible; ++i) {
       for (auto& v : acc) v = X::zero();
       for (int32_t j = L.rank_start[i]; j < L.rank_start[i + 1]; ++j) {
         const S* slot = slots.data() + size_t(j) * stride;
         for (int q = 0; q < n_vec; ++q) acc[q] += X::load(slot + q * LANES);
       }
-      for (int q = 0; q < n_vec; ++q) X::store(a.data() + q * LANES, acc[q]);
-      const int32_t g = L.order[i];
+      for (int q = 0; q < n_vec; ++q) X::store(per_rank + size_t(i) * stride + q * LANES, acc[q]);
+    }
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < L.n_visible; ++i) rank_of[L.order[i]] = int32_t(i);
+#pragma omp for schedule(static)
+    for (int64_t g = 0; g < n; ++g) {
+      const int32_t r = rank_of[g];
+      if (r < 0) {  // not visible: no gradient
+        g_means2d[2 * g] = g_means2d[2 * g + 1] = S(0);
+        abs_g_means2d[2 * g] = abs_g_means2d[2 * g + 1] = S(0);
+        g_conics[3 * g] = g_conics[3 * g + 1] = g_conics[3 * g + 2] = S(0);
+        g_opac[g] = g_depths[g] = S(0);
+        for (int ch = 0; ch < C; ++ch) g_colors[size_t(g) * C + ch] = S(0);
+        continue;
+      }
+      const S* a = per_rank + size_t(r) * stride;
       g_means2d[2 * g] = a[MX];
       g_means2d[2 * g + 1] = a[MY];
       abs_g_means2d[2 * g] = a[ABS_MX];
@@ -465,7 +499,7 @@ void raster_backward(const RasterShape& s, const TileLists& L, int64_t n, const 
                                   S*, S*, S*, S*, int32_t*);                                   \
   template void raster_backward<S>(const RasterShape&, const TileLists&, int64_t, const S*,    \
                                    const S*, const S*, const int32_t*, const S*, const S*,     \
-                                   const S*, S*, S*, S*, S*, S*, S*);
+                                   const S*, S*, S*, S*, S*, S*, S*, bool);
 KGS_INSTANTIATE(float)
 KGS_INSTANTIATE(double)
 #undef KGS_INSTANTIATE
