@@ -62,7 +62,8 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     from kgs_core.data.ingest import ingest
 
     rep = ingest(args.video, args.out, eval_video=args.eval_video, every=args.every, max_frames=args.max_frames,
-                 max_size=args.max_size, exposure=args.exposure, overwrite=args.overwrite)
+                 max_size=args.max_size, exposure=args.exposure, overwrite=args.overwrite,
+                 undistort=not args.keep_distortion)
     print(f"registered {rep.registered}/{rep.frames} training frames"
           + (f", {rep.eval_registered}/{rep.eval_frames} held-out frames" if rep.eval_video else "")
           + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points; "
@@ -252,6 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=1, help="keep every k-th frame")
     p.add_argument("--max-frames", type=int)
     p.add_argument("--max-size", type=int, default=960, help="downscale so the long side is at most this")
+    p.add_argument("--keep-distortion", action="store_true",
+                   help="keep the SfM camera's lens distortion instead of undistorting frames to pinhole "
+                        "(the rasteriser is pinhole: only for export to other tools)")
     p.add_argument("--exposure", type=float, default=0.5, help="assumed shutter fraction of the training video")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)

@@ -84,3 +84,36 @@ def test_unregistrable_video(tmp_path):
     with pytest.raises(SceneError, match="structure from motion"):
         ingest(video, tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_undistort_frame_makes_a_radial_camera_pinhole(tmp_path):
+    """A pattern seen through a SIMPLE_RADIAL lens (k1 = 0.12, like the BARD-GS cameras) comes
+    out of the undistorter as the same pattern through the returned pinhole camera."""
+    import pycolmap
+    from PIL import Image
+
+    from kgs_core.data.ingest import undistort_frame
+
+    w, h = 160, 96
+    cam = pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[110.0, w / 2, h / 2, 0.12])
+
+    def pattern(xn, yn):
+        return 0.5 + 0.5 * np.sin(9 * xn) * np.sin(9 * yn)
+
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    normalized = np.asarray(cam.cam_from_img(np.stack([u.ravel(), v.ravel()], 1)))
+    distorted = pattern(normalized[:, 0], normalized[:, 1]).reshape(h, w)
+    path = tmp_path / "frame.png"
+    Image.fromarray(np.repeat((distorted * 255).round().astype(np.uint8)[..., None], 3, 2)).save(path)
+
+    pinhole, pixels = undistort_frame(cam, path)
+    assert pinhole.model_name == "PINHOLE" and pixels.shape == (pinhole.height, pinhole.width, 3)
+    fx, fy, cx, cy = pinhole.params
+    uu, vv = np.meshgrid(np.arange(pinhole.width) + 0.5, np.arange(pinhole.height) + 0.5)
+    expected = pattern((uu - cx) / fx, (vv - cy) / fy)
+    got = pixels[..., 0] / 255.0
+    inner = (slice(3, -3), slice(3, -3))  # bilinear resampling at the crop border
+    err = np.abs(got - expected)[inner].mean()
+    # Reading the distorted frame as if it were pinhole is what undistortion fixes.
+    K_err = np.abs(distorted - pattern((u - w / 2) / 110.0, (v - h / 2) / 110.0)).mean()
+    assert err < 0.03 and K_err > 3 * err, (err, K_err)

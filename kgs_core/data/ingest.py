@@ -103,12 +103,25 @@ def run_sfm(work: Path, names_a: list[str], names_b: list[str], scores: dict[str
     return rec, timings
 
 
+def undistort_frame(cam, image_path: Path):
+    """(pinhole pycolmap camera, undistorted RGB uint8 array) for one distorted frame."""
+    import pycolmap
+
+    bitmap = pycolmap.Bitmap.from_array(np.asarray(Image.open(image_path).convert("RGB")))
+    pixels, pinhole = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap, cam)
+    return pinhole, np.ascontiguousarray(pixels.to_array()[..., :3])
+
+
 def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = None, every: int = 1,
            max_frames: int | None = None, max_size: int | None = 960, exposure: float = 0.5,
            sharp_fraction: float = 0.5, min_registered: float = 0.3, overwrite: bool = False,
-           progress: bool = True) -> IngestReport:
+           undistort: bool = True, progress: bool = True) -> IngestReport:
     """Builds a scene folder from a video. `exposure` is the assumed shutter fraction of the
-    training video (unknown from the file; 0.5 is typical for indoor hand-held footage)."""
+    training video (unknown from the file; 0.5 is typical for indoor hand-held footage).
+
+    With `undistort` (the default) every frame whose SfM camera has lens distortion is
+    resampled to a pinhole camera by pycolmap's undistorter (cropped to valid pixels), since
+    the rasteriser is pinhole; the distorted model stays under `colmap/sparse/0`."""
     video = Path(video)
     if not 0 <= exposure <= 1:
         raise SceneError(f"exposure must be in [0, 1], got {exposure}")
@@ -161,6 +174,12 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                     i = int(nm[1:6])
                     cam = rec.cameras[im.camera_id]
                     K, dist = camera_from_colmap(cam, f"{video}: SfM camera")
+                    width, height = int(cam.width), int(cam.height)
+                    if undistort and np.any(dist != 0):
+                        cam, pixels = undistort_frame(cam, work / "images" / nm)
+                        K, dist = camera_from_colmap(cam, f"{video}: undistorted camera")
+                        width, height = int(cam.width), int(cam.height)
+                        Image.fromarray(pixels).save(work / "images" / nm)
                     viewmat = np.eye(4)
                     cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
                     viewmat[:3] = np.asarray(cfw.matrix())
@@ -168,7 +187,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                     dst = tmp / "rgb" / "1x" / f"{fid}.png"
                     shutil.copyfile(work / "images" / nm, dst)
                     frames.append(Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
-                                        camera=Camera(K=K, viewmat=viewmat, width=int(cam.width), height=int(cam.height), distortion=dist),
+                                        camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
                                         exposure=exposure if cam_id == 0 else 0.0, split="train" if cam_id == 0 else "test",
                                         camera_id=cam_id))
             pts = list(rec.points3D.values())

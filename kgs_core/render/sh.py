@@ -47,12 +47,58 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:
     return torch.stack(out, dim=-1)
 
 
+class _ShColors(torch.autograd.Function):
+    """`eval_sh` through the C++ extension (csrc/sh.cpp); gradient to the coefficients only."""
+
+    @staticmethod
+    def forward(ctx, sh_coeffs, means, center, degree):
+        from . import _ext
+
+        ctx.save_for_backward(sh_coeffs, means, center)
+        ctx.degree = degree
+        return _ext.load().sh_forward(sh_coeffs, means, center, degree)
+
+    @staticmethod
+    def backward(ctx, g_rgb):
+        from . import _ext
+
+        sh_coeffs, means, center = ctx.saved_tensors
+        g = _ext.load().sh_backward(sh_coeffs, means, center, ctx.degree, g_rgb.contiguous())
+        return g, None, None, None
+
+
+def _compiled_available(t: Tensor) -> bool:
+    if t.device.type != "cpu":
+        return False
+    from . import _ext
+
+    try:
+        _ext.load()
+    except _ext.ExtensionUnavailable:
+        return False
+    return True
+
+
 def eval_sh(sh_coeffs: Tensor, means: Tensor, camera_center: Tensor, degree: int) -> Tensor:
     """Colours `(N, 3)` from SH coefficients `(N, K, 3)` seen from `camera_center` `(3,)`.
 
     Uses the first `(degree+1)^2` coefficients; adds 0.5 and clamps at 0 as 3DGS does, so a
-    degree-0 coefficient `c` gives colour `C0 * c + 0.5`.
+    degree-0 coefficient `c` gives colour `C0 * c + 0.5`. The direction is not
+    differentiated. Runs in C++ on CPU tensors when the extension is available, else
+    `eval_sh_reference` (the same numbers: tested).
     """
+    k = num_sh_bases(degree)
+    if sh_coeffs.shape[1] < k:
+        raise ValueError(f"sh_coeffs has {sh_coeffs.shape[1]} bases, degree {degree} needs {k}")
+    if _compiled_available(sh_coeffs) and sh_coeffs.ndim == 3 and sh_coeffs.shape[2] == 3:
+        dt = sh_coeffs.dtype
+        return _ShColors.apply(sh_coeffs.contiguous(), means.detach().to(dt).contiguous(),
+                               camera_center.detach().to(dt).reshape(3).contiguous(), int(degree))
+    return eval_sh_reference(sh_coeffs, means, camera_center, degree)
+
+
+def eval_sh_reference(sh_coeffs: Tensor, means: Tensor, camera_center: Tensor, degree: int) -> Tensor:
+    """`eval_sh` in plain PyTorch (any device)."""
     k = num_sh_bases(degree)
     if sh_coeffs.shape[1] < k:
         raise ValueError(f"sh_coeffs has {sh_coeffs.shape[1]} bases, degree {degree} needs {k}")

@@ -210,6 +210,40 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
   return {g_means2d, g_conics, g_opac, g_colors, g_depths, abs_g};
 }
 
+void check_sh(const Tensor& coeffs, const Tensor& means, const Tensor& center, int64_t degree) {
+  const auto dt = coeffs.scalar_type();
+  check(coeffs, "sh_coeffs", dt);
+  check(means, "means", dt);
+  check(center, "camera centre", dt);
+  TORCH_CHECK(degree >= 0 && degree <= 3, "sh_degree must be in 0..3");
+  TORCH_CHECK(coeffs.dim() == 3 && coeffs.size(2) == 3 && coeffs.size(1) >= (degree + 1) * (degree + 1),
+              "sh_coeffs must be (N, K >= (degree+1)^2, 3)");
+  TORCH_CHECK(means.dim() == 2 && means.size(0) == coeffs.size(0) && means.size(1) == 3, "means must be (N, 3)");
+  TORCH_CHECK(center.numel() == 3, "camera centre must have 3 values");
+}
+
+Tensor sh_forward(Tensor coeffs, Tensor means, Tensor center, int64_t degree) {
+  check_sh(coeffs, means, center, degree);
+  auto rgb = torch::empty({coeffs.size(0), 3}, coeffs.options());
+  AT_DISPATCH_FLOATING_TYPES(coeffs.scalar_type(), "sh_forward", [&] {
+    kgs::sh_forward<scalar_t>(coeffs.size(0), int(coeffs.size(1)), int(degree), coeffs.data_ptr<scalar_t>(),
+                              means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>());
+  });
+  return rgb;
+}
+
+Tensor sh_backward(Tensor coeffs, Tensor means, Tensor center, int64_t degree, Tensor g_rgb) {
+  check_sh(coeffs, means, center, degree);
+  check(g_rgb, "sh colour gradient", coeffs.scalar_type());
+  auto g = torch::empty_like(coeffs);
+  AT_DISPATCH_FLOATING_TYPES(coeffs.scalar_type(), "sh_backward", [&] {
+    kgs::sh_backward<scalar_t>(coeffs.size(0), int(coeffs.size(1)), int(degree), coeffs.data_ptr<scalar_t>(),
+                               means.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), g_rgb.data_ptr<scalar_t>(),
+                               g.data_ptr<scalar_t>());
+  });
+  return g;
+}
+
 std::vector<Tensor> ssim_forward(Tensor x, Tensor y, Tensor window) {
   const auto dt = x.scalar_type();
   check(x, "img", dt);
@@ -253,6 +287,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_gaussians", &bin_gaussians);
   m.def("raster_forward", &raster_forward);
   m.def("raster_backward", &raster_backward);
+  m.def("sh_forward", &sh_forward);
+  m.def("sh_backward", &sh_backward);
   m.def("ssim_forward", &ssim_forward);
   m.def("ssim_backward", &ssim_backward);
   m.attr("TILE") = kgs::TILE;

@@ -92,6 +92,16 @@ void raster_backward(const RasterShape& shape, const TileLists& lists, int64_t n
                      const S* g_depth, S* g_means2d, S* g_conics, S* g_opac, S* g_colors,
                      S* g_depths, S* abs_g_means2d, bool absgrad);
 
+// Colours (N, 3) from SH coefficients (N, K, 3), degree 0..3, seen from `center` (3):
+// max(sum_k basis_k(normalised mean - center) coeff_k + 0.5, 0). The backward gives the
+// coefficients' gradient (the direction is not differentiated, as in the reference).
+template <typename S>
+void sh_forward(int64_t n, int K, int degree, const S* coeffs, const S* means, const S* center,
+                S* rgb);
+template <typename S>
+void sh_backward(int64_t n, int K, int degree, const S* coeffs, const S* means, const S* center,
+                 const S* g_rgb, S* g_coeffs);
+
 // Fused SSIM over valid pixels of (H, W, C) images with a separable window w (k taps).
 // The forward returns the mean and fills `maps` (5 x (H-k+1) x (W-k+1) x C: mu_x, mu_y,
 // E[xx], E[yy], E[xy]); the backward writes d(grad * mean)/dx.
