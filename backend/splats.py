@@ -305,7 +305,7 @@ class RunView:
 
     def split(self, lod: int | None = None) -> dict:
         lod, m, keep, version = self.state(lod)
-        counts = split_counts(m)
+        counts = split_counts(m, self.run.static_only)
         dyn = self._dynamic_mask(m)
         return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()), "dynamic_kept": int((dyn & keep).sum()),
                 "static_kept": int((~dyn & keep).sum()), "version": version}

@@ -48,7 +48,7 @@ def run_train(spec: dict) -> None:
         if now - state["last"] < 0.5 and it < cfg.iterations:
             return
         state["last"] = now
-        counts = split_counts(trainer.model)
+        counts = split_counts(trainer.model, trainer.static_only)
         atomic_write_text(run_dir / "progress.json", json.dumps({
             "iteration": it, "iterations": cfg.iterations, "loss": loss, "psnr_heldout": state["psnr"],
             "elapsed": now - t0, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}))

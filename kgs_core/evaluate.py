@@ -158,7 +158,7 @@ def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> di
     for level in range(1, run.n_levels + 1):
         m = run.level(level)
         metrics["levels"].append({"level": level, "gaussians": len(m), "render_fps": render_fps(m, frame, scene.dt)})
-    metrics.update(split_counts(run.model))
+    metrics.update(split_counts(run.model, run.static_only))
     metrics["train_seconds"] = run.info.get("train_seconds")
     metrics["scene"] = str(scene.root)
     run_dir = Path(run_dir)

@@ -87,8 +87,10 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
 
     run()
     m = tr.model
+    shares = [float(r["dynamic_share"]) for r in tr.log_rows]
     if ablate == "deform":
         assert deform["n"] == 0 and decomp["n"] == 0
+        assert shares and max(shares) == 0.0  # a static run reports no dynamic Gaussians
     elif ablate == "split":
         assert decomp["n"] == 0 and deform["n"] > 0 and refine["n"] == 0 and fine["n"] == 0
     else:

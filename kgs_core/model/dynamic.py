@@ -263,9 +263,11 @@ class KinematicsGS(nn.Module):
         return model
 
 
-def split_counts(model: KinematicsGS) -> dict:
+def split_counts(model: KinematicsGS, static_only: bool = False) -> dict:
+    """Gaussian counts; before the first split every Gaussian deforms (all dynamic), and in a
+    static run (`--ablate deform`) none does."""
     n = len(model)
-    d = int(model.dynamic.sum()) if model.decomposed else n
+    d = 0 if static_only else int(model.dynamic.sum()) if model.decomposed else n
     return {"gaussians": n, "dynamic": d, "static": n - d, "dynamic_share": d / max(n, 1)}
 
 

@@ -282,7 +282,7 @@ class Trainer:
 
     def log(self, it: int, loss: float, wall0: float) -> dict:
         p = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
-        counts = split_counts(self.model)
+        counts = split_counts(self.model, self.static_only)
         row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(time.time() - wall0, 3),
                "loss": loss, "psnr_heldout": p, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}
         self.log_rows.append(row)
@@ -407,7 +407,7 @@ class Trainer:
         return info
 
     def save_final(self, info: dict) -> None:
-        counts = split_counts(self.model)
+        counts = split_counts(self.model, self.static_only)
         save_torch(self.run_dir / "model.pt", {"model": self.model.state(), "levels": self.levels})
         save_decomposition(self.run_dir, self.model.variance)
         plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)

@@ -357,9 +357,11 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
       a_d += w * gD[r];
       Tcur[r] = X::select(use, Ti, Tcur[r]);
       // Through alpha = min(ALPHA_MAX, o * exp(power)) to the 2D Gaussian.
-      const V da = X::keep(X::mand(use, X::lt(e.a_raw, X::set1(S(ALPHA_MAX)))), dal);
-      const V gp = da * e.a_raw;
-      a_op += da * e.G;
+      // Masked products: lanes that do not take part contribute exact zeros, whatever
+      // their (unused) values are.
+      const M live = X::mand(use, X::lt(e.a_raw, X::set1(S(ALPHA_MAX))));
+      const V gp = X::keep(live, dal * e.a_raw);
+      a_op += X::keep(live, dal * e.G);
       const V gpdx = gp * dx;
       m_x += gpdx;
       m_y += gp * dy;

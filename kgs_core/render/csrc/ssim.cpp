@@ -118,10 +118,13 @@ void ssim_backward(const S* x, const S* y, int H, int W, int C, const S* w, int 
     const S a = mx[i], b = my[i];
     const S A1 = 2 * a * b + S(C1), A2 = 2 * (exy[i] - a * b) + S(C2);
     const S B1 = a * a + b * b + S(C1), B2 = (exx[i] - a * a) + (eyy[i] - b * b) + S(C2);
-    const S s = A1 * A2 / (B1 * B2);
-    g_mx[i] = scale * s * (2 * b / A1 - 2 * b / A2 - 2 * a / B1 + 2 * a / B2);
-    g_exx[i] = -scale * s / B2;
-    g_exy[i] = scale * s * 2 / A2;
+    // S = A1 A2 / D with D = B1 B2 >= C1 C2 > 0; only D is divided by (A2 = 2 sxy + C2 can
+    // be zero or negative, so S / A2 would be 0 / 0 where the images are anti-correlated).
+    const S inv_d = S(1) / (B1 * B2);
+    const S s = A1 * A2 * inv_d;
+    g_mx[i] = scale * inv_d * (2 * b * (A2 - A1) - s * 2 * a * (B2 - B1));
+    g_exx[i] = -scale * s * B1 * inv_d;
+    g_exy[i] = scale * 2 * A1 * inv_d;
   }
   std::vector<S> tmp(size_t(H) * Wo * C), back(3 * n_in);
   for (int m = 0; m < 3; ++m)
