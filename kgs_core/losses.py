@@ -46,18 +46,6 @@ class _FusedSSIM(torch.autograd.Function):
         return _ext.load().ssim_backward(img, ref, window, maps, float(grad)), None, None
 
 
-def _fused_ssim_available(img: Tensor, ref: Tensor) -> bool:
-    if img.device.type != "cpu" or ref.requires_grad or img.dim() != 3:
-        return False
-    from .render import _ext
-
-    try:
-        _ext.load()
-    except _ext.ExtensionUnavailable:
-        return False
-    return True
-
-
 def ssim(img: Tensor, ref: Tensor, window_size: int = 11, sigma: float = 1.5) -> Tensor:
     """Mean SSIM (Wang et al. 2004) with an 11-tap Gaussian window over valid pixels.
 
@@ -65,7 +53,9 @@ def ssim(img: Tensor, ref: Tensor, window_size: int = 11, sigma: float = 1.5) ->
     `ssim_reference`; both compute the same value (tested)."""
     if img.shape != ref.shape:
         raise ValueError(f"ssim: shapes differ {tuple(img.shape)} vs {tuple(ref.shape)}")
-    if _fused_ssim_available(img, ref):
+    from .render import _ext
+
+    if img.dim() == 3 and not ref.requires_grad and _ext.usable_for(img):
         size = min(window_size, img.shape[0], img.shape[1])
         w = _gaussian_window(size, sigma, img.dtype)
         return _FusedSSIM.apply(img.contiguous(), ref.detach().to(img.dtype).contiguous(), w)

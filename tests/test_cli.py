@@ -46,3 +46,12 @@ def test_bad_arguments_fail_with_a_message(args, needle, tmp_path):
     assert r.returncode == 2
     assert needle in r.stderr, r.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_bench_quality_configs_take_short_names_and_reject_unknown_ones():
+    from kgs_app.bench.quality import CONFIGS, select_configs
+
+    assert select_configs("full,split") == ["full", "no split, D3DGS-like (split)"]
+    assert select_configs(None) == list(CONFIGS)
+    with pytest.raises(SystemExit, match="unknown bogus"):
+        select_configs("full,bogus")

@@ -35,6 +35,24 @@ CONFIGS = {
 }
 
 
+def config_key(name: str) -> str:
+    """The short name `--configs` takes: the part in parentheses, else the whole name without
+    spaces (`full`, `cf`, `split`, `velocity=paper`, ...)."""
+    return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
+
+
+def select_configs(spec: str | None) -> list[str]:
+    if not spec:
+        return list(CONFIGS)
+    wanted = [w.strip() for w in spec.split(",") if w.strip()]
+    by_key = {config_key(n): n for n in CONFIGS}
+    unknown = [w for w in wanted if w not in by_key and w not in CONFIGS]
+    if unknown:
+        raise SystemExit(f"kgs-app bench quality: --configs: unknown {', '.join(unknown)} "
+                         f"(choose from {', '.join(by_key)})")
+    return [n for n in CONFIGS if n in wanted or config_key(n) in wanted]
+
+
 def main(argv: list[str]) -> int:
     from kgs_core.data.formats import load_scene
     from kgs_core.data.synth.generate import synthesize
@@ -48,17 +66,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--iterations", type=int, default=600)
-    ap.add_argument("--configs", help="comma-separated names to run (default: all)")
+    ap.add_argument("--configs", help="comma-separated short names to run (default: all): "
+                    + ", ".join(config_key(n) for n in CONFIGS))
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
     ap.add_argument("--plot", default="docs/quality_psnr_vs_time.png")
     ap.add_argument("--out", help="keep the runs here (default: a temporary folder)")
     args = ap.parse_args(argv)
+    names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out or tempfile.mkdtemp(prefix="kgs-bench-quality-"))
     folder = synthesize(args.scene, root / "scene", blur="mild", size=args.size, frames=args.frames, subframes=8,
                         progress=False, overwrite=True)
     scene = load_scene(folder)
-    names = list(CONFIGS) if not args.configs else [n for n in CONFIGS if n in args.configs.split(",")]
     print(f"# {args.scene} {args.size}^2, {args.frames} frames, mild blur, fast preset, {args.iterations} iterations; "
           f"{os.cpu_count()} CPUs, torch {torch.__version__}")
     print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | split IoU | velocity EPE px | dynamic | train s |")

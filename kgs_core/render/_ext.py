@@ -93,3 +93,15 @@ def load(verbose: bool = False) -> ModuleType:
             _error = exc
             raise ExtensionUnavailable(f"building the C++ rasteriser failed: {exc}") from exc
         return _module
+
+
+def usable_for(t) -> bool:
+    """Whether the compiled kernels can take tensor `t`: a CPU tensor and an extension that
+    builds/loads here (pure-PyTorch fallbacks are used otherwise)."""
+    if t.device.type != "cpu":
+        return False
+    try:
+        load()
+    except ExtensionUnavailable:
+        return False
+    return True

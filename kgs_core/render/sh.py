@@ -67,18 +67,6 @@ class _ShColors(torch.autograd.Function):
         return g, None, None, None
 
 
-def _compiled_available(t: Tensor) -> bool:
-    if t.device.type != "cpu":
-        return False
-    from . import _ext
-
-    try:
-        _ext.load()
-    except _ext.ExtensionUnavailable:
-        return False
-    return True
-
-
 def eval_sh(sh_coeffs: Tensor, means: Tensor, camera_center: Tensor, degree: int) -> Tensor:
     """Colours `(N, 3)` from SH coefficients `(N, K, 3)` seen from `camera_center` `(3,)`.
 
@@ -90,7 +78,9 @@ def eval_sh(sh_coeffs: Tensor, means: Tensor, camera_center: Tensor, degree: int
     k = num_sh_bases(degree)
     if sh_coeffs.shape[1] < k:
         raise ValueError(f"sh_coeffs has {sh_coeffs.shape[1]} bases, degree {degree} needs {k}")
-    if _compiled_available(sh_coeffs) and sh_coeffs.ndim == 3 and sh_coeffs.shape[2] == 3:
+    from . import _ext
+
+    if _ext.usable_for(sh_coeffs) and sh_coeffs.ndim == 3 and sh_coeffs.shape[2] == 3:
         dt = sh_coeffs.dtype
         return _ShColors.apply(sh_coeffs.contiguous(), means.detach().to(dt).contiguous(),
                                camera_center.detach().to(dt).reshape(3).contiguous(), int(degree))

@@ -43,6 +43,16 @@ inline int basis(int degree, const S* mean, const S* center, S* b) {
   return 16;
 }
 
+// Colour before the clamp at 0: 0.5 + sum_k basis_k coeff_k.
+template <typename S>
+inline void raw_color(int degree, const S* c, const S* mean, const S* center, S* b, int* nb,
+                      S acc[3]) {
+  *nb = basis(degree, mean, center, b);
+  acc[0] = acc[1] = acc[2] = S(0.5);
+  for (int k = 0; k < *nb; ++k)
+    for (int ch = 0; ch < 3; ++ch) acc[ch] += b[k] * c[3 * k + ch];
+}
+
 }  // namespace
 
 template <typename S>
@@ -50,12 +60,9 @@ void sh_forward(int64_t n, int K, int degree, const S* coeffs, const S* means, c
                 S* rgb) {
 #pragma omp parallel for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
-    S b[16];
-    const int nb = basis(degree, means + 3 * i, center, b);
-    const S* c = coeffs + size_t(i) * K * 3;
-    S acc[3] = {S(0.5), S(0.5), S(0.5)};
-    for (int k = 0; k < nb; ++k)
-      for (int ch = 0; ch < 3; ++ch) acc[ch] += b[k] * c[3 * k + ch];
+    S b[16], acc[3];
+    int nb;
+    raw_color(degree, coeffs + size_t(i) * K * 3, means + 3 * i, center, b, &nb, acc);
     for (int ch = 0; ch < 3; ++ch) rgb[3 * i + ch] = std::max(acc[ch], S(0));
   }
 }
@@ -65,12 +72,9 @@ void sh_backward(int64_t n, int K, int degree, const S* coeffs, const S* means, 
                  const S* g_rgb, S* g_coeffs) {
 #pragma omp parallel for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
-    S b[16];
-    const int nb = basis(degree, means + 3 * i, center, b);
-    const S* c = coeffs + size_t(i) * K * 3;
-    S acc[3] = {S(0.5), S(0.5), S(0.5)};
-    for (int k = 0; k < nb; ++k)
-      for (int ch = 0; ch < 3; ++ch) acc[ch] += b[k] * c[3 * k + ch];
+    S b[16], acc[3];
+    int nb;
+    raw_color(degree, coeffs + size_t(i) * K * 3, means + 3 * i, center, b, &nb, acc);
     S g[3];
     for (int ch = 0; ch < 3; ++ch) g[ch] = acc[ch] >= S(0) ? g_rgb[3 * i + ch] : S(0);  // clamp at 0
     S* gc = g_coeffs + size_t(i) * K * 3;
