@@ -72,7 +72,7 @@ def test_cpu_matches_torch_reference(n, w, h, seed, aa):
     assert_agree(render_both(cam, kw, antialiased=aa))
 
 
-@pytest.mark.parametrize("channels", [1, 4, 7])
+@pytest.mark.parametrize("channels", [1, 4, 7, 8, 20])  # 8+: gradient slots span two vectors
 def test_arbitrary_channel_counts(channels):
     s = random_scene(300, 40, 32, seed=4)
     colors = torch.rand(300, channels, generator=torch.Generator().manual_seed(0))
