@@ -58,6 +58,10 @@ def test_sfm_recovers_camera_centres(room_video, tmp_path):
     print(f"camera centre error {err:.3%} of the scene extent, {report.registered}/{report.frames} registered")
     assert err < 0.02, f"camera centre error {err:.3%} of the scene extent"
     assert scene.extras["ingest"]["registered"] == report.registered
+    # The rasteriser is pinhole: ingest undistorts, and each frame's pixels match its camera.
+    for f in scene.train_frames[:4]:
+        assert not np.any(f.camera.distortion)
+        assert f.image().shape[:2] == (f.camera.height, f.camera.width)
 
 
 def test_corrupt_video(tmp_path):
