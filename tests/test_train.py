@@ -160,8 +160,8 @@ def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.67 here (0.83 at 96 px / 30 frames); the fast "
-                   "preset's warm-up does not yet learn the motion reliably")
+@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.68 at this CI-sized budget (the best tau on the same "
+                   "run gives 0.73); 0.95-0.97 at the demo budget (128², 1,500 iterations)")
 def test_split_finds_the_moving_object(tmp_path):
     """On a scene with one moving object (a waving sheet in a static room), the static/dynamic
     split matches the ground-truth dynamic mask (IoU >= 0.8)."""
