@@ -283,3 +283,10 @@ def test_compiled_sh_gradcheck_float64():
     sh = torch.randn(6, 16, 3, dtype=torch.float64, generator=g).requires_grad_(True)
     means = torch.randn(6, 3, dtype=torch.float64, generator=g)
     assert torch.autograd.gradcheck(lambda c: eval_sh(c, means, torch.zeros(3, dtype=torch.float64), 3), (sh,))
+
+
+def test_cpu_backend_rejects_images_beyond_its_int16_boxes():
+    s = random_scene(3, 8, 8)
+    with pytest.raises(RuntimeError, match="image size must be 1..32767"):
+        rasterize(s.means, s.opacities, s.viewmat, s.K, 40000, 8, quats=s.quats, scales=s.scales,
+                  colors=s.colors, backend="cpu")

@@ -131,6 +131,9 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
 }
 
 kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
+  // The per-Gaussian lines of raster.cpp store bounding boxes as int16.
+  TORCH_CHECK(width >= 1 && height >= 1 && width <= 32767 && height <= 32767,
+              "image size must be 1..32767 pixels per side, got ", width, "x", height);
   return {int(width), int(height), int(channels), int((width + kgs::TILE - 1) / kgs::TILE),
           int((height + kgs::TILE - 1) / kgs::TILE)};
 }

@@ -389,7 +389,8 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
 
 // The backward's gradient slots, kept across calls (per calling thread): a fresh
 // multi-megabyte vector per call costs page faults on every first touch (~7 % of the
-// backward). It holds n_pairs * (9 + channels) scalars of the largest image seen.
+// backward). It keeps n_pairs * slot_stride(channels) scalars of the largest call so far, per
+// calling thread, until the thread ends.
 template <typename T>
 std::vector<T>& reusable_slots() {
   thread_local std::vector<T> slots;
