@@ -77,7 +77,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from kgs_core.train.config import make_config, overrides_from
     from kgs_core.train.trainer import train
 
-    overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite)
+    overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite,
+                               kr_form=args.kr_form)
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
     cfg = make_config(args.preset, ablate=ablate, **overrides)
     scene = load_scene(args.scene)
@@ -271,6 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--velocity", choices=["paper", "physical"], help="velocity estimate of the kinematic basis")
     p.add_argument("--basis", choices=["paper", "duff", "principal"],
                    help="kinematic frame: the paper's (reference-axis switch), branch-free, or continuous (principal)")
+    p.add_argument("--kr-form", choices=["paper", "convolve"],
+                   help="kinematic refinement: the paper's projection onto the velocity frame, or the predicted "
+                        "covariance convolved with the motion during the exposure (docs/method.md)")
     p.add_argument("--on-nonfinite", choices=["error", "restore"],
                    help="NaN/Inf in training: stop with an error naming the tensor (default), or restore the last "
                         "good checkpoint and continue with a lower learning rate")

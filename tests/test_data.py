@@ -80,7 +80,7 @@ def test_generator_is_deterministic(tmp_path):
     assert any(p.read_bytes() != (c / "rgb" / "1x" / p.name).read_bytes() for p in (a / "rgb" / "1x").iterdir())
 
 
-@pytest.mark.parametrize("name", ["die", "top", "sheet", "cross", "room"])
+@pytest.mark.parametrize("name", ["die", "top", "sheet", "cross", "swing", "panel", "room"])
 def test_every_named_scene_renders(name, tmp_path):
     out = synthesize(name, tmp_path / name, blur="mild", size=32, frames=2, subframes=2, progress=False)
     scene = load_scene(out)

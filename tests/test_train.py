@@ -160,8 +160,8 @@ def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.68 at this CI-sized budget (the best tau on the same "
-                   "run gives 0.73); 0.95-0.97 at the demo budget (128², 1,500 iterations)")
+@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.64-0.68 at this CI-sized budget (0.77 on the `panel` "
+                   "scene); 0.92-0.97 at the demo budget (128², 1,500 iterations)")
 def test_split_finds_the_moving_object(tmp_path):
     """On a scene with one moving object (a waving sheet in a static room), the static/dynamic
     split matches the ground-truth dynamic mask (IoU >= 0.8)."""
@@ -203,3 +203,17 @@ def test_velocity_epe_against_ground_truth_motion(tmp_path):
         gts.append(np.linalg.norm(f.motion()[sel], axis=-1))
     assert zero == pytest.approx(float(np.concatenate(gts).mean()), rel=1e-6)
     assert zero > 0
+
+
+def test_runs_saved_before_kr_form_load_with_the_paper_form():
+    """`kr_form` joined the model config after runs were already on disk (all trained with the
+    paper's form): such a config loads as `paper`, a new one defaults to `convolve`, and an
+    unknown form is a clear error naming the field."""
+    from kgs_core.model.dynamic import ModelConfig
+
+    old = ModelConfig().to_dict()
+    del old["kr_form"]
+    assert ModelConfig.from_dict(old).kr_form == "paper"
+    assert ModelConfig.from_dict(ModelConfig().to_dict()).kr_form == "convolve"
+    with pytest.raises(ValueError, match="model.kr_form"):
+        ModelConfig(kr_form="blur")

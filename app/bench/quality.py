@@ -31,7 +31,8 @@ CONFIGS = {
     "no split, D3DGS-like (split)": {"ablate": ("split",)},
     "static 3DGS (deform)": {"ablate": ("deform",)},
     "velocity = paper": {"model.velocity": "paper"},
-    "basis = principal": {"model.basis": "principal"},
+    "basis = principal": {"model.basis": "principal", "model.kr_form": "paper"},
+    "kr_form = paper": {"model.kr_form": "paper"},
 }
 
 
@@ -65,6 +66,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--scene", default="sheet")
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--blur", default="mild", choices=["none", "mild", "severe"],
+                    help="exposure of the blurry training camera (none 0, mild 0.5, severe 1 frame)")
+    ap.add_argument("--seed", type=int, default=0, help="scene and training seed")
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--configs", help="comma-separated short names to run (default: all): "
                     + ", ".join(config_key(n) for n in CONFIGS))
@@ -75,10 +79,10 @@ def main(argv: list[str]) -> int:
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out or tempfile.mkdtemp(prefix="kgs-bench-quality-"))
-    folder = synthesize(args.scene, root / "scene", blur="mild", size=args.size, frames=args.frames, subframes=8,
+    folder = synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames, subframes=8, seed=args.seed,
                         progress=False, overwrite=True)
     scene = load_scene(folder)
-    print(f"# {args.scene} {args.size}^2, {args.frames} frames, mild blur, fast preset, {args.iterations} iterations; "
+    print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, {args.iterations} iterations; "
           f"{os.cpu_count()} CPUs, torch {torch.__version__}")
     print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | split IoU | velocity EPE px | dynamic | train s |")
     print("| ------------- | ------------: | --------------: | ----------: | --------: | --------------: | ------: | ------: |")
@@ -87,7 +91,7 @@ def main(argv: list[str]) -> int:
         over = dict(CONFIGS[name])
         ablate = over.pop("ablate", ())
         cfg = make_config("fast", ablate=ablate, iterations=args.iterations,
-                          eval_every=max(args.iterations // 10, 1), **over)  # a curve, not three points
+                          eval_every=max(args.iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
         run_dir = root / name.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "")
         info = train(scene, run_dir, cfg, progress=False)
         run = load_run(run_dir)

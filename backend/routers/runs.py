@@ -29,6 +29,7 @@ class TrainRequest(BaseModel):
     tau: float | None = Field(None, gt=0)
     velocity: Literal["paper", "physical"] | None = None
     basis: Literal["paper", "duff", "principal"] | None = None
+    kr_form: Literal["paper", "convolve"] | None = None
     ablate: list[str] = []
     seed: int | None = None
 
@@ -83,7 +84,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     bad = [a for a in req.ablate if a not in ABLATIONS]
     if bad:
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
-    overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed)
+    overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form)
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",

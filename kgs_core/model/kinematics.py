@@ -140,3 +140,17 @@ def refine_covariance(
     sigma_kin = M @ M.transpose(-1, -2)
     w = (frame_len * frame_len / (frame_len * frame_len + still_len * still_len))[..., None, None]
     return (1 - w) * sigma + w * sigma_kin
+
+
+def motion_blur_covariance(sigma: Tensor, v: Tensor, exposure_time: float | Tensor) -> Tensor:
+    """`(N, 3, 3)` covariance of a Gaussian that moves with velocity `v (N, 3)` for
+    `exposure_time` (in the units of `v`'s time), averaged over the exposure: `sigma` convolved
+    with a uniform segment of length `L = |v| exposure_time` along `v`, matched in its second
+    moment: `sigma + (L^2 / 12) u u^T = sigma + exposure_time^2 / 12 * v v^T`.
+
+    The `convolve` form of the kinematic refinement (docs/method.md): blur becomes elongation
+    along the motion as in the paper, but without projecting `sigma` onto the kinematic frame
+    (which drops its off-diagonal terms), so a sharp render (`exposure_time = 0`) is exactly
+    `sigma` and the form needs no basis: it is smooth at `v = 0` and has no reference-axis switch.
+    """
+    return sigma + (exposure_time * exposure_time / 12.0) * (v[:, :, None] * v[:, None, :])

@@ -89,12 +89,11 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         d = dict(d)
-        m = dict(d.pop("model"))
-        m["deform_multires"] = tuple(m["deform_multires"])
+        m = d.pop("model")
         for k in ("opacity_reset_at", "lod_fractions", "ablate"):
             d[k] = tuple(d[k])
         known = {f.name for f in fields(cls)}
-        return cls(model=ModelConfig(**m), **{k: v for k, v in d.items() if k in known})
+        return cls(model=ModelConfig.from_dict(m), **{k: v for k, v in d.items() if k in known})
 
 
 def paper_preset() -> TrainConfig:
@@ -125,9 +124,10 @@ PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 
 def overrides_from(iterations: int | None = None, tau: float | None = None, velocity: str | None = None,
-                   basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None) -> dict:
+                   basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None,
+                   kr_form: str | None = None) -> dict:
     """`make_config` overrides from the options the CLI and the server share (None = preset's)."""
-    named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis,
+    named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis, "model.kr_form": kr_form,
              "seed": seed, "on_nonfinite": on_nonfinite}
     return {k: v for k, v in named.items() if v is not None}
 

@@ -6,7 +6,9 @@
 | `bounce` | an elastic ball, squash and stretch, velocity reversal inside one frame | stiff dynamics |
 | `top` | a fast spinning, precessing top | rotational blur, velocity varies across the object |
 | `sheet` | a hanging sheet with a travelling wave | non-rigid deformation |
-| `cross` | a ball and a box crossing at different depths | occlusion |
+| `cross` | a ball and a box crossing at different depths | occlusion, large displacement |
+| `swing` | a pendulum ball swinging across the view, two periods | fast motion of a small object |
+| `panel` | a large textured panel swinging in the image plane about its top edge | object motion blur that a field can follow |
 | `room` | nothing | static control |
 """
 
@@ -143,6 +145,36 @@ def cross(seed: int) -> list[Object]:
     ]
 
 
+def swing(seed: int) -> list[Object]:
+    """A ball on a pendulum swinging parallel to the image plane of the training camera: fast
+    in the middle of each swing, still at the ends, so the blur along the motion varies over
+    time and across the sequence while the ball stays within ±0.5 of its rest point."""
+    pivot, length, amp, periods = np.array([0.0, 0.0, 1.35]), 0.85, math.radians(35), 2.0
+
+    def pose(t: float) -> np.ndarray:
+        a = amp * math.sin(2 * math.pi * periods * t)
+        R = rot_y(-a)
+        return rigid(R, pivot + R @ np.array([0.0, 0.0, -length]))
+
+    tex = Texture(seed + 120, (0.85, 0.3, 0.55), checker=6, contrast=0.8)
+    return [Object("ball", Ellipsoid(lambda _t: np.array([0.2, 0.2, 0.2])), tex, pose, dynamic=True)]
+
+
+def panel(seed: int) -> list[Object]:
+    """A large textured panel hanging from a pivot above it and swinging in the image plane of
+    the training camera (±20°, 1.5 periods): motion blur of several pixels along a direction
+    and speed that vary across the panel (zero at the pivot, largest at the bottom edge), while
+    every point moves less than a tenth of the panel's size per frame."""
+    pivot, drop, amp, periods = np.array([0.0, 0.2, 1.75]), 0.75, math.radians(20), 1.5
+
+    def pose(t: float) -> np.ndarray:
+        R = rot_y(-amp * math.sin(2 * math.pi * periods * t))
+        return rigid(R @ UPRIGHT, pivot + R @ np.array([0.0, 0.0, -drop]))
+
+    tex = Texture(seed + 130, (0.35, 0.65, 0.8), checker=8, contrast=0.8)
+    return [Object("panel", Plane(1.1, 0.9), tex, pose, dynamic=True)]
+
+
 def furniture(seed: int) -> list[Object]:
     return [
         Object("crate", Box((0.3, 0.25, 0.3)), Texture(seed + 100, (0.7, 0.5, 0.3), checker=5), static(rot_z(0.4), (-0.9, 0.9, 0.3))),
@@ -157,6 +189,8 @@ SCENES: dict[str, Callable[[int], list[Object]]] = {
     "top": top,
     "sheet": sheet,
     "cross": cross,
+    "swing": swing,
+    "panel": panel,
     "room": lambda seed: [],
 }
 
