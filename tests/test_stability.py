@@ -347,3 +347,39 @@ def test_convolve_form_is_sharp_at_zero_exposure_and_elongates_along_the_motion(
     w = torch.linalg.cross(u, torch.randn(64, 3, generator=g))  # any direction across the motion
     across = torch.einsum("ni,nij,nj->n", w, blurred.covars - sharp.covars, w)
     assert (across.abs() <= 1e-6 * torch.einsum("ni,nij,nj->n", w, sharp.covars, w)).all()  # float32 round-off
+
+
+def test_camera_motion_from_poses_matches_the_projected_motion_of_still_points():
+    """`(A, b)` from three poses: a still point's motion relative to the camera, expressed in
+    the world frame, is `A x + b` (finite difference of its camera coordinates)."""
+    from kgs_core.data.synth.scenes import shaky_training_camera
+    from kgs_core.model.dynamic import camera_motion_from_poses
+
+    cam = shaky_training_camera(0)
+    t, h = 0.4, 1e-5
+    A, b = camera_motion_from_poses(cam(t - h), cam(t), cam(t + h), t - h, t + h)
+    g = np.random.default_rng(0)
+    for x in g.uniform(-1, 1, size=(5, 3)):
+        W0, W1, Wm = cam(t + h), cam(t - h), cam(t)
+        dp = ((W0[:3, :3] @ x + W0[:3, 3]) - (W1[:3, :3] @ x + W1[:3, 3])) / (2 * h)
+        expected = Wm[:3, :3].T @ dp
+        got = A.double().numpy() @ x + b.double().numpy()
+        assert np.allclose(got, expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
+
+
+def test_camera_blur_elongates_still_gaussians_along_the_camera_motion():
+    from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+    from kgs_core.model.gaussians import init_from_points
+
+    g = torch.Generator().manual_seed(1)
+    p = init_from_points((0.3 * torch.randn(32, 3, generator=g)).numpy(), np.full((32, 3), 0.5), 1, 16)
+    m = KinematicsGS(p, ModelConfig())
+    m.decompose(tau=1.0)  # a fresh field: everything static
+    assert not m.dynamic.any()
+    A, b = 0.5 * torch.randn(3, 3, generator=g), torch.randn(3, generator=g)
+    sharp = m.at(0.5, exposure=1.0, dt=0.1)  # without camera motion static Gaussians stay sharp
+    blurred = m.at(0.5, exposure=1.0, dt=0.1, camera_motion=(A, b))
+    assert torch.equal(sharp.covars, m.at(0.5, exposure=0.0, dt=0.1, camera_motion=(A, b)).covars)
+    u = p.means.detach() @ A.T + b
+    expected = sharp.covars + (0.1 ** 2 / 12) * u[:, :, None] * u[:, None, :]
+    assert torch.allclose(blurred.covars, expected, rtol=1e-5, atol=1e-9)

@@ -33,6 +33,7 @@ CONFIGS = {
     "velocity = paper": {"model.velocity": "paper"},
     "basis = principal": {"model.basis": "principal", "model.kr_form": "paper"},
     "kr_form = paper": {"model.kr_form": "paper"},
+    "camera blur": {"camera_blur": True},
 }
 
 

@@ -180,9 +180,14 @@ class KinematicsGS(nn.Module):
         off = self.offsets(idx, t, noise)
         return self.params.means[idx] + off.dx, off
 
-    def at(self, t: float, exposure: float = 0.0, dt: float = 1.0, noise: float = 0.0) -> GaussiansAt:
+    def at(self, t: float, exposure: float = 0.0, dt: float = 1.0, noise: float = 0.0,
+           camera_motion: tuple[Tensor, Tensor] | None = None) -> GaussiansAt:
         """Gaussians at time `t`. `exposure` (fraction of the frame interval `dt`) sets the
-        kinematic elongation: 0 renders sharp. `noise` is the training-time jitter of `t`."""
+        kinematic elongation: 0 renders sharp. `noise` is the training-time jitter of `t`.
+        `camera_motion = (A (3, 3), b (3,))`: the camera's own motion during the exposure, as
+        the world-frame velocity `A x + b` it gives a still point `x` relative to the camera
+        (`camera_motion_from_poses`); every Gaussian is then blurred along its velocity relative
+        to the camera (`convolve` form only)."""
         p = self.params
         n = len(p)
         scales = self.scales()
@@ -191,8 +196,17 @@ class KinematicsGS(nn.Module):
         velocity = torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
+        blur_camera = camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
+        if blur_camera:
+            A, b = camera_motion
+            still = torch.ones(n, dtype=torch.bool)
+            still[idx] = False
+            if still.any():  # static Gaussians: blurred by the camera's motion alone
+                covars = covars.index_put((still,), motion_blur_covariance(
+                    covars[still], means[still].detach() @ A.T + b, dt * exposure))
         if len(idx):
-            x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], covars[idx])
+            x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], covars[idx],
+                                               camera_motion if blur_camera else None)
             means = means.index_put((idx,), x_t)
             covars = covars.index_put((idx,), cov_dyn)
             velocity = velocity.index_put((idx,), v.detach())
@@ -216,13 +230,15 @@ class KinematicsGS(nn.Module):
                                 dynamic=torch.ones(len(idx), dtype=torch.bool), velocity=v.detach(), offsets_dx=dx)
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
-                cov_pred: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                cov_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Deformed positions, covariances, velocities and offsets `dx` of the Gaussians `idx`."""
         p = self.params
         x_t, off = self.positions(idx, t, noise)
         if self.config.kinematic and self.decomposed and self.config.kr_form == "convolve":
             v = self.velocity(idx, t, off, dt, exposure, noise)
-            cov = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, self.config.lambda_s), v,
+            v_rel = v if camera_motion is None else v + x_t.detach() @ camera_motion[0].T + camera_motion[1]
+            cov = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, self.config.lambda_s), v_rel,
                                          dt * exposure)
         elif self.config.kinematic and self.decomposed:
             v = self.velocity(idx, t, off, dt, exposure, noise)
@@ -278,6 +294,19 @@ class KinematicsGS(nn.Module):
         model.variance = state["variance"].clone()
         model.min_scale = float(state["min_scale"])
         return model
+
+
+def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float, t_next: float
+                             ) -> tuple[Tensor, Tensor]:
+    """The camera's motion at a frame, from the poses of its neighbours (central difference of
+    the world-to-camera matrices `(4, 4)`), as `(A, b)`: a still world point `x` moves relative
+    to the camera like a point with world velocity `A x + b` seen by a still camera
+    (`A = R^T dR/dt`, `b = R^T dT/dt`, per unit of normalised time)."""
+    W = torch.as_tensor(viewmat, dtype=torch.float64)
+    dW = (torch.as_tensor(next_viewmat, dtype=torch.float64) - torch.as_tensor(prev_viewmat, dtype=torch.float64))
+    dW = dW / max(t_next - t_prev, 1e-12)
+    R = W[:3, :3]
+    return (R.T @ dW[:3, :3]).float(), (R.T @ dW[:3, 3]).float()
 
 
 def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: float) -> Tensor:

@@ -77,6 +77,9 @@ class TrainConfig:
     nonfinite_max_restores: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
     ablate: tuple = ()
+    # Blur along the camera's motion during the exposure too (poses' central differences; K.R.
+    # convolve form only). Experimental: docs/quality.md.
+    camera_blur: bool = False
     init_from: str = ""  # a run directory: start from its final model (fine-tuning), not from points
 
     def to_dict(self) -> dict:

@@ -18,7 +18,7 @@ from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
 from ..losses import photometric_loss, psnr
 from ..model.deformation import TimeNoise
-from ..model.dynamic import KinematicsGS, split_counts
+from ..model.dynamic import KinematicsGS, camera_motion_from_poses, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
 from ..model.render import render_model
 from ..render.types import Rendered
@@ -78,6 +78,23 @@ def check_finite(it: int, **tensors) -> None:
             raise NonFiniteError(f"non-finite values in {name} at iteration {it}")
 
 
+
+def camera_motions(frames) -> dict:
+    """Per frame id, the camera's motion during its exposure (`camera_motion_from_poses`) from
+    its neighbours in time on the same physical camera (one-sided at the ends)."""
+    out = {}
+    by_camera: dict[int, list] = {}
+    for f in frames:
+        by_camera.setdefault(f.camera_id, []).append(f)
+    for seq in by_camera.values():
+        seq.sort(key=lambda f: f.time)
+        if len(seq) < 2:
+            continue
+        for i, f in enumerate(seq):
+            a, b = seq[max(i - 1, 0)], seq[min(i + 1, len(seq) - 1)]
+            out[f.id] = camera_motion_from_poses(a.camera.viewmat, f.camera.viewmat, b.camera.viewmat, a.time, b.time)
+    return out
+
 class Trainer:
     def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
                  on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
@@ -102,6 +119,7 @@ class Trainer:
                                int(cfg.noise_until * cfg.iterations), int(cfg.noise_delay * cfg.iterations), cfg.noise_w_delay)
         self.static_only = "deform" in cfg.ablate
         self.no_split = "split" in cfg.ablate
+        self.camera_motion = camera_motions(scene.train_frames) if cfg.camera_blur else {}
 
     # ------------------------------------------------------------ setup
 
@@ -181,7 +199,7 @@ class Trainer:
         c, scene, model = self.cfg, self.scene, self.model
         noise = 0.0 if self.static_only else self.noise.sigma(it)
         out, g = render_model(model, frame.camera, frame.time, scene.exposure, scene.dt, self.background,
-                              noise=noise, static=self.static_only)
+                              noise=noise, static=self.static_only, camera_motion=self.camera_motion.get(frame.id))
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if not self.static_only:
