@@ -221,13 +221,24 @@ def cmd_bench(args: argparse.Namespace) -> int:
     raise AssertionError(args.what)
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (an iteration count)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="kgs-app", description="Kinematics-GS: dynamic Gaussians from blurry video.")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("demo", help="the main job: synthesize the built-in scene, train (fast preset), evaluate, serve")
     p.add_argument("--workspace", default="workspace", help="folder for the demo's scene and run")
-    p.add_argument("--iterations", type=int, help="override the preset's iteration count")
+    p.add_argument("--iterations", type=positive_int, help="override the preset's iteration count (its schedule scales with it)")
     p.add_argument("--retrain", action="store_true")
     p.add_argument("--no-serve", action="store_true", help="stop after evaluating instead of serving the viewer")
     p.add_argument("--port", type=int, default=8000)
@@ -278,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--on-nonfinite", choices=["error", "restore"],
                    help="NaN/Inf in training: stop with an error naming the tensor (default), or restore the last "
                         "good checkpoint and continue with a lower learning rate")
-    p.add_argument("--iterations", type=int)
+    p.add_argument("--iterations", type=positive_int, help="override the preset's iteration count (its schedule scales with it)")
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.set_defaults(func=cmd_train)

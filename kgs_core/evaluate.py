@@ -64,7 +64,7 @@ def velocity_flow(model: KinematicsGS, frame: Frame, dt: float) -> tuple[np.ndar
     du = fx * (V[:, 0] / z - X[:, 0] * V[:, 2] / z**2)
     dv = fy * (V[:, 1] / z - X[:, 1] * V[:, 2] / z**2)
     viewmat, K = torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(cam.K, dtype=torch.float32)
-    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars,
+    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars6,
                     colors=torch.stack([du, dv], 1))
     alpha = out.alpha[..., 0]
     return (out.image / alpha.clamp_min(1e-6)[..., None]).numpy(), alpha.numpy()

@@ -68,8 +68,12 @@ def count_calls(monkeypatch, module, name):
 def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     import kgs_core.model.dynamic as dyn
 
-    refine = count_calls(monkeypatch, dyn, "refine_covariance")
-    cfg = tiny_config(iterations=70, ablate=tuple(a for a in [ablate] if a), lod_levels=1, lod_fractions=(1.0,))
+    # K.R. in either form: the convolve form (the default) or the paper's eqs. 9-14.
+    refine = count_calls(monkeypatch, dyn, "motion_blur_covariance")
+    refine_paper = count_calls(monkeypatch, dyn, "refine_covariance")
+    # A tiny tau so that the split leaves dynamic Gaussians for C.F. and K.R. to act on.
+    cfg = tiny_config(iterations=70, ablate=tuple(a for a in [ablate] if a), lod_levels=1, lod_fractions=(1.0,),
+                      **{"model.tau": 1e-9})
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     fine = {"n": 0}
     deform = {"n": 0}
@@ -79,13 +83,15 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     def run():
         tr.init_model()
         tr.model.fine.register_forward_hook(lambda *a: fine.__setitem__("n", fine["n"] + 1))
-        tr.model.deform.register_forward_hook(lambda *a: deform.__setitem__("n", deform["n"] + 1))
+        field_at_times = tr.model.deform.at_times  # every evaluation of the field goes through it
+        tr.model.deform.at_times = lambda *a: (deform.__setitem__("n", deform["n"] + 1), field_at_times(*a))[1]
         real_dec = tr.model.decompose
         tr.model.decompose = lambda *a, **k: (decomp.__setitem__("n", decomp["n"] + 1), real_dec(*a, **k))[1]
         tr.init_model = lambda: None
         return orig_run()
 
     run()
+    assert refine_paper["n"] == 0  # the default form is convolve
     m = tr.model
     shares = [float(r["dynamic_share"]) for r in tr.log_rows]
     if ablate == "deform":
@@ -99,7 +105,9 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
         assert refine["n"] == 0
     if ablate == "cf":
         assert fine["n"] == 0
-    if ablate in ("", "reg", "ani") and m.dynamic.any():
+    if ablate in ("", "kr", "cf", "reg", "ani"):
+        assert m.decomposed and m.dynamic.any()
+    if ablate in ("", "reg", "ani"):
         assert refine["n"] > 0 and fine["n"] > 0
     assert (cfg.lambda_reg == 0) == (ablate == "reg")
     assert (cfg.lambda_ani == 0) == (ablate == "ani")
@@ -217,3 +225,19 @@ def test_runs_saved_before_kr_form_load_with_the_paper_form():
     assert ModelConfig.from_dict(ModelConfig().to_dict()).kr_form == "convolve"
     with pytest.raises(ValueError, match="model.kr_form"):
         ModelConfig(kr_form="blur")
+
+
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_iteration_override_scales_the_preset_schedule(preset):
+    """`--iterations` lays the preset's schedule out for the new length (a fast run of 3,000
+    iterations splits, densifies and resets at the same fractions as one of 1,500), an explicit
+    schedule override still wins, and the default is the preset's own schedule."""
+    base = make_config(preset)
+    longer = make_config(preset, iterations=base.iterations * 2)
+    for name in ("decompose_at", "decompose_every", "densify_from", "densify_until"):
+        assert getattr(longer, name) == pytest.approx(2 * getattr(base, name), abs=1), name
+    assert longer.opacity_reset_at[0] == pytest.approx(2 * base.opacity_reset_at[0], abs=1)
+    assert longer.densify_every == base.densify_every  # an interval, not a point of the schedule
+    assert make_config(preset, iterations=base.iterations * 2, decompose_at=7).decompose_at == 7
+    tiny = make_config(preset, iterations=3)
+    assert tiny.decompose_at >= 1 and tiny.eval_every >= 1 and tiny.checkpoint_every >= 1

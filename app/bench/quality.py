@@ -1,7 +1,10 @@
 """Quality benchmark: `kgs-app bench quality`.
 
 One synthetic scene with ground truth (sharp held-out camera, sharp training views, dynamic
-masks), the same iteration budget for every configuration: the full method, each ablation
+masks), the same training-time budget for every configuration (`--budget time`, the default:
+the first configuration sets it with `--iterations`, each other one is trained once to measure
+its speed and again with its iteration count scaled to that time when it differs by more than
+10 %; `--budget iterations` gives every configuration the same count): the full method, each ablation
 (`split` is the D3DGS-like baseline where every Gaussian deforms, `deform` a static 3DGS), both
 velocity estimates and the continuous kinematic basis. Reports held-out PSNR (whole image and
 inside the dynamic mask), deblur PSNR, decomposition IoU and training time, plots held-out PSNR
@@ -70,7 +73,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--blur", default="mild", choices=["none", "mild", "severe"],
                     help="exposure of the blurry training camera (none 0, mild 0.5, severe 1 frame)")
     ap.add_argument("--seed", type=int, default=0, help="scene and training seed")
-    ap.add_argument("--iterations", type=int, default=600)
+    ap.add_argument("--iterations", type=int, default=600, help="iterations of the first configuration")
+    ap.add_argument("--budget", default="time", choices=["time", "iterations"],
+                    help="what every configuration gets the same of (default: training time)")
     ap.add_argument("--configs", help="comma-separated short names to run (default: all): "
                     + ", ".join(config_key(n) for n in CONFIGS))
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
@@ -83,27 +88,39 @@ def main(argv: list[str]) -> int:
     folder = synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames, subframes=8, seed=args.seed,
                         progress=False, overwrite=True)
     scene = load_scene(folder)
-    print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, {args.iterations} iterations; "
+    print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
+          f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
           f"{os.cpu_count()} CPUs, torch {torch.__version__}")
-    print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | split IoU | velocity EPE px | dynamic | train s |")
-    print("| ------------- | ------------: | --------------: | ----------: | --------: | --------------: | ------: | ------: |")
+    print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | split IoU | velocity EPE px | dynamic | iterations | train s |")
+    print("| ------------- | ------------: | --------------: | ----------: | --------: | --------------: | ------: | ---------: | ------: |")
     curves = {}
-    for name in names:
+
+    def run_config(name: str, iterations: int, suffix: str = "") -> tuple[dict, dict, Path]:
         over = dict(CONFIGS[name])
         ablate = over.pop("ablate", ())
-        cfg = make_config("fast", ablate=ablate, iterations=args.iterations,
-                          eval_every=max(args.iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
-        run_dir = root / name.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "")
+        cfg = make_config("fast", ablate=ablate, iterations=iterations,
+                          eval_every=max(iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
+        run_dir = root / (name.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "") + suffix)
         info = train(scene, run_dir, cfg, progress=False)
         run = load_run(run_dir)
-        m = evaluate_model(run.model, scene, static=run.static_only)
+        return info, evaluate_model(run.model, scene, static=run.static_only), run_dir
+
+    reference_seconds = None
+    for name in names:
+        iterations = args.iterations
+        info, m, run_dir = run_config(name, iterations)
+        if args.budget == "time" and reference_seconds is None:
+            reference_seconds = info["train_seconds"]
+        elif args.budget == "time" and abs(info["train_seconds"] / reference_seconds - 1) > 0.1:
+            iterations = max(50, round(iterations * reference_seconds / info["train_seconds"]))
+            info, m, run_dir = run_config(name, iterations, "_equal_time")
         curves[name] = [(r["train_seconds"], r["psnr_heldout"]) for r in read_log(run_dir) if not math.isnan(r["psnr_heldout"])]
         fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
         print(f"| {name} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
               f"{fmt(m['train_view_deblur']['psnr'])} | {fmt(m['decomposition_iou'])} | "
               f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
-              f"{'static' if run.static_only else format(info['dynamic_share'], '.0%')} | {info['train_seconds']:.0f} |",
-              flush=True)
+              f"{'static' if 'deform' in info['config']['ablate'] else format(info['dynamic_share'], '.0%')} | "
+              f"{iterations} | {info['train_seconds']:.0f} |", flush=True)
     if "full" in names:
         print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
         print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
@@ -128,7 +145,7 @@ def main(argv: list[str]) -> int:
                 ax.plot(*zip(*pts), marker="o", ms=2, label=name)
         ax.set_xlabel("training time (s)")
         ax.set_ylabel("held-out PSNR (dB)")
-        ax.set_title(f"{args.scene} {args.size}², {args.iterations} iterations")
+        ax.set_title(f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
         fig.tight_layout()

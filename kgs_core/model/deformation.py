@@ -38,19 +38,29 @@ class KPlanes(nn.Module):
 
     def forward(self, x: Tensor, t: Tensor) -> Tensor:
         """`x (N, 3)` world points (clamped to +-bound), `t (N,)` in [0, 1] -> `(N, out_dim)`."""
+        return self.at_times(x, [t])
+
+    def at_times(self, x: Tensor, times: list[Tensor]) -> Tensor:
+        """The features of the points `x (N, 3)` at each of `times` (M tensors `(N,)`) ->
+        `(M N, out_dim)`, time-major. The three spatial planes do not depend on t: they are
+        sampled once for all M times (the physical velocity needs three times per step)."""
+        n, m = len(x), len(times)
         xn = (x / self.bound).clamp(-1, 1)
-        tn = (t * 2 - 1).clamp(-1, 1)
-        coords = torch.cat([xn, tn[:, None]], -1)
+        tn = (torch.cat(times) * 2 - 1).clamp(-1, 1)
+        coords = torch.cat([xn.repeat(m, 1), tn[:, None]], -1)  # (M N, 4)
         feats = []
         for r in range(self.n_res):
-            f = None
+            space, time = None, None
             for k, (a, b) in enumerate(self.pairs):
                 grid = self.grids[r * 6 + k]
-                uv = coords[:, [a, b]].view(1, -1, 1, 2)
+                uv = (coords[:, [a, b]] if b == 3 else coords[:n, [a, b]]).reshape(1, -1, 1, 2)
                 sample = F.grid_sample(grid, uv, mode="bilinear", padding_mode="border", align_corners=True)
                 sample = sample.view(grid.shape[1], -1).t()
-                f = sample if f is None else f * sample
-            feats.append(f)
+                if b == 3:
+                    time = sample if time is None else time * sample
+                else:
+                    space = sample if space is None else space * sample
+            feats.append(space.repeat(m, 1) * time)
         return torch.cat(feats, -1)
 
     def smoothness(self) -> Tensor:
@@ -108,6 +118,11 @@ class DeformationField(nn.Module):
 
     def forward(self, x: Tensor, t: Tensor) -> Offsets:
         return Offsets.split(self.mlp(self.planes(x, t)))
+
+    def at_times(self, x: Tensor, times: list[Tensor]) -> list[Offsets]:
+        """Offsets of `x (N, 3)` at each of `times` (M tensors `(N,)`): one batched evaluation."""
+        out = self.mlp(self.planes.at_times(x, times))
+        return [Offsets.split(chunk) for chunk in out.split(len(x))]
 
 
 def fourier_time(t: Tensor, n_freqs: int = 6) -> Tensor:

@@ -15,7 +15,8 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
-from ..render.covariance import covariance_from_quat_scale, quat_to_rotmat
+from ..render import packed_covariance
+from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
 from .deformation import DeformationField, FineResidual, Offsets
 from .gaussians import GaussianParams
 from .kinematics import motion_blur_covariance, refine_covariance, safe_norm, so3_exp
@@ -74,13 +75,18 @@ class GaussiansAt:
     """Gaussians at one time, ready for `rasterize`."""
 
     means: Tensor  # (N, 3)
-    covars: Tensor  # (N, 3, 3)
+    covars6: Tensor  # (N, 6) packed upper triangles xx, xy, xz, yy, yz, zz (what rasterize takes)
     opacities: Tensor  # (N,)
     sh: Tensor  # (N, K, 3)
     dynamic: Tensor  # (N,) bool
     velocity: Tensor | None = None  # (N, 3), zeros for static Gaussians
     offsets_dx: Tensor | None = None  # (N, 3), for L_reg
     extras: dict = field(default_factory=dict)
+
+    @property
+    def covars(self) -> Tensor:
+        """`(N, 3, 3)` world-space covariances (unpacked on each access)."""
+        return unpack_covariance(self.covars6)
 
 
 class KinematicsGS(nn.Module):
@@ -123,7 +129,7 @@ class KinematicsGS(nn.Module):
     # ------------------------------------------------------------ decomposition
 
     @torch.no_grad()
-    def temporal_variance(self, chunk: int = 65536) -> Tensor:
+    def temporal_variance(self, chunk: int = 8192) -> Tensor:
         """K_i = mean_t |dx_t - mean_t dx_t|^2 over `variance_times` evenly spaced times, from the
         deformation field itself (no time noise, no coarse-to-fine averaging)."""
         T = self.config.variance_times
@@ -132,7 +138,8 @@ class KinematicsGS(nn.Module):
         out = torch.empty(len(means))
         for s in range(0, len(means), chunk):
             x = means[s:s + chunk]
-            dx = torch.stack([self.deform(x, torch.full((len(x),), float(t))).dx for t in times])  # (T, n, 3)
+            offs = self.deform.at_times(x, [torch.full((len(x),), float(t)) for t in times])
+            dx = torch.stack([o.dx for o in offs])  # (T, n, 3)
             out[s:s + chunk] = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
         return out
 
@@ -165,16 +172,23 @@ class KinematicsGS(nn.Module):
 
     def offsets(self, idx: Tensor, t: float, noise: float = 0.0) -> Offsets:
         """Offsets of the Gaussians `idx` (all of them, or the dynamic set) at time `t`."""
+        return self.offsets_at(idx, [t], noise)[0]
+
+    def offsets_at(self, idx: Tensor, times: list[float], noise: float = 0.0) -> list[Offsets]:
+        """Offsets of the Gaussians `idx` at each of `times`, in one batched evaluation of the
+        field (and of the fine residual). `noise` (training's time jitter) moves the first
+        time only: the others are the physical velocity's samples around it."""
         x = self.params.means[idx]
-        tt = torch.full((len(x),), float(t))
+        n = len(x)
+        tt = [torch.full((n,), float(t)) for t in times]
         if noise > 0:
-            tt = tt + noise * torch.randn(len(x))
-        raw = self.deform(x, tt)
+            tt[0] = tt[0] + noise * torch.randn(n)
+        raws = self.deform.at_times(x, tt)
         if not (self.decomposed and self.config.coarse_to_fine):
-            return raw
+            return raws
         knn = self.knn_index()
-        coarse = Offsets.split(raw.cat()[knn].mean(1))
-        return coarse + self.fine(self.params.features[idx], tt)
+        fine = self.fine(self.params.features[idx].repeat(len(times), 1), torch.cat(tt)).cat().split(n)
+        return [Offsets.split(raw.cat()[knn].mean(1) + f) for raw, f in zip(raws, fine)]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
         off = self.offsets(idx, t, noise)
@@ -191,7 +205,7 @@ class KinematicsGS(nn.Module):
         p = self.params
         n = len(p)
         scales = self.scales()
-        covars = covariance_from_quat_scale(p.quats, scales)
+        cov6 = packed_covariance(p.quats, scales)  # C++ when built: the static path is most of N
         means = p.means
         velocity = torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
@@ -202,16 +216,16 @@ class KinematicsGS(nn.Module):
             still = torch.ones(n, dtype=torch.bool)
             still[idx] = False
             if still.any():  # static Gaussians: blurred by the camera's motion alone
-                covars = covars.index_put((still,), motion_blur_covariance(
-                    covars[still], means[still].detach() @ A.T + b, dt * exposure))
+                cov6 = cov6.index_put((still,), pack_covariance(motion_blur_covariance(
+                    unpack_covariance(cov6[still]), means[still].detach() @ A.T + b, dt * exposure)))
         if len(idx):
-            x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], covars[idx],
+            x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6[idx],
                                                camera_motion if blur_camera else None)
             means = means.index_put((idx,), x_t)
-            covars = covars.index_put((idx,), cov_dyn)
+            cov6 = cov6.index_put((idx,), cov_dyn)
             velocity = velocity.index_put((idx,), v.detach())
             dx_all = dx_all.index_put((idx,), dx)
-        return GaussiansAt(means=means, covars=covars, opacities=p.opacities, sh=p.sh(),
+        return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocity, offsets_dx=dx_all)
 
@@ -221,55 +235,51 @@ class KinematicsGS(nn.Module):
         p = self.params
         idx = torch.arange(len(p)) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         scales = self.scales()[idx]
-        covars = covariance_from_quat_scale(p.quats[idx], scales)
+        cov6 = packed_covariance(p.quats[idx], scales)
         if len(idx):
-            x_t, covars, v, dx = self._deform(idx, t, exposure, dt, 0.0, scales, covars)
+            x_t, cov6, v, dx = self._deform(idx, t, exposure, dt, 0.0, scales, cov6)
         else:
             x_t, v, dx = p.means[idx], torch.zeros(0, 3), torch.zeros(0, 3)
-        return idx, GaussiansAt(means=x_t, covars=covars, opacities=p.opacities[idx], sh=p.sh()[idx],
+        return idx, GaussiansAt(means=x_t, covars6=cov6, opacities=p.opacities[idx], sh=p.sh()[idx],
                                 dynamic=torch.ones(len(idx), dtype=torch.bool), velocity=v.detach(), offsets_dx=dx)
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
-                cov_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None
+                cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Deformed positions, covariances, velocities and offsets `dx` of the Gaussians `idx`."""
-        p = self.params
-        x_t, off = self.positions(idx, t, noise)
-        if self.config.kinematic and self.decomposed and self.config.kr_form == "convolve":
-            v = self.velocity(idx, t, off, dt, exposure, noise)
+        """Deformed positions, packed covariances `(D, 6)`, velocities and offsets `dx` of the
+        Gaussians `idx`; `cov6_pred` is their packed canonical covariance."""
+        p, cfg = self.params, self.config
+        kinematic = cfg.kinematic and self.decomposed
+        # The physical velocity's two samples around t share one batched field evaluation with t.
+        h = 0.5 * dt * max(exposure, 0.5)
+        physical = kinematic and cfg.velocity == "physical"
+        offs = self.offsets_at(idx, [t, t + h, t - h] if physical else [t], noise)
+        off = offs[0]
+        x_t = p.means[idx] + off.dx
+        if kinematic:
+            v = velocity_from_offsets(offs, h, dt)
+        if kinematic and cfg.kr_form == "convolve":
             v_rel = v if camera_motion is None else v + x_t.detach() @ camera_motion[0].T + camera_motion[1]
-            cov = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, self.config.lambda_s), v_rel,
+            cov = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), v_rel,
                                          dt * exposure)
-        elif self.config.kinematic and self.decomposed:
-            v = self.velocity(idx, t, off, dt, exposure, noise)
+        elif kinematic:
             speed = safe_norm(v)
             R = quat_to_rotmat(p.quats[idx])
             r_z = torch.gather(R, 2, scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
             cov = refine_covariance(
-                cov_pred, v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa, speed * dt,
-                basis=self.config.basis, lambda_s=self.config.lambda_s, still_len=self.config.still_len)
+                unpack_covariance(cov6_pred), v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa,
+                speed * dt, basis=cfg.basis, lambda_s=cfg.lambda_s, still_len=cfg.still_len)
         else:
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
             v = torch.zeros_like(x_t)
-            cov = residual_covariance(p.quats[idx], scales, off, self.config.lambda_s)
-        return x_t, cov, v, off.dx
+            cov = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
+        return x_t, pack_covariance(cov), v, off.dx
 
     def at_static(self) -> GaussiansAt:
         """The canonical Gaussians, no deformation (the static 3DGS baseline)."""
         p = self.params
-        return GaussiansAt(means=p.means, covars=covariance_from_quat_scale(p.quats, self.scales()),
+        return GaussiansAt(means=p.means, covars6=packed_covariance(p.quats, self.scales()),
                            opacities=p.opacities, sh=p.sh(), dynamic=torch.zeros(len(p), dtype=torch.bool))
-
-    def velocity(self, idx: Tensor, t: float, off: Offsets, dt: float, exposure: float, noise: float) -> Tensor:
-        """`paper`: v = dx_t / dt (the offset from the canonical position over one frame).
-        `physical`: central difference of the deformed position over the exposure (at least
-        half a frame, so that short exposures do not amplify noise)."""
-        if self.config.velocity == "paper":
-            return off.dx / dt
-        h = 0.5 * dt * max(exposure, 0.5)
-        x_plus, _ = self.positions(idx, t + h, 0.0)
-        x_minus, _ = self.positions(idx, t - h, 0.0)
-        return (x_plus - x_minus) / (2 * h)
 
     # ------------------------------------------------------------ persistence
 
@@ -294,6 +304,16 @@ class KinematicsGS(nn.Module):
         model.variance = state["variance"].clone()
         model.min_scale = float(state["min_scale"])
         return model
+
+
+def velocity_from_offsets(offs: list[Offsets], h: float, dt: float) -> Tensor:
+    """The velocities K.R. builds on. One sample (`paper`): v = dx_t / dt, the offset from the
+    canonical position over one frame. Three samples at t, t + h, t - h (`physical`): the
+    central difference of the deformed position over the exposure (`h` at least half a frame,
+    so that short exposures do not amplify noise); the canonical position cancels."""
+    if len(offs) == 1:
+        return offs[0].dx / dt
+    return (offs[1].dx - offs[2].dx) / (2 * h)
 
 
 def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float, t_next: float

@@ -29,5 +29,5 @@ def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0
     else:
         kw = dict(sh_coeffs=g.sh, sh_degree=model.config.sh_degree,
                   background=background if background is not None else torch.zeros(3))
-    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars, **kw)
+    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars6, **kw)
     return out, g

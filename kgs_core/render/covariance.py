@@ -38,6 +38,15 @@ def covariance_from_quat_scale(quats: Tensor, scales: Tensor) -> Tensor:
     return M @ M.transpose(-1, -2)
 
 
+# Positions of the packed entries in a row-major 3x3 matrix (the inverse of the packing).
+UNPACK_INDEX = (0, 1, 2, 1, 3, 4, 2, 4, 5)
+
+
+def unpack_covariance(cov6: Tensor) -> Tensor:
+    """`(N, 6)` packed upper triangle (xx, xy, xz, yy, yz, zz) -> `(N, 3, 3)` symmetric."""
+    return cov6[:, UNPACK_INDEX].reshape(cov6.shape[0], 3, 3)
+
+
 def pack_covariance(covars: Tensor) -> Tensor:
     """`(N, 3, 3)` -> `(N, 6)` upper triangle of the symmetrised matrix.
 

