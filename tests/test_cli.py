@@ -32,6 +32,7 @@ def test_help_lists_working_commands():
     [
         (["train", "nowhere", "--out", "x"], "dataset not found"),
         (["train", "nowhere", "--out", "x", "--ablate", "magic"], "unknown ablation 'magic'"),
+        (["train", "nowhere", "--out", "x", "--iterations", "0"], "must be at least 1"),
         (["eval", "."], "not a run directory"),
         (["synth", "die", "--out", "x", "--frames", "1"], "frames >= 2"),
         (["ingest", "missing.mp4", "--out", "x"], "video not found"),
@@ -55,3 +56,19 @@ def test_bench_quality_configs_take_short_names_and_reject_unknown_ones():
     assert select_configs(None) == list(CONFIGS)
     with pytest.raises(SystemExit, match="unknown bogus"):
         select_configs("full,bogus")
+
+
+def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
+    from kgs_app.cli import BENCHMARKS
+
+    for what in BENCHMARKS:
+        r = kgs("bench", what, "--help")
+        assert r.returncode == 0 and "usage: kgs-app bench " + what in r.stdout, (what, r.stderr)
+    r = kgs("bench", "step", "--size", "32", "--frames", "6", "--warmup", "20", "--steps", "3", "--repeats", "1",
+            "--configs", "full,split", timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| full") or line.startswith("| no split")]
+    assert len(rows) == 2
+    for row in rows:
+        step_ms = float(row.rstrip(" |").split("|")[-1].strip(" *"))
+        assert step_ms > 0
