@@ -168,8 +168,9 @@ def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.64-0.68 at this CI-sized budget (0.77 on the `panel` "
-                   "scene); 0.92-0.97 at the demo budget (128², 1,500 iterations)")
+@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.64-0.88 at CI-sized budgets (80-96², 600-1,200 "
+                   "iterations, sheet and panel), varying run to run with float round-off alone; 0.95-0.97 at the "
+                   "demo budget (128², 1,500 iterations). A per-scene tau is the open work (docs/method.md)")
 def test_split_finds_the_moving_object(tmp_path):
     """On a scene with one moving object (a waving sheet in a static room), the static/dynamic
     split matches the ground-truth dynamic mask (IoU >= 0.8)."""
