@@ -159,7 +159,24 @@ struct Simd<float> {
     return r * (2.0f - a * r);
   }
   static float hsum(V a) { return _mm512_reduce_add_ps(a); }
-  static V exp(V x) { return (V)cephes_expf<V, IV>(x); }
+  // The same polynomial as cephes_expf, with AVX-512's rounding and exponent instructions:
+  // vrndscaleps for the nearest integer k and vscalefps for p(r) * 2^k replace the emulated
+  // floor and the bit assembly (7 instructions fewer in the kernels' hottest line).
+  static V exp(V x) {
+    x = _mm512_min_ps(_mm512_max_ps(x, set1(-40.0f)), set1(80.0f));
+    const V k = _mm512_roundscale_ps(x * set1(1.44269504088896341f),
+                                     _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    V r = _mm512_fnmadd_ps(k, set1(0.693359375f), x);
+    r = _mm512_fnmadd_ps(k, set1(-2.12194440e-4f), r);
+    V y = set1(1.9875691500e-4f);
+    y = _mm512_fmadd_ps(y, r, set1(1.3981999507e-3f));
+    y = _mm512_fmadd_ps(y, r, set1(8.3334519073e-3f));
+    y = _mm512_fmadd_ps(y, r, set1(4.1665795894e-2f));
+    y = _mm512_fmadd_ps(y, r, set1(1.6666665459e-1f));
+    y = _mm512_fmadd_ps(y, r, set1(5.0000001201e-1f));
+    y = _mm512_fmadd_ps(y, r * r, r + set1(1.0f));
+    return _mm512_scalef_ps(y, k);
+  }
 };
 #else
 template <>
