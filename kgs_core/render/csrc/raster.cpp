@@ -222,6 +222,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     const V gz = X::set1(p.z);
     M any_term = X::none();
     for (int r = p.y0; r < p.y1; ++r) {
+      if (!X::any(X::mandnot(gl.in_box, done[r]))) continue;  // row finished: skip the exp
       const RowEval<S> e = eval_row(gl, S(t.py0 + r) + S(0.5) - p.my);
       const M in = X::mandnot(e.ok, done[r]);
       const V test_t = T[r] * (X::set1(S(1)) - e.alpha);
@@ -338,6 +339,8 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     const V& dx = gl.dx;
     const V gz = X::set1(p.z), ca = X::set1(p.ca), cb = X::set1(p.cb), cc = X::set1(p.cc);
     for (int r = p.y0; r < p.y1; ++r) {
+      // Pixels that stopped before this Gaussian: skip the row before paying for the exp.
+      if (!X::any(X::mand(gl.in_box, X::ilt(list_pos, last[r])))) continue;
       const S dy_s = S(t.py0 + r) + S(0.5) - p.my;
       const RowEval<S> e = eval_row(gl, dy_s);
       const M use = X::mand(e.ok, X::ilt(list_pos, last[r]));
