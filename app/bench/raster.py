@@ -159,7 +159,7 @@ def to_markdown(rows: list[Row], step: dict, mem: dict | None) -> str:
     for r in rows:
         lines.append(
             f"| {r.backend} | {r.n:,} | {r.res}² | {r.forward_ms:.1f} | {r.backward_ms:.1f} | "
-            f"{r.forward_ms + r.backward_ms:.1f} | {r.list_len:.0f} | {r.overlap:.0f} |"
+            f"{r.forward_ms + r.backward_ms:.1f} | {'—' if math.isnan(r.list_len) else format(r.list_len, '.0f')} | {r.overlap:.0f} |"
         )
     lines += [
         "",
