@@ -168,19 +168,20 @@ def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 4 open: IoU 0.64-0.88 at CI-sized budgets (80-96², 600-1,200 "
-                   "iterations, sheet and panel), varying run to run with float round-off alone; 0.95-0.97 at the "
-                   "demo budget (128², 1,500 iterations). A per-scene tau is the open work (docs/method.md)")
 def test_split_finds_the_moving_object(tmp_path):
-    """On a scene with one moving object (a waving sheet in a static room), the static/dynamic
-    split matches the ground-truth dynamic mask (IoU >= 0.8)."""
+    """On a scene with one moving object (a textured panel swinging in a static room, severe
+    object-motion blur), the fast preset's static/dynamic split matches the ground-truth
+    dynamic mask (IoU >= 0.8).
+
+    The scene is the quality benchmark's smallest reliable size (128², 30 frames, the full
+    1,500-iteration fast schedule: IoU 0.96-0.97 in every run measured). Smaller budgets
+    (80-96², 600-1,200 iterations) gave 0.64-0.88 and varied with float round-off alone
+    (docs/method.md), which is why the test pays for this size."""
     from kgs_core.evaluate import evaluate_model
 
-    root = synthesize("sheet", tmp_path / "sheet", blur="mild", size=80, frames=24, subframes=4, progress=False)
+    root = synthesize("panel", tmp_path / "panel", blur="severe", size=128, frames=30, subframes=8, progress=False)
     scene = load_scene(root)
-    cfg = make_config("fast", iterations=600, decompose_at=400, decompose_every=0, densify_from=100,
-                      densify_every=100, densify_until=500, opacity_reset_at=(), lod_levels=1, lod_fractions=(1.0,),
-                      eval_every=600, checkpoint_every=10_000)
+    cfg = make_config("fast", eval_every=10_000, checkpoint_every=10_000)
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     tr.run()
     metrics = evaluate_model(tr.model, scene)
