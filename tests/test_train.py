@@ -155,6 +155,26 @@ def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):
             assert torch.equal(v, b["model"]["params"][k]), (it, k)
 
 
+def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
+    """`interleave` (one step of each trainer in turn, for equal-time benchmarks) trains
+    exactly the runs that train alone would: the global RNG the trainer draws from is swapped
+    per step, and each trainer's time counts its own steps only."""
+    from kgs_core.train.trainer import interleave
+
+    cfgs = {"full": tiny_config(iterations=22, checkpoint_every=1000, densify_from=1000),
+            "split": tiny_config(iterations=14, checkpoint_every=1000, densify_from=1000, ablate=("split",))}
+    for name, cfg in cfgs.items():
+        train(scene, tmp_path / f"alone_{name}", cfg, progress=False)
+    trainers = [Trainer(scene, tmp_path / f"together_{name}", cfg, progress=False) for name, cfg in cfgs.items()]
+    infos = interleave(trainers)
+    assert [i["iteration"] for i in infos] == [22, 14]
+    for name, tr in zip(cfgs, trainers):
+        alone = torch.load(tmp_path / f"alone_{name}" / "model.pt", weights_only=False)["model"]["params"]
+        for k, v in tr.model.state()["params"].items():
+            assert torch.equal(v, alone[k]), (name, k)
+        assert 0 < tr.train_seconds < sum(t.train_seconds for t in trainers)
+
+
 def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch):
     import kgs_core.train.trainer as trainer_mod
 

@@ -1,10 +1,12 @@
 """Quality benchmark: `kgs-app bench quality`.
 
 One synthetic scene with ground truth (sharp held-out camera, sharp training views, dynamic
-masks), the same training-time budget for every configuration (`--budget time`, the default:
-the first configuration sets it with `--iterations`, each other one is trained once to measure
-its speed and again with its iteration count scaled to that time when it differs by more than
-10 %; `--budget iterations` gives every configuration the same count): the full method, each ablation
+masks). Every configuration is first trained for `--iterations`, all of them stepped in turn
+(one step each), so that their times are measured under the same machine conditions; with
+`--budget time` (the default) each one whose time differs from the first configuration's by
+more than 10 % is trained again with its iteration count scaled by that measured cost ratio
+(equal training time; `--budget iterations` stops after the first round). Configurations: the
+full method, each ablation
 (`split` is the D3DGS-like baseline where every Gaussian deforms, `deform` a static 3DGS), both
 velocity estimates and the continuous kinematic basis. Reports held-out PSNR (whole image and
 inside the dynamic mask), deblur PSNR, decomposition IoU and training time, plots held-out PSNR
@@ -64,7 +66,7 @@ def main(argv: list[str]) -> int:
     from kgs_core.evaluate import evaluate_model
     from kgs_core.run import load_run, read_log
     from kgs_core.train.config import make_config
-    from kgs_core.train.trainer import train
+    from kgs_core.train.trainer import Trainer, interleave
 
     ap = argparse.ArgumentParser(prog="kgs-app bench quality", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="sheet")
@@ -93,34 +95,52 @@ def main(argv: list[str]) -> int:
           f"{os.cpu_count()} CPUs, torch {torch.__version__}")
     print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | split IoU | velocity EPE px | dynamic | iterations | train s |")
     print("| ------------- | ------------: | --------------: | ----------: | --------: | --------------: | ------: | ---------: | ------: |")
-    curves = {}
+    curves, dashed = {}, set()
 
-    def run_config(name: str, iterations: int, suffix: str = "") -> tuple[dict, dict, Path]:
+    def trainer_for(name: str, iterations: int, suffix: str = "") -> Trainer:
         over = dict(CONFIGS[name])
         ablate = over.pop("ablate", ())
         cfg = make_config("fast", ablate=ablate, iterations=iterations,
                           eval_every=max(iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
         run_dir = root / (name.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "") + suffix)
-        info = train(scene, run_dir, cfg, progress=False)
-        run = load_run(run_dir)
-        return info, evaluate_model(run.model, scene, static=run.static_only), run_dir
+        return Trainer(scene, run_dir, cfg, progress=False)
 
-    reference_seconds = None
-    for name in names:
-        iterations = args.iterations
-        info, m, run_dir = run_config(name, iterations)
-        if args.budget == "time" and reference_seconds is None:
-            reference_seconds = info["train_seconds"]
-        elif args.budget == "time" and abs(info["train_seconds"] / reference_seconds - 1) > 0.1:
-            iterations = max(50, round(iterations * reference_seconds / info["train_seconds"]))
-            info, m, run_dir = run_config(name, iterations, "_equal_time")
-        curves[name] = [(r["train_seconds"], r["psnr_heldout"]) for r in read_log(run_dir) if not math.isnan(r["psnr_heldout"])]
+    def report(label: str, tr: Trainer, seconds: str) -> None:
+        run = load_run(tr.run_dir)
+        m = evaluate_model(run.model, scene, static=run.static_only)
+        info = tr.info
         fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
-        print(f"| {name} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
+        print(f"| {label} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
               f"{fmt(m['train_view_deblur']['psnr'])} | {fmt(m['decomposition_iou'])} | "
               f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
               f"{'static' if 'deform' in info['config']['ablate'] else format(info['dynamic_share'], '.0%')} | "
-              f"{iterations} | {info['train_seconds']:.0f} |", flush=True)
+              f"{info['iteration']} | {seconds} |", flush=True)
+
+    # Every configuration at the same iteration count, stepped in turn so that their times
+    # are measured under the same machine conditions (`interleave`).
+    first = [trainer_for(name, args.iterations) for name in names]
+    interleave(first)
+    rate = {name: tr.train_seconds / args.iterations for name, tr in zip(names, first)}
+    for name, tr in zip(names, first):
+        report(name, tr, f"{tr.train_seconds:.0f}")
+        curves[name] = [(r["train_seconds"], r["psnr_heldout"]) for r in read_log(tr.run_dir) if not math.isnan(r["psnr_heldout"])]
+    if args.budget == "time":
+        # Equal time: each configuration more than 10 % off the first one's time is trained again
+        # with its iteration count scaled by the measured cost ratio (the preset's schedule
+        # scales with the count). Its time is the interleaved rate times its count: a time of its
+        # own would be measured in other machine conditions than the first configuration's.
+        budget = first[0].train_seconds
+        again = [(name, max(50, round(budget / rate[name])))
+                 for name in names[1:] if abs(rate[name] * args.iterations / budget - 1) > 0.1]
+        if again:
+            second = [trainer_for(name, n, "_equal_time") for name, n in again]
+            interleave(second)
+            for (name, n), tr in zip(again, second):
+                report(f"{name}, same time", tr, f"≈{rate[name] * n:.0f}")
+                label = f"{name}, same time"
+                curves[label] = [(r["iteration"] * rate[name], r["psnr_heldout"]) for r in read_log(tr.run_dir)
+                                 if not math.isnan(r["psnr_heldout"])]
+                dashed.add(label)
     if "full" in names:
         print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
         print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
@@ -142,7 +162,7 @@ def main(argv: list[str]) -> int:
         fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
         for name, pts in curves.items():
             if pts:
-                ax.plot(*zip(*pts), marker="o", ms=2, label=name)
+                ax.plot(*zip(*pts), marker="o", ms=2, label=name, ls="--" if name in dashed else "-")
         ax.set_xlabel("training time (s)")
         ax.set_ylabel("held-out PSNR (dB)")
         ax.set_title(f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
@@ -152,5 +172,5 @@ def main(argv: list[str]) -> int:
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(args.plot)
         print(f"\nplot: {args.plot}")
-    (root / "bench.json").write_text(json.dumps({"curves": curves}))
+    (root / "bench.json").write_text(json.dumps({"curves": curves, "seconds_per_iteration": rate}))
     return 0

@@ -8,7 +8,7 @@ import random
 import time
 import traceback
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -110,6 +110,7 @@ class Trainer:
         self.eval_set = evaluation_frames(scene, cfg.eval_frames)
         self.iteration = 0
         self.train_seconds = 0.0
+        self.info: dict | None = None  # the run's info, set when training ends
         self.levels: list[dict] = []
         self.log_rows: list[dict] = []
         n_levels = max(1, cfg.lod_levels)
@@ -366,6 +367,16 @@ class Trainer:
     # ------------------------------------------------------------ the loop
 
     def run(self, resume: bool = False) -> dict:
+        """Trains to the configured iteration count (or to where `should_stop` says) and
+        returns the run's info (also written to run.json)."""
+        for _ in self.iterate(resume):
+            pass
+        return self.info
+
+    def iterate(self, resume: bool = False) -> Iterator[int]:
+        """`run` one iteration at a time: yields the iteration count after each step, so that
+        a caller can step several trainers in turn (`interleave`). `self.info` holds the
+        run's info when the generator is exhausted."""
         cfg = self.cfg
         self.run_dir.mkdir(parents=True, exist_ok=True)
         ckpts = sorted((self.run_dir / "checkpoints").glob("ckpt_*.pt"))
@@ -412,6 +423,7 @@ class Trainer:
                 if self.on_step:
                     self.on_step(self.iteration, loss)
                 bar.update(1)
+                yield self.iteration
         except Exception as exc:
             atomic_write_text(self.run_dir / "error.txt", f"{type(exc).__name__}: {exc}\n\n{traceback.format_exc()}")
             info.update(status="failed", error=f"{type(exc).__name__}: {exc}", iteration=self.iteration)
@@ -421,7 +433,7 @@ class Trainer:
             bar.close()
         self.checkpoint()
         self.save_final(info)
-        return info
+        self.info = info
 
     def save_final(self, info: dict) -> None:
         counts = split_counts(self.model, self.static_only)
@@ -463,3 +475,28 @@ def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str 
 
 def train(scene: Scene, run_dir: str | Path, cfg: TrainConfig, resume: bool = False, progress: bool = True, **kw) -> dict:
     return Trainer(scene, run_dir, cfg, progress=progress, **kw).run(resume=resume)
+
+
+def interleave(trainers: list[Trainer]) -> list[dict]:
+    """Trains several runs one step each in turn and returns their infos.
+
+    Each trainer's `train_seconds` times only its own steps, so runs stepped together are
+    timed under the same machine conditions: on a shared VM whose speed drifts by up to 2x
+    over minutes, that is what makes their times comparable (sequential runs are not). The
+    global RNG state (torch and Python's `random`, which the trainer seeds and draws from) is
+    swapped with each step, so every run is the one it would be on its own."""
+    gens = [t.iterate() for t in trainers]
+    rng: list = [None] * len(gens)
+    live = list(range(len(gens)))
+    while live:
+        for i in list(live):
+            if rng[i] is not None:
+                torch.set_rng_state(rng[i][0])
+                random.setstate(rng[i][1])
+            try:
+                next(gens[i])
+            except StopIteration:
+                live.remove(i)
+                continue
+            rng[i] = (torch.get_rng_state(), random.getstate())
+    return [t.info for t in trainers]
