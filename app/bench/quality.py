@@ -42,6 +42,10 @@ CONFIGS = {
 }
 
 
+def fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
+
+
 def config_key(name: str) -> str:
     """The short name `--configs` takes: the part in parentheses, else the whole name without
     spaces (`full`, `cf`, `split`, `velocity=paper`, ...)."""
@@ -109,7 +113,6 @@ def main(argv: list[str]) -> int:
         run = load_run(tr.run_dir)
         m = evaluate_model(run.model, scene, static=run.static_only)
         info = tr.info
-        fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
         print(f"| {label} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
               f"{fmt(m['train_view_deblur']['psnr'])} | {fmt(m['decomposition_iou'])} | "
               f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
@@ -150,7 +153,6 @@ def main(argv: list[str]) -> int:
             run.model.decompose(tau, recompute=False)
             m = evaluate_model(run.model, scene)
             share = float(run.model.dynamic.float().mean())
-            fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
             print(f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
                   f"{fmt(m['decomposition_iou'])} |", flush=True)
     if args.plot:
