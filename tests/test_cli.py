@@ -72,3 +72,24 @@ def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
     for row in rows:
         step_ms = float(row.rstrip(" |").split("|")[-1].strip(" *"))
         assert step_ms > 0
+
+
+@pytest.mark.slow
+def test_bench_quality_runs_end_to_end(tmp_path):
+    """A tiny `bench quality`: both configurations get a table row (and one more for an
+    equal-time re-run when their measured costs differ), the τ sweep and the plot exist."""
+    r = kgs("bench", "quality", "--scene", "sheet", "--size", "32", "--frames", "6", "--iterations", "60",
+            "--configs", "full,split", "--taus", "2e-5,1e-3", "--out", str(tmp_path / "runs"),
+            "--plot", str(tmp_path / "plot.png"), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| full |") or line.startswith("| no split")]
+    assert rows[0].startswith("| full |") and rows[1].startswith("| no split, D3DGS-like (split) |"), r.stdout
+    assert all(line.split("|")[8].strip() == "60" for line in rows[:2])  # the first round: equal iterations
+    for line in rows[2:]:  # an equal-time re-run: another count, its time derived from the measured rate
+        assert "same time" in line and line.split("|")[8].strip() != "60" and "≈" in line.split("|")[9]
+    assert r.stdout.count("| 2e-05 |") == 1 and r.stdout.count("| 1e-03 |") == 1
+    assert (tmp_path / "plot.png").stat().st_size > 1000
+    import json
+
+    rates = json.loads((tmp_path / "runs" / "bench.json").read_text())["seconds_per_iteration"]
+    assert set(rates) == {"full", "no split, D3DGS-like (split)"} and all(v > 0 for v in rates.values())
