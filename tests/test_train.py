@@ -113,29 +113,38 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     assert (cfg.lambda_ani == 0) == (ablate == "ani")
 
 
-def test_resume_continues_where_it_stopped(scene, tmp_path):
-    train(scene, tmp_path / "full", tiny_config(iterations=80, checkpoint_every=40), progress=False)
+@pytest.mark.parametrize("stop_at", [40, 65])
+def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
+    """A run stopped and resumed follows the uninterrupted one. Stopping at 40 resumes right
+    after a level change (FLoD's importance pass once leaked the gradient of a rendered sum
+    into the deformation field's next step, in the uninterrupted run only); at 65, after the
+    split at 60 (the kNN graph of that moment must come back from the checkpoint, not be
+    rebuilt from later positions). A tiny tau keeps Gaussians dynamic so C.F. runs."""
+    cfg = tiny_config(iterations=80, checkpoint_every=40, **{"model.tau": 1e-9})
+    train(scene, tmp_path / "full", cfg, progress=False)
     stop = {"n": 0}
 
-    def stop_after_40():
+    def stop_after():
         stop["n"] += 1
-        return stop["n"] > 40
+        return stop["n"] > stop_at
 
-    part = Trainer(scene, tmp_path / "part", tiny_config(iterations=80, checkpoint_every=40), progress=False,
-                   should_stop=stop_after_40).run()
-    assert part["status"] == "cancelled" and part["iteration"] == 40
-    resumed = train(scene, tmp_path / "part", tiny_config(iterations=80, checkpoint_every=40), resume=True, progress=False)
+    part = Trainer(scene, tmp_path / "part", cfg, progress=False, should_stop=stop_after).run()
+    assert part["status"] == "cancelled" and part["iteration"] == stop_at
+    resumed = train(scene, tmp_path / "part", cfg, resume=True, progress=False)
     assert resumed["iteration"] == 80
     a, b = read_log(tmp_path / "full"), read_log(tmp_path / "part")
     assert [r["iteration"] for r in a] == [r["iteration"] for r in b]
-    # The first half is the same run; the resumed half restores RNG states and Adam moments, so
-    # it follows the uninterrupted run (up to the thread-order rounding of CPU kernels).
-    same = lambda rows: np.array([[v for k, v in r.items() if not k.endswith("seconds")] for r in rows[:2]])
-    np.testing.assert_array_equal(same(a), same(b))  # NaN-aware
-    # Known gap: after a resume the run drifts from the uninterrupted one by ~1e-4 within ten
-    # iterations (the checkpoint itself is bit-identical); it then differs like another seed.
-    assert abs(a[-1]["psnr_heldout"] - b[-1]["psnr_heldout"]) < 0.5
-    assert abs(a[-1]["gaussians"] - b[-1]["gaussians"]) <= 0.05 * a[-1]["gaussians"]
+    assert [r["gaussians"] for r in a] == [r["gaussians"] for r in b]
+    # Identical up to float rounding in thread-parallel kernels: ~1e-7 in the field after the
+    # split, which Adam turns into up to ~5e-4 on parameters whose gradients are near zero.
+    # Before the two fixes: 2e-3 in the field on the first resumed step, 0.4 dB at the end.
+    np.testing.assert_allclose([r["psnr_heldout"] for r in a], [r["psnr_heldout"] for r in b], atol=1e-3)
+    pa = torch.load(tmp_path / "full" / "model.pt", weights_only=False)["model"]
+    pb = torch.load(tmp_path / "part" / "model.pt", weights_only=False)["model"]
+    for k in pa["params"]:
+        torch.testing.assert_close(pa["params"][k], pb["params"][k], atol=2e-3, rtol=0, msg=k)
+    for k in pa["networks"]:
+        torch.testing.assert_close(pa["networks"][k], pb["networks"][k], atol=2e-3, rtol=0, msg=k)
 
 
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):

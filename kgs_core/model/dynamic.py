@@ -292,6 +292,9 @@ class KinematicsGS(nn.Module):
             "dynamic": self.dynamic.clone(),
             "variance": self.variance.clone(),
             "min_scale": self.min_scale,
+            # The kNN graph is rebuilt only when the dynamic set changes, from the positions of
+            # that moment; a resumed run must reuse it, not rebuild it from later positions.
+            "knn": None if self._knn is None else self._knn.clone(),
         }
 
     @classmethod
@@ -303,6 +306,7 @@ class KinematicsGS(nn.Module):
         model.dynamic = state["dynamic"].clone()
         model.variance = state["variance"].clone()
         model.min_scale = float(state["min_scale"])
+        model._knn = None if state.get("knn") is None else state["knn"].clone()  # absent in older runs
         return model
 
 

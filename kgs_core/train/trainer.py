@@ -259,7 +259,12 @@ class Trainer:
     @torch.no_grad()
     def importance(self) -> torch.Tensor:
         """Sum over training views of each Gaussian's blending weights (FLoD's importance),
-        read off as the gradient of the rendered sum of a constant colour."""
+        read off as the gradient of the rendered sum of a constant colour.
+
+        `autograd.grad` with respect to that colour alone: a `.backward()` here left the
+        gradient of the rendered sum in the deformation field's `.grad` (and in kappa's), which
+        the next optimiser step applied, and which inflated the field's Adam second moments
+        by ~1e7 at every level change, all but freezing the field for the rest of the run."""
         model = self.model
         total = torch.zeros(len(model))
         frames = self.scene.train_frames
@@ -269,8 +274,8 @@ class Trainer:
                 ones = torch.ones(len(model), 1, requires_grad=True)
                 out, _ = render_model(model, frames[i].camera, frames[i].time, self.scene.exposure, self.scene.dt,
                                       colors=ones, static=self.static_only)
-                out.image.sum().backward()
-            total += ones.grad[:, 0]
+                (grad,) = torch.autograd.grad(out.image.sum(), ones)
+            total += grad[:, 0]
         return total
 
     def next_level(self, level_idx: int) -> None:
