@@ -136,15 +136,53 @@ def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
     assert [r["iteration"] for r in a] == [r["iteration"] for r in b]
     assert [r["gaussians"] for r in a] == [r["gaussians"] for r in b]
     # Identical up to float rounding in thread-parallel kernels: ~1e-7 in the field after the
-    # split, which Adam turns into up to ~5e-4 on parameters whose gradients are near zero.
-    # Before the two fixes: 2e-3 in the field on the first resumed step, 0.4 dB at the end.
+    # split, which Adam turns into up to a few 1e-3 on the few parameters whose gradients are
+    # near zero (how far depends on the thread interleaving of the whole process), so the
+    # parameters are compared by their median difference (measured: <= 2.4e-6; with the
+    # importance leak 4e-3, with the kNN graph rebuilt on restore 4e-5). The two causes also
+    # have direct tests below.
     np.testing.assert_allclose([r["psnr_heldout"] for r in a], [r["psnr_heldout"] for r in b], atol=1e-3)
     pa = torch.load(tmp_path / "full" / "model.pt", weights_only=False)["model"]
     pb = torch.load(tmp_path / "part" / "model.pt", weights_only=False)["model"]
-    for k in pa["params"]:
-        torch.testing.assert_close(pa["params"][k], pb["params"][k], atol=2e-3, rtol=0, msg=k)
-    for k in pa["networks"]:
-        torch.testing.assert_close(pa["networks"][k], pb["networks"][k], atol=2e-3, rtol=0, msg=k)
+    for group in ("params", "networks"):
+        for k in pa[group]:
+            diff = (pa[group][k] - pb[group][k]).abs().float()
+            assert diff.median() < 2e-5, (group, k, float(diff.median()), float(diff.max()))
+
+
+def test_importance_pass_leaves_no_gradients(scene, tmp_path):
+    """FLoD's importance is a gradient of a rendered sum; it must not leave anything in the
+    model's `.grad` for the next optimiser step to apply."""
+    tr = Trainer(scene, tmp_path / "run", tiny_config(iterations=10), progress=False)
+    steps = tr.iterate()
+    for _ in range(3):
+        next(steps)
+    imp = tr.importance()
+    assert imp.shape == (len(tr.model),) and float(imp.sum()) > 0
+    leaked = [n for n, p in tr.model.named_parameters() if p.grad is not None]
+    leaked += [n for n, p in tr.model.params.items() if p.grad is not None]
+    assert not leaked, leaked
+
+
+def test_knn_graph_survives_a_state_round_trip(scene, tmp_path):
+    """The coarse-to-fine kNN graph is built when the dynamic set changes; a model restored
+    from its state must use that graph, not rebuild one from the positions it has now."""
+    from kgs_core.model.dynamic import KinematicsGS
+
+    cfg = tiny_config(iterations=70, decompose_at=40, **{"model.tau": 1e-9})
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    steps = tr.iterate()
+    for _ in range(45):
+        next(steps)
+    model = tr.model
+    assert model.decomposed and model.dynamic.sum() > 8
+    graph = model.knn_index().clone()
+    with torch.no_grad():  # positions move on after the graph was built, as in training
+        model.params.means.add_(0.05 * torch.randn(model.params.means.shape, generator=torch.Generator().manual_seed(0)))
+    restored = KinematicsGS.from_state(model.state())
+    assert torch.equal(restored.knn_index(), graph)
+    restored._knn = None  # a rebuild from the moved positions is a different graph
+    assert not torch.equal(restored.knn_index(), graph)
 
 
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):
