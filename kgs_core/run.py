@@ -119,7 +119,10 @@ def load_run(run_dir: str | Path) -> LoadedRun:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         raise RunError(f"{path}: cannot load ({exc})") from None
-    model = KinematicsGS.from_state(state["model"])
+    try:
+        model = KinematicsGS.from_state(state["model"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise RunError(f"{path}: malformed model state ({type(exc).__name__}: {exc})") from None
     model.eval()
     return LoadedRun(run_dir, info, model, state.get("levels", []))
 

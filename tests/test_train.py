@@ -50,6 +50,14 @@ def test_psnr_rises_and_run_directory_is_complete(scene, tmp_path):
 
     out, _ = render_at(run.model, scene.test_frames[0], 0.0, scene.dt)
     assert torch.isfinite(out.image).all() and out.image.mean() > 0.05
+    # A malformed model state is an error that names the file and the field.
+    from kgs_core.run import RunError
+
+    state = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    state["model"]["knn"] = torch.zeros(3, dtype=torch.long)
+    torch.save(state, tmp_path / "run" / "model.pt")
+    with pytest.raises(RunError, match=r"model\.pt: malformed model state .*'knn'"):
+        load_run(tmp_path / "run")
 
 
 def count_calls(monkeypatch, module, name):
@@ -183,6 +191,10 @@ def test_knn_graph_survives_a_state_round_trip(scene, tmp_path):
     assert torch.equal(restored.knn_index(), graph)
     restored._knn = None  # a rebuild from the moved positions is a different graph
     assert not torch.equal(restored.knn_index(), graph)
+    bad = model.state()
+    bad["knn"] = graph + len(graph)  # indices past the dynamic set
+    with pytest.raises(ValueError, match="'knn'"):
+        KinematicsGS.from_state(bad)
 
 
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):

@@ -6,9 +6,8 @@ masks). Every configuration is first trained for `--iterations`, all of them ste
 `--budget time` (the default) each one whose time differs from the first configuration's by
 more than 10 % is trained again with its iteration count scaled by that measured cost ratio
 (equal training time; `--budget iterations` stops after the first round). Configurations: the
-full method, each ablation
-(`split` is the D3DGS-like baseline where every Gaussian deforms, `deform` a static 3DGS), both
-velocity estimates and the continuous kinematic basis. Reports held-out PSNR (whole image and
+full method, each ablation (`split` is the D3DGS-like baseline where every Gaussian deforms,
+`deform` a static 3DGS), both velocity estimates and the continuous kinematic basis. Reports held-out PSNR (whole image and
 inside the dynamic mask), deblur PSNR, decomposition IoU and training time, plots held-out PSNR
 against training time for all of them, and sweeps τ on the full model (re-split without
 retraining). Velocity EPE: the image motion the model's velocities predict (the ones the
@@ -139,8 +138,8 @@ def main(argv: list[str]) -> int:
             second = [trainer_for(name, n, "_equal_time") for name, n in again]
             interleave(second)
             for (name, n), tr in zip(again, second):
-                report(f"{name}, same time", tr, f"≈{rate[name] * n:.0f}")
                 label = f"{name}, same time"
+                report(label, tr, f"≈{rate[name] * n:.0f}")
                 curves[label] = [(r["iteration"] * rate[name], r["psnr_heldout"]) for r in read_log(tr.run_dir)
                                  if not math.isnan(r["psnr_heldout"])]
                 dashed.add(label)

@@ -306,8 +306,22 @@ class KinematicsGS(nn.Module):
         model.dynamic = state["dynamic"].clone()
         model.variance = state["variance"].clone()
         model.min_scale = float(state["min_scale"])
-        model._knn = None if state.get("knn") is None else state["knn"].clone()  # absent in older runs
+        model._knn = _checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model
+
+
+def _checked_knn(knn, n_dynamic: int) -> Tensor | None:
+    """A stored kNN graph, checked against the dynamic set it indexes (a graph from another
+    state would index out of range deep inside rendering)."""
+    if knn is None:
+        return None
+    ok = (isinstance(knn, Tensor) and knn.dtype == torch.long and knn.dim() == 2 and len(knn) == n_dynamic
+          and (knn.numel() == 0 or (int(knn.min()) >= 0 and int(knn.max()) < n_dynamic)))
+    if not ok:
+        shape = tuple(knn.shape) if isinstance(knn, Tensor) else type(knn).__name__
+        raise ValueError(f"model state field 'knn': expected int64 indices of shape ({n_dynamic}, k) "
+                         f"into the {n_dynamic} dynamic Gaussians, got {shape}")
+    return knn.clone()
 
 
 def velocity_from_offsets(offs: list[Offsets], h: float, dt: float) -> Tensor:
