@@ -106,6 +106,7 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     view.variance = snap["variance"]
     view.min_scale = snap["min_scale"]
     view._knn = None
+    view._knn_mean = None
     return view
 
 

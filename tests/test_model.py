@@ -54,6 +54,56 @@ def test_batched_field_evaluation_matches_one_time_at_a_time(coarse_to_fine):
         assert gb is None or torch.allclose(gb, gs, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.parametrize("spatial,temporal,features,multires", [(32, 16, 16, (1,)), (8, 5, 4, (1, 2)), (6, 3, 20, (1,))])
+def test_fused_kplanes_kernel_matches_grid_sample(spatial, temporal, features, multires):
+    """The C++ K-Planes kernel against the grid_sample expression (its oracle): features and
+    the gradients of the coordinates and of every plane, points beyond the bound included
+    (clamped onto the border), three times per point as the physical velocity asks."""
+    from kgs_core.model.deformation import KPlanes
+    from kgs_core.render import _ext
+
+    if not _ext.compiler_available():
+        pytest.skip("no C++ compiler")
+    g = torch.Generator().manual_seed(features)
+    planes = KPlanes(spatial, temporal, features, multires, bound=1.5)
+    with torch.no_grad():
+        for grid in planes.grids:
+            grid.add_(0.3 * torch.randn(grid.shape, generator=g))
+    n = 300
+    x = (3.4 * torch.rand(n, 3, generator=g) - 1.7).requires_grad_(True)
+    times = [torch.rand(n, generator=g) for _ in range(3)]
+    weights = torch.randn(3 * n, planes.out_dim, generator=g)
+    results = {}
+    for backend in ("cpu", "torch"):
+        feats = planes.at_times(x, times, backend=backend)
+        results[backend] = (feats, torch.autograd.grad((feats * weights).sum(), [x, *planes.grids]))
+    (f_cpu, g_cpu), (f_ref, g_ref) = results["cpu"], results["torch"]
+    assert f_cpu.shape == (3 * n, planes.out_dim)
+    assert torch.allclose(f_cpu, f_ref, atol=1e-6)
+    assert g_ref[0].abs().max() > 1.0 and all(gr.abs().max() > 0.1 for gr in g_ref[1:])
+    assert torch.allclose(g_cpu[0], g_ref[0], rtol=1e-5, atol=1e-4)
+    for a, b in zip(g_cpu[1:], g_ref[1:]):
+        assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_neighbour_mean_is_the_gathered_mean_forward_and_backward():
+    m = moving_model(n=40)
+    knn = m.knn_index().clone()
+    knn[3, 1] = knn[3, 0]  # a repeated neighbour counts twice, as in the gather
+    m._knn = knn
+    x = torch.randn(40, 27, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    g = torch.randn(40, 27, generator=torch.Generator().manual_seed(2))
+    sparse = m.neighbour_mean(x)
+    gathered = x[knn].mean(1)
+    assert torch.allclose(sparse, gathered, atol=1e-6)
+    (grad_sparse,) = torch.autograd.grad((sparse * g).sum(), x)
+    (grad_gathered,) = torch.autograd.grad((gathered * g).sum(), x)
+    assert grad_gathered.abs().max() > 0.1
+    assert torch.allclose(grad_sparse, grad_gathered, atol=1e-6)
+    m._knn = knn[:, :1].contiguous()  # a new graph: the cached matrices are rebuilt
+    assert torch.allclose(m.neighbour_mean(x), x[knn[:, 0]], atol=1e-7)
+
+
 def test_physical_velocity_is_the_central_difference_of_the_deformed_position():
     m = moving_model(velocity="physical")
     idx = torch.arange(len(m))

@@ -13,6 +13,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..render import resolve_backend
+from ..render.cpu_backend import kplanes_features
+
 
 class KPlanes(nn.Module):
     """Six feature planes (xy, xz, yz, xt, yt, zt) per resolution; features are the product
@@ -40,13 +43,18 @@ class KPlanes(nn.Module):
         """`x (N, 3)` world points (clamped to +-bound), `t (N,)` in [0, 1] -> `(N, out_dim)`."""
         return self.at_times(x, [t])
 
-    def at_times(self, x: Tensor, times: list[Tensor]) -> Tensor:
+    def at_times(self, x: Tensor, times: list[Tensor], backend: str = "auto") -> Tensor:
         """The features of the points `x (N, 3)` at each of `times` (M tensors `(N,)`) ->
-        `(M N, out_dim)`, time-major. The three spatial planes do not depend on t: they are
-        sampled once for all M times (the physical velocity needs three times per step)."""
+        `(M N, out_dim)`, time-major. `backend`: `cpu` is the fused C++ kernel
+        (`kplanes_features`), `torch` the grid_sample expression below (its test oracle),
+        `auto` the first when the extension builds."""
         n, m = len(x), len(times)
         xn = (x / self.bound).clamp(-1, 1)
         tn = (torch.cat(times) * 2 - 1).clamp(-1, 1)
+        if n and x.dtype == torch.float32 and resolve_backend(backend) == "cpu":
+            return kplanes_features(xn, tn, list(self.grids))
+        # The three spatial planes do not depend on t: sampled once for all M times (the
+        # physical velocity needs three times per step).
         coords = torch.cat([xn.repeat(m, 1), tn[:, None]], -1)  # (M N, 4)
         feats = []
         for r in range(self.n_res):

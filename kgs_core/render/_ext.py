@@ -20,7 +20,7 @@ from types import ModuleType
 import torch
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "raster.cpp", "sh.cpp", "ssim.cpp"]
+SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "raster.cpp", "sh.cpp", "ssim.cpp", "kplanes.cpp"]
 HEADERS = ["kernels.h", "simd.h"]
 CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno", "-Wno-psabi"]
 LDFLAGS = ["-fopenmp"]

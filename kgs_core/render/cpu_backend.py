@@ -100,3 +100,26 @@ def rasterize_to_pixels(
         background.contiguous(), proj.bbox, tuple(lists), int(width), int(height), info, bool(absgrad),
     )
     return image, alpha, depth, info
+
+
+class _KPlanes(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, t, *grids):
+        planes = [g[0] for g in grids]  # (1, F, H, W) parameters -> (F, H, W) views
+        ctx.save_for_backward(x, t, *planes)
+        return _ext.load().kplanes_forward(x, t, planes)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_out):
+        x, t, *planes = ctx.saved_tensors
+        g_x, *g_planes = _ext.load().kplanes_backward(x, t, planes, g_out.contiguous(), ctx.needs_input_grad[0])
+        return (g_x if ctx.needs_input_grad[0] else None), None, *(g[None] for g in g_planes)
+
+
+def kplanes_features(x: Tensor, t: Tensor, grids: list[Tensor]) -> Tensor:
+    """K-Planes features `(M N, F R)` of the points `x (N, 3)` at the times `t (M N,)` (both
+    normalised to [-1, 1], row `j` is point `j mod N`), from `R x 6` planes `(1, F, H, W)` in
+    the order (xy, xz, xt, yz, yt, zt) per resolution; differentiable in `x` and the planes.
+    `KPlanes.at_times` in kgs_core/model/deformation.py is the PyTorch reference."""
+    return _KPlanes.apply(x.contiguous(), t.contiguous(), *grids)

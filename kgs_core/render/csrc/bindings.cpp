@@ -279,6 +279,72 @@ Tensor ssim_backward(Tensor x, Tensor y, Tensor window, Tensor maps, double grad
   return g;
 }
 
+// One resolution's six planes (F, H, W) as the kernel's channels-last views; `keep` holds the
+// transposed copies alive.
+kgs::KPlanes kplanes_views(const std::vector<Tensor>& grids, int64_t r, std::vector<Tensor>& keep) {
+  kgs::KPlanes p;
+  p.F = grids[0].size(0);
+  for (int k = 0; k < 6; ++k) {
+    const Tensor& g = grids[r * 6 + k];
+    keep.push_back(g.permute({1, 2, 0}).contiguous());
+    p.data[k] = keep.back().data_ptr<float>();
+    p.grad[k] = nullptr;
+    p.H[k] = g.size(1);
+    p.W[k] = g.size(2);
+  }
+  return p;
+}
+
+void check_kplanes(const Tensor& x, const Tensor& t, const std::vector<Tensor>& grids) {
+  check(x, "kplanes x", torch::kFloat32);
+  check(t, "kplanes t", torch::kFloat32);
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3 && x.size(0) > 0, "kplanes: x must be (N, 3), N > 0");
+  TORCH_CHECK(t.dim() == 1 && t.size(0) % x.size(0) == 0, "kplanes: t must be (M N,)");
+  TORCH_CHECK(!grids.empty() && grids.size() % 6 == 0, "kplanes: six planes per resolution");
+  for (const auto& g : grids)
+    TORCH_CHECK(g.dim() == 3 && g.scalar_type() == torch::kFloat32 && g.size(0) == grids[0].size(0) &&
+                    g.size(1) >= 1 && g.size(2) >= 1,
+                "kplanes: planes must be float32 (F, H, W) with one F");
+  TORCH_CHECK(grids[0].size(0) <= 256, "kplanes: at most 256 features per plane");
+}
+
+// x (N, 3) and t (M N,) normalised to [-1, 1]; grids: R x 6 planes (F, H, W) -> (M N, F R).
+Tensor kplanes_forward(Tensor x, Tensor t, std::vector<Tensor> grids) {
+  check_kplanes(x, t, grids);
+  const int64_t F = grids[0].size(0), R = int64_t(grids.size()) / 6;
+  auto out = torch::empty({t.size(0), F * R}, x.options());
+  for (int64_t r = 0; r < R; ++r) {
+    std::vector<Tensor> keep;
+    kgs::kplanes_forward(x.size(0), t.size(0), x.data_ptr<float>(), t.data_ptr<float>(), kplanes_views(grids, r, keep),
+                         out.data_ptr<float>() + r * F, F * R);
+  }
+  return out;
+}
+
+// -> [g_x (N, 3) (zeros unless need_x_grad), g_grid for each plane (F, H, W)].
+std::vector<Tensor> kplanes_backward(Tensor x, Tensor t, std::vector<Tensor> grids, Tensor g_out, bool need_x_grad) {
+  check_kplanes(x, t, grids);
+  const int64_t N = x.size(0), rows = t.size(0), F = grids[0].size(0), R = int64_t(grids.size()) / 6;
+  g_out = g_out.contiguous();
+  check(g_out, "kplanes gradient", torch::kFloat32);
+  TORCH_CHECK(g_out.dim() == 2 && g_out.size(0) == rows && g_out.size(1) == F * R, "kplanes: gradient must be (M N, F R)");
+  auto g_x = torch::zeros({N, 3}, x.options());
+  std::vector<Tensor> result(1 + grids.size());
+  for (int64_t r = 0; r < R; ++r) {
+    std::vector<Tensor> keep, acc;
+    kgs::KPlanes p = kplanes_views(grids, r, keep);
+    for (int k = 0; k < 6; ++k) {
+      acc.push_back(torch::zeros({p.H[k], p.W[k], F}, x.options()));
+      p.grad[k] = acc.back().data_ptr<float>();
+    }
+    kgs::kplanes_backward(N, rows, x.data_ptr<float>(), t.data_ptr<float>(), p, g_out.data_ptr<float>() + r * F, F * R,
+                          need_x_grad ? g_x.data_ptr<float>() : nullptr);
+    for (int k = 0; k < 6; ++k) result[1 + r * 6 + k] = acc[k].permute({2, 0, 1}).contiguous();
+  }
+  result[0] = g_x;
+  return result;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -294,5 +360,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sh_backward", &sh_backward);
   m.def("ssim_forward", &ssim_forward);
   m.def("ssim_backward", &ssim_backward);
+  m.def("kplanes_forward", &kplanes_forward);
+  m.def("kplanes_backward", &kplanes_backward);
   m.attr("TILE") = kgs::TILE;
 }

@@ -111,4 +111,21 @@ template <typename S>
 void ssim_backward(const S* x, const S* y, int H, int W, int C, const S* w, int k,
                    const S* maps, S grad, S* g_x);
 
+// K-Planes features of the deformation field, one resolution (six planes) at a time
+// (kplanes.cpp). Planes are channels-last (H, W, F); `grad` planes are accumulated into
+// (zeroed by the caller). Row j of the M N rows is point j mod N at time t[j].
+struct KPlanes {
+  const float* data[6];
+  float* grad[6];
+  int64_t H[6], W[6];
+  int64_t F;
+};
+// out[j * out_stride + f] = prod_k sample_k(j)[f].
+void kplanes_forward(int64_t N, int64_t rows, const float* x, const float* t, const KPlanes& p, float* out,
+                     int64_t out_stride);
+// F <= 256. g_x (N, 3): the points' coordinate gradient (summed over their M rows),
+// accumulated into, or null (not needed).
+void kplanes_backward(int64_t N, int64_t rows, const float* x, const float* t, const KPlanes& p, const float* g_out,
+                      int64_t g_stride, float* g_x);
+
 }  // namespace kgs
