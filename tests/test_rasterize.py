@@ -290,3 +290,24 @@ def test_cpu_backend_rejects_images_beyond_its_int16_boxes():
     with pytest.raises(RuntimeError, match="image size must be 1..32767"):
         rasterize(s.means, s.opacities, s.viewmat, s.K, 40000, 8, quats=s.quats, scales=s.scales,
                   colors=s.colors, backend="cpu")
+
+
+def test_extension_compiles_the_vector_path_this_cpu_supports():
+    """The float kernels have three SIMD paths (simd.h) that differ several-fold in speed; a
+    build flag regression (say, -march=native dropped) would fall back to the generic one
+    silently, so the compiled path must be the best the CPU offers."""
+    from pathlib import Path
+
+    from kgs_core.render import _ext
+
+    try:
+        ext = _ext.load()
+    except _ext.ExtensionUnavailable:
+        pytest.skip("no C++ compiler")
+    cpuinfo = Path("/proc/cpuinfo")
+    if not cpuinfo.exists():
+        pytest.skip("no /proc/cpuinfo to read the CPU's instruction sets from")
+    flags = next((line.split(":", 1)[1].split() for line in cpuinfo.read_text().splitlines()
+                  if line.startswith("flags")), [])
+    expected = "avx512" if "avx512f" in flags else "avx2" if {"avx2", "fma"} <= set(flags) else "generic"
+    assert ext.simd_path() == expected

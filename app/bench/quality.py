@@ -26,6 +26,8 @@ from pathlib import Path
 
 import torch
 
+from .machine import machine
+
 CONFIGS = {
     "full": {},
     "no C.F. (cf)": {"ablate": ("cf",)},
@@ -95,7 +97,7 @@ def main(argv: list[str]) -> int:
     scene = load_scene(folder)
     print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
           f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
-          f"{os.cpu_count()} CPUs, torch {torch.__version__}")
+          f"{machine()}")
     print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | split IoU | velocity EPE px | dynamic | iterations | train s |")
     print("| ------------- | ------------: | --------------: | ----------: | --------: | --------------: | ------: | ---------: | ------: |")
     curves, dashed = {}, set()

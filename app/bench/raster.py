@@ -9,8 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -23,6 +21,8 @@ from kgs_core.losses import photometric_loss
 from kgs_core.render import rasterize
 from kgs_core.render.random_scene import random_scene
 from kgs_core.render.sh import rgb_to_sh0
+
+from .machine import machine
 
 # The torch reference materialises (pixels x Gaussians) per tile row: only small sizes fit.
 TORCH_MAX_WORK = 10_000 * 128 * 128
@@ -37,18 +37,6 @@ class Row:
     backward_ms: float
     list_len: float  # mean Gaussians listed per 16x16 tile
     overlap: float  # mean Gaussians reaching alpha >= 1/255 at a pixel (ignoring early stop)
-
-
-def machine() -> str:
-    cpu = platform.processor() or "unknown cpu"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} ({torch.get_num_threads()} threads)"
 
 
 def _timed(fn, repeat: int) -> list[float]:

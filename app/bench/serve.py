@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .machine import machine
+
 
 def make_run(root: Path, n: int, dynamic_share: float, seed: int = 0) -> Path:
     from kgs_core.model.dynamic import KinematicsGS
@@ -164,8 +166,7 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(tempfile.mkdtemp(prefix="kgs-bench-serve-"))
     run = make_run(root, args.gaussians, args.dynamic_share)
-    print(f"# {args.gaussians:,} Gaussians, {args.dynamic_share:.0%} dynamic; {os.cpu_count()} CPUs, torch "
-          f"{torch.__version__}, {torch.get_num_threads()} threads")
+    print(f"# {args.gaussians:,} Gaussians, {args.dynamic_share:.0%} dynamic; {machine()}")
     r = bench_in_process(run, args.repeats)
     print(f"time change -> dynamic buffer ({r['dynamic']:,} splats, {r['buffer_bytes'] / 2**20:.2f} MB): "
           f"exact {r['exact_ms']:.1f} ms, interpolated {r['interpolated_ms']:.1f} ms; trajectory cache "

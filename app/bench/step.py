@@ -18,6 +18,8 @@ from pathlib import Path
 
 import torch
 
+from .machine import machine
+
 
 def time_steps(trainer, steps: int, start: int) -> dict:
     """Mean milliseconds per step of each phase of `Trainer.train_step` (batch 1), the same
@@ -83,7 +85,7 @@ def main(argv: list[str]) -> int:
             tr.after_step(it)
         trainers[name] = tr
     print(f"# {args.scene} {args.size}², {args.frames} frames, fast preset after {args.warmup} iterations; "
-          f"{args.steps} steps x {args.repeats} rounds; {os.cpu_count()} CPUs, torch {torch.__version__}")
+          f"{args.steps} steps x {args.repeats} rounds; {machine()}")
     print("| configuration | Gaussians | dynamic | model ms | render + loss ms | backward ms | optimiser ms | step ms |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     best: dict[str, dict] = {}

@@ -39,10 +39,13 @@ def cache_root() -> Path:
 
 
 def _cpu_model() -> str:
+    """The first CPU's model name and instruction-set flags: a virtual machine may report
+    only "AMD EPYC" for generations with and without AVX-512, so the name alone is not enough."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("model name", "flags")):
-                return line
+        lines = Path("/proc/cpuinfo").read_text().split("\n\n", 1)[0].splitlines()
+        picked = [line for line in lines if line.startswith(("model name", "flags"))]
+        if picked:
+            return "\n".join(picked)
     except OSError:
         pass
     return platform.processor()

@@ -2,6 +2,7 @@
 #include <torch/extension.h>
 
 #include "kernels.h"
+#include "simd.h"
 
 namespace {
 
@@ -362,5 +363,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_backward", &ssim_backward);
   m.def("kplanes_forward", &kplanes_forward);
   m.def("kplanes_backward", &kplanes_backward);
+  // Which float SIMD path simd.h compiled for this CPU: "avx512", "avx2" or "generic".
+  m.def("simd_path", [] { return std::string(kgs::SIMD_FLOAT); });
   m.attr("TILE") = kgs::TILE;
 }

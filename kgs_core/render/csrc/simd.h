@@ -4,7 +4,11 @@
 //  * Simd<float> on AVX-512: __m512 (whose arithmetic operators GCC/Clang provide) with
 //    __mmask16 predicate registers: compares, selects and "any lane" tests cost one
 //    instruction each, where integer-vector masks cost two or three.
-//  * the generic one (double, and float without AVX-512): GCC/Clang vector extensions with
+//  * Simd<float> on AVX2 + FMA without AVX-512 (AMD Zen 2/3, older Intel): a pair of __m256
+//    with float-vector masks (all-ones lanes), written with intrinsics. GCC's lowering of
+//    the 64-byte generic vectors to AVX2 spilled lanes to the stack and ran the mask tests
+//    lane by lane: 2.2x slower kernels on a Zen 3 (docs/performance.md, session 8).
+//  * the generic one (double, and float without either): GCC/Clang vector extensions with
 //    integer-vector masks. Double exists for gradcheck, not for speed.
 #pragma once
 #include <cmath>
@@ -12,7 +16,7 @@
 #include <cstring>
 #include <type_traits>
 
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || (defined(__AVX2__) && defined(__FMA__))
 #include <immintrin.h>
 #endif
 
@@ -117,6 +121,8 @@ template <typename S>
 struct Simd : SimdGeneric<S> {};
 
 #if defined(__AVX512F__)
+constexpr const char* SIMD_FLOAT = "avx512";
+
 template <>
 struct Simd<float> {
   using V = __m512;
@@ -178,7 +184,123 @@ struct Simd<float> {
     return _mm512_scalef_ps(y, k);
   }
 };
+#elif defined(__AVX2__) && defined(__FMA__)
+constexpr const char* SIMD_FLOAT = "avx2";
+
+// Sixteen float lanes as two AVX2 halves; the kernels only see the operators and Simd<float>.
+struct F32x16 {
+  __m256 lo, hi;
+};
+struct I32x16 {
+  __m256i lo, hi;
+};
+inline F32x16 operator+(F32x16 a, F32x16 b) { return {_mm256_add_ps(a.lo, b.lo), _mm256_add_ps(a.hi, b.hi)}; }
+inline F32x16 operator-(F32x16 a, F32x16 b) { return {_mm256_sub_ps(a.lo, b.lo), _mm256_sub_ps(a.hi, b.hi)}; }
+inline F32x16 operator*(F32x16 a, F32x16 b) { return {_mm256_mul_ps(a.lo, b.lo), _mm256_mul_ps(a.hi, b.hi)}; }
+inline F32x16& operator+=(F32x16& a, F32x16 b) { return a = a + b; }
+inline F32x16& operator-=(F32x16& a, F32x16 b) { return a = a - b; }
+inline F32x16& operator*=(F32x16& a, F32x16 b) { return a = a * b; }
+
+template <>
+struct Simd<float> {
+  using V = F32x16;
+  using M = F32x16;  // all-ones lanes are true
+  using Idx = I32x16;
+
+  static V set1(float x) { return {_mm256_set1_ps(x), _mm256_set1_ps(x)}; }
+  static V zero() { return {_mm256_setzero_ps(), _mm256_setzero_ps()}; }
+  static V load(const float* p) { return {_mm256_loadu_ps(p), _mm256_loadu_ps(p + 8)}; }
+  static void store(float* p, V v) {
+    _mm256_storeu_ps(p, v.lo);
+    _mm256_storeu_ps(p + 8, v.hi);
+  }
+  static V min(V a, V b) { return {_mm256_min_ps(a.lo, b.lo), _mm256_min_ps(a.hi, b.hi)}; }
+  static void istore(int32_t* p, Idx v) {
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v.lo);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p + 8), v.hi);
+  }
+  static Idx iload(const int32_t* p) {
+    return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)),
+            _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + 8))};
+  }
+  static M all() {
+    const __m256 ones = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+    return {ones, ones};
+  }
+  static M none() { return zero(); }
+  template <int OP>
+  static M cmp(V a, V b) { return {_mm256_cmp_ps(a.lo, b.lo, OP), _mm256_cmp_ps(a.hi, b.hi, OP)}; }
+  static M lt(V a, V b) { return cmp<_CMP_LT_OQ>(a, b); }
+  static M le(V a, V b) { return cmp<_CMP_LE_OQ>(a, b); }
+  static M ge(V a, V b) { return cmp<_CMP_GE_OQ>(a, b); }
+  static M ilt(Idx a, Idx b) {
+    return {_mm256_castsi256_ps(_mm256_cmpgt_epi32(b.lo, a.lo)),
+            _mm256_castsi256_ps(_mm256_cmpgt_epi32(b.hi, a.hi))};
+  }
+  static M mand(M a, M b) { return {_mm256_and_ps(a.lo, b.lo), _mm256_and_ps(a.hi, b.hi)}; }
+  static M mor(M a, M b) { return {_mm256_or_ps(a.lo, b.lo), _mm256_or_ps(a.hi, b.hi)}; }
+  static M mandnot(M a, M b) { return {_mm256_andnot_ps(b.lo, a.lo), _mm256_andnot_ps(b.hi, a.hi)}; }
+  static M mnot(M a) { return mandnot(all(), a); }
+  static int bits(M m) { return _mm256_movemask_ps(m.lo) | (_mm256_movemask_ps(m.hi) << 8); }
+  static bool any(M m) { return !_mm256_testz_ps(_mm256_or_ps(m.lo, m.hi), _mm256_or_ps(m.lo, m.hi)); }
+  static int count(M m) { return __builtin_popcount(unsigned(bits(m))); }
+  static bool get(M m, int i) { return (bits(m) >> i) & 1; }
+  static M lanes_in(int lo, int hi) {  // lanes lo <= i < hi
+    const __m256i i0 = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    const __m256i i1 = _mm256_setr_epi32(8, 9, 10, 11, 12, 13, 14, 15);
+    const __m256i l = _mm256_set1_epi32(lo - 1), h = _mm256_set1_epi32(hi);
+    return {_mm256_castsi256_ps(_mm256_and_si256(_mm256_cmpgt_epi32(i0, l), _mm256_cmpgt_epi32(h, i0))),
+            _mm256_castsi256_ps(_mm256_and_si256(_mm256_cmpgt_epi32(i1, l), _mm256_cmpgt_epi32(h, i1)))};
+  }
+  static V select(M m, V a, V b) { return {_mm256_blendv_ps(b.lo, a.lo, m.lo), _mm256_blendv_ps(b.hi, a.hi, m.hi)}; }
+  static V keep(M m, V a) { return mand(m, a); }  // a where m, else 0
+  static Idx iset1(int x) { return {_mm256_set1_epi32(x), _mm256_set1_epi32(x)}; }
+  static Idx iselect(M m, Idx a, Idx b) {
+    const V r = select(m, {_mm256_castsi256_ps(a.lo), _mm256_castsi256_ps(a.hi)},
+                       {_mm256_castsi256_ps(b.lo), _mm256_castsi256_ps(b.hi)});
+    return {_mm256_castps_si256(r.lo), _mm256_castps_si256(r.hi)};
+  }
+  static V abs(V a) {
+    const __m256 sign = _mm256_set1_ps(-0.0f);
+    return {_mm256_andnot_ps(sign, a.lo), _mm256_andnot_ps(sign, a.hi)};
+  }
+  // 12-bit reciprocal estimate + one Newton step (~2 ulp) for the backward's 1 / (1 - alpha),
+  // whose argument alpha <= 0.99 keeps in [0.01, 1]; vdivps costs several times more.
+  static __m256 rcp8(__m256 a) {
+    const __m256 r = _mm256_rcp_ps(a);
+    return _mm256_mul_ps(r, _mm256_fnmadd_ps(a, r, _mm256_set1_ps(2.0f)));
+  }
+  static V rcp(V a) { return {rcp8(a.lo), rcp8(a.hi)}; }
+  static float hsum(V a) {
+    const __m256 s = _mm256_add_ps(a.lo, a.hi);
+    __m128 q = _mm_add_ps(_mm256_castps256_ps128(s), _mm256_extractf128_ps(s, 1));
+    q = _mm_add_ps(q, _mm_movehl_ps(q, q));
+    q = _mm_add_ss(q, _mm_movehdup_ps(q));
+    return _mm_cvtss_f32(q);
+  }
+  // The Cephes polynomial of cephes_expf, with vroundps for the nearest integer k and the
+  // exponent bits of 2^k added as integers.
+  static __m256 exp8(__m256 x) {
+    x = _mm256_min_ps(_mm256_max_ps(x, _mm256_set1_ps(-40.0f)), _mm256_set1_ps(80.0f));
+    const __m256 k = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
+                                     _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    __m256 r = _mm256_fnmadd_ps(k, _mm256_set1_ps(0.693359375f), x);
+    r = _mm256_fnmadd_ps(k, _mm256_set1_ps(-2.12194440e-4f), r);
+    __m256 y = _mm256_set1_ps(1.9875691500e-4f);
+    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(1.3981999507e-3f));
+    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(8.3334519073e-3f));
+    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(4.1665795894e-2f));
+    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(1.6666665459e-1f));
+    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(5.0000001201e-1f));
+    y = _mm256_fmadd_ps(y, _mm256_mul_ps(r, r), _mm256_add_ps(r, _mm256_set1_ps(1.0f)));
+    const __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(k), 23);
+    return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y), e));
+  }
+  static V exp(V x) { return {exp8(x.lo), exp8(x.hi)}; }
+};
 #else
+constexpr const char* SIMD_FLOAT = "generic";
+
 template <>
 struct Simd<float> : SimdGeneric<float> {
   static V exp(V x) { return cephes_expf<V, M>(x); }
