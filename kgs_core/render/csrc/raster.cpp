@@ -2,9 +2,10 @@
 //
 // Work is split over 16x16 tiles (OpenMP, dynamic schedule: tiles differ a lot in load).
 // Inside a tile the loop is Gaussian-major: each Gaussian in depth order updates only the
-// rows of its bounding box. A tile row is exactly one 16-lane vector (simd.h: AVX-512
-// registers with predicate masks for float, vector extensions otherwise), so the per-pixel
-// state of a tile is 16 vectors and every update is straight-line SIMD code.
+// rows of its bounding box. A tile row is exactly one 16-lane vector (simd.h: an AVX-512
+// register with predicate masks, two AVX2 registers, or vector extensions otherwise), so the
+// per-pixel state of a tile is 16 vectors and every update is straight-line SIMD code. On
+// AVX2 a pair whose box lies in one half of the tile runs on that register only.
 //
 // The forward first writes a compact record per (tile, Gaussian) pair in tile-list order
 // (screen-space parameters, its box clipped to the tile, its colour), which the backward
@@ -143,21 +144,21 @@ void build_pairs(const RasterShape& s, const TileLists& L, int64_t n, const S* m
   }
 }
 
-// What one Gaussian contributes along a tile row, with everything that does not depend on
-// the row hoisted out: power(dy) = p0 + dy * p1 - cc dy^2 / 2 per lane.
-template <typename S>
+// What one Gaussian contributes along a tile row (or the part of it that the lane set X
+// covers, starting at lane `lane0`), with everything that does not depend on the row
+// hoisted out: power(dy) = p0 + dy * p1 - cc dy^2 / 2 per lane.
+template <typename X, typename S>
 struct GaussLanes {
-  using X = Simd<S>;
   using V = typename X::V;
   using M = typename X::M;
   V dx, p0, p1;
   M in_box;  // lanes inside the Gaussian's bounding box
   S half_cc, op;
-  GaussLanes(V px, const PairRec<S>& p) {
+  GaussLanes(V px, const PairRec<S>& p, int lane0) {
     dx = px - X::set1(p.mx);
     p0 = X::set1(S(-0.5) * p.ca) * dx * dx;
     p1 = X::set1(-p.cb) * dx;
-    in_box = X::lanes_in(p.x0, p.x1);
+    in_box = X::lanes_in(p.x0 - lane0, p.x1 - lane0);
     half_cc = S(0.5) * p.cc;
     op = p.op;
   }
@@ -165,16 +166,15 @@ struct GaussLanes {
 
 // The per-row evaluation both passes share: lanes where the Gaussian takes part (before
 // the pixel's own cut-off, which the caller adds), its Gaussian value, raw and clamped alpha.
-template <typename S>
+template <typename X>
 struct RowEval {
-  typename Simd<S>::V G, a_raw, alpha;
-  typename Simd<S>::M ok;
+  typename X::V G, a_raw, alpha;
+  typename X::M ok;
 };
 
-template <typename S>
-inline RowEval<S> eval_row(const GaussLanes<S>& gl, S dy) {
-  using X = Simd<S>;
-  RowEval<S> e;
+template <typename X, typename S>
+inline RowEval<X> eval_row(const GaussLanes<X, S>& gl, S dy) {
+  RowEval<X> e;
   const auto power = gl.p0 + X::set1(dy) * gl.p1 - X::set1(gl.half_cc * dy * dy);
   e.G = X::exp(power);
   e.a_raw = X::set1(gl.op) * e.G;
@@ -191,6 +191,31 @@ typename Simd<S>::V lane_px(const TileGeom& t) {
   return Simd<S>::load(px);
 }
 
+// Which lanes of a tile row a pair's loop runs on. Kernels keep their per-pixel state as
+// whole-row vectors; a part maps one of them to the vector its lane set works on.
+struct WholeRow {
+  template <typename T>
+  T& operator()(T& v) const { return v; }
+};
+struct HalfRow {  // lanes 8h .. 8h + 7 (AVX2: one register of the two)
+  int h;
+  template <typename T>
+  auto& operator()(T& v) const { return v.h[h]; }
+};
+
+// Calls run(X-or-half lane set, part, lane0) for a pair: on half a row when the lane set has
+// half rows and the pair's box lies inside one half (at ~30 Gaussians per pixel a footprint
+// is ~7 px across, so most boxes do: half the vector work for them), else on the whole row.
+template <typename X, typename S, typename Run>
+inline auto on_pair_lanes(const PairRec<S>& p, Run&& run) {
+  if constexpr (has_half_rows<X>::value) {
+    constexpr int HALF = LANES / 2;
+    if (p.x1 <= HALF) return run(typename X::Half{}, HalfRow{0}, 0);
+    if (p.x0 >= HALF) return run(typename X::Half{}, HalfRow{1}, HALF);
+  }
+  return run(X{}, WholeRow{}, 0);
+}
+
 template <typename S>
 void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
                   const S* background, S* image, S* alpha_out, S* depth_out,
@@ -200,7 +225,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
   using M = typename X::M;
   using Idx = typename X::Idx;
   const int C = s.channels;
-  const V px = lane_px<S>(t);
+  V px = lane_px<S>(t);
   V T[TILE], dacc[TILE];
   Idx last[TILE];
   M done[TILE];
@@ -217,26 +242,35 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
   for (int k = t.begin; k < t.end && n_done < TILE_PIXELS; ++k) {
     const PairRec<S> p = read_pair(records + size_t(k) * (RECORD_HEAD + C));
     const S* col = p.col;
-    const Idx list_pos = X::iset1(k - t.begin + 1);
-    const GaussLanes<S> gl(px, p);
-    const V gz = X::set1(p.z);
-    M any_term = X::none();
-    for (int r = p.y0; r < p.y1; ++r) {
-      if (!X::any(X::mandnot(gl.in_box, done[r]))) continue;  // row finished: skip the exp
-      const RowEval<S> e = eval_row(gl, S(t.py0 + r) + S(0.5) - p.my);
-      const M in = X::mandnot(e.ok, done[r]);
-      const V test_t = T[r] * (X::set1(S(1)) - e.alpha);
-      const M term = X::mand(in, X::lt(test_t, X::set1(S(T_MIN))));
-      const M use = X::mandnot(in, term);
-      const V w = X::keep(use, e.alpha * T[r]);
-      T[r] = X::select(use, test_t, T[r]);
-      last[r] = X::iselect(use, list_pos, last[r]);
-      done[r] = X::mor(done[r], term);
-      any_term = X::mor(any_term, term);
-      dacc[r] += w * gz;
-      for (int ch = 0; ch < C; ++ch) acc[size_t(ch) * TILE + r] += w * X::set1(col[ch]);
-    }
-    if (X::any(any_term)) {
+    // Whether a pixel stopped (its transmittance fell below T_MIN) at this pair.
+    const bool stopped = on_pair_lanes<X>(p, [&](auto lanes, auto part, int lane0) __attribute__((always_inline)) {
+      using Y = decltype(lanes);
+      using YM = typename Y::M;
+      using YV = typename Y::V;
+      const auto list_pos = Y::iset1(k - t.begin + 1);
+      const GaussLanes<Y, S> gl(part(px), p, lane0);
+      const YV gz = Y::set1(p.z);
+      YM any_term = Y::none();
+      for (int r = p.y0; r < p.y1; ++r) {
+        YM& done_r = part(done[r]);
+        YV& T_r = part(T[r]);
+        if (!Y::any(Y::mandnot(gl.in_box, done_r))) continue;  // row finished: skip the exp
+        const RowEval<Y> e = eval_row(gl, S(t.py0 + r) + S(0.5) - p.my);
+        const YM in = Y::mandnot(e.ok, done_r);
+        const YV test_t = T_r * (Y::set1(S(1)) - e.alpha);
+        const YM term = Y::mand(in, Y::lt(test_t, Y::set1(S(T_MIN))));
+        const YM use = Y::mandnot(in, term);
+        const YV w = Y::keep(use, e.alpha * T_r);
+        T_r = Y::select(use, test_t, T_r);
+        part(last[r]) = Y::iselect(use, list_pos, part(last[r]));
+        done_r = Y::mor(done_r, term);
+        any_term = Y::mor(any_term, term);
+        part(dacc[r]) += w * gz;
+        for (int ch = 0; ch < C; ++ch) part(acc[size_t(ch) * TILE + r]) += w * Y::set1(col[ch]);
+      }
+      return Y::any(any_term);
+    });
+    if (stopped) {
       n_done = 0;
       for (int r = 0; r < TILE; ++r) n_done += X::count(done[r]);
     }
@@ -277,11 +311,10 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
                    const S* g_depth, S* slots, std::vector<typename Simd<S>::V>& scratch) {
   using X = Simd<S>;
   using V = typename X::V;
-  using M = typename X::M;
   using Idx = typename X::Idx;
   const int C = s.channels;
   const int stride = slot_stride(C);
-  const V px = lane_px<S>(t);
+  V px = lane_px<S>(t);
   // Per-pixel state. dL/dalpha of a Gaussian at a pixel is
   //   gA T_final / (1 - a) + sum_c gC_c (c_c T_i - behind_c / (1 - a)) + (same for depth)
   // = (gAT - Bg) / (1 - a) + T_i gcc,
@@ -330,63 +363,72 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     const PairRec<S> p = read_pair(records + size_t(k) * (RECORD_HEAD + C));
     const S* col = p.col;
     S* slot = slots + size_t(p.rank_slot) * stride;  // rank-major: summed sequentially
-    const Idx list_pos = X::iset1(k - t.begin);  // contributes where list_pos < last
-    // Moments of gp = dL/dpower over the pixels: sum gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2.
-    V m_x = X::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x;
-    V a_d = m_x, a_amx = m_x, a_amy = m_x;
-    for (int ch = 0; ch < C; ++ch) s_col[ch] = X::zero();
-    const GaussLanes<S> gl(px, p);
-    const V& dx = gl.dx;
-    const V gz = X::set1(p.z), ca = X::set1(p.ca), cb = X::set1(p.cb), cc = X::set1(p.cc);
-    for (int r = p.y0; r < p.y1; ++r) {
-      // Pixels that stopped before this Gaussian: skip the row before paying for the exp.
-      if (!X::any(X::mand(gl.in_box, X::ilt(list_pos, last[r])))) continue;
-      const S dy_s = S(t.py0 + r) + S(0.5) - p.my;
-      const RowEval<S> e = eval_row(gl, dy_s);
-      const M use = X::mand(e.ok, X::ilt(list_pos, last[r]));
-      if (!X::any(use)) continue;
-      const V dy = X::set1(dy_s);
-      const V inv = X::rcp(X::set1(S(1)) - e.alpha);
-      const V Ti = Tcur[r] * inv;  // transmittance in front of this Gaussian
-      const V w = X::keep(use, e.alpha * Ti);
-      V gcc = gD[r] * gz;
-      for (int ch = 0; ch < C; ++ch) {
-        const V gc = gC[size_t(ch) * TILE + r];
-        gcc += gc * X::set1(col[ch]);
-        s_col[ch] += w * gc;
+    on_pair_lanes<X>(p, [&](auto lanes, auto part, int lane0) __attribute__((always_inline)) {
+      using Y = decltype(lanes);
+      using YM = typename Y::M;
+      using YV = typename Y::V;
+      const auto list_pos = Y::iset1(k - t.begin);  // contributes where list_pos < last
+      // Moments of gp = dL/dpower over the pixels: sum gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2.
+      YV m_x = Y::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x;
+      YV a_d = m_x, a_amx = m_x, a_amy = m_x;
+      for (int ch = 0; ch < C; ++ch) part(s_col[ch]) = Y::zero();
+      const GaussLanes<Y, S> gl(part(px), p, lane0);
+      const YV& dx = gl.dx;
+      const YV gz = Y::set1(p.z), ca = Y::set1(p.ca), cb = Y::set1(p.cb), cc = Y::set1(p.cc);
+      for (int r = p.y0; r < p.y1; ++r) {
+        const auto& last_r = part(last[r]);
+        // Pixels that stopped before this Gaussian: skip the row before paying for the exp.
+        if (!Y::any(Y::mand(gl.in_box, Y::ilt(list_pos, last_r)))) continue;
+        const S dy_s = S(t.py0 + r) + S(0.5) - p.my;
+        const RowEval<Y> e = eval_row(gl, dy_s);
+        const YM use = Y::mand(e.ok, Y::ilt(list_pos, last_r));
+        if (!Y::any(use)) continue;
+        YV& Tcur_r = part(Tcur[r]);
+        YV& Bg_r = part(Bg[r]);
+        const YV gD_r = part(gD[r]);
+        const YV dy = Y::set1(dy_s);
+        const YV inv = Y::rcp(Y::set1(S(1)) - e.alpha);
+        const YV Ti = Tcur_r * inv;  // transmittance in front of this Gaussian
+        const YV w = Y::keep(use, e.alpha * Ti);
+        YV gcc = gD_r * gz;
+        for (int ch = 0; ch < C; ++ch) {
+          const YV gc = part(gC[size_t(ch) * TILE + r]);
+          gcc += gc * Y::set1(col[ch]);
+          part(s_col[ch]) += w * gc;
+        }
+        const YV dal = inv * (part(gAT[r]) - Bg_r) + Ti * gcc;
+        Bg_r += w * gcc;
+        a_d += w * gD_r;
+        Tcur_r = Y::select(use, Ti, Tcur_r);
+        // Through alpha = min(ALPHA_MAX, o * exp(power)) to the 2D Gaussian.
+        // Masked products: lanes that do not take part contribute exact zeros, whatever
+        // their (unused) values are.
+        const YM live = Y::mand(use, Y::lt(e.a_raw, Y::set1(S(ALPHA_MAX))));
+        const YV gp = Y::keep(live, dal * e.a_raw);
+        a_op += Y::keep(live, dal * e.G);
+        const YV gpdx = gp * dx;
+        m_x += gpdx;
+        m_y += gp * dy;
+        m_xx += gpdx * dx;
+        m_xy += gpdx * dy;
+        m_yy += gp * Y::set1(dy_s * dy_s);
+        if constexpr (ABS) {
+          a_amx += Y::abs(gp * (ca * dx + cb * dy));
+          a_amy += Y::abs(gp * (cb * dx + cc * dy));
+        }
       }
-      const V dal = inv * (gAT[r] - Bg[r]) + Ti * gcc;
-      Bg[r] += w * gcc;
-      a_d += w * gD[r];
-      Tcur[r] = X::select(use, Ti, Tcur[r]);
-      // Through alpha = min(ALPHA_MAX, o * exp(power)) to the 2D Gaussian.
-      // Masked products: lanes that do not take part contribute exact zeros, whatever
-      // their (unused) values are.
-      const M live = X::mand(use, X::lt(e.a_raw, X::set1(S(ALPHA_MAX))));
-      const V gp = X::keep(live, dal * e.a_raw);
-      a_op += X::keep(live, dal * e.G);
-      const V gpdx = gp * dx;
-      m_x += gpdx;
-      m_y += gp * dy;
-      m_xx += gpdx * dx;
-      m_xy += gpdx * dy;
-      m_yy += gp * X::set1(dy_s * dy_s);
-      if constexpr (ABS) {
-        a_amx += X::abs(gp * (ca * dx + cb * dy));
-        a_amy += X::abs(gp * (cb * dx + cc * dy));
-      }
-    }
-    const S sx = X::hsum(m_x), sy = X::hsum(m_y);
-    slot[MX] = p.ca * sx + p.cb * sy;
-    slot[MY] = p.cb * sx + p.cc * sy;
-    slot[CA] = S(-0.5) * X::hsum(m_xx);
-    slot[CB] = -X::hsum(m_xy);
-    slot[CC] = S(-0.5) * X::hsum(m_yy);
-    slot[OP] = X::hsum(a_op);
-    slot[DEPTH] = X::hsum(a_d);
-    slot[ABS_MX] = ABS ? X::hsum(a_amx) : S(0);
-    slot[ABS_MY] = ABS ? X::hsum(a_amy) : S(0);
-    for (int ch = 0; ch < C; ++ch) slot[COLOR0 + ch] = X::hsum(s_col[ch]);
+      const S sx = Y::hsum(m_x), sy = Y::hsum(m_y);
+      slot[MX] = p.ca * sx + p.cb * sy;
+      slot[MY] = p.cb * sx + p.cc * sy;
+      slot[CA] = S(-0.5) * Y::hsum(m_xx);
+      slot[CB] = -Y::hsum(m_xy);
+      slot[CC] = S(-0.5) * Y::hsum(m_yy);
+      slot[OP] = Y::hsum(a_op);
+      slot[DEPTH] = Y::hsum(a_d);
+      slot[ABS_MX] = ABS ? Y::hsum(a_amx) : S(0);
+      slot[ABS_MY] = ABS ? Y::hsum(a_amy) : S(0);
+      for (int ch = 0; ch < C; ++ch) slot[COLOR0 + ch] = Y::hsum(part(s_col[ch]));
+    });
   }
 }
 

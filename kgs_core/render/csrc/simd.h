@@ -24,6 +24,13 @@ namespace kgs {
 
 constexpr int LANES = 16;
 
+// Whether a lane set X also offers half rows (X::Half: LANES / 2 lanes, and X's vectors
+// expose them as .h[0], .h[1]). Only the AVX2 path does: there a half row is one register.
+template <class X, class = void>
+struct has_half_rows : std::false_type {};
+template <class X>
+struct has_half_rows<X, std::void_t<typename X::Half>> : std::true_type {};
+
 template <typename S>
 struct SimdGeneric {
   using I = std::conditional_t<sizeof(S) == 4, int32_t, int64_t>;
@@ -187,106 +194,63 @@ struct Simd<float> {
 #elif defined(__AVX2__) && defined(__FMA__)
 constexpr const char* SIMD_FLOAT = "avx2";
 
-// Sixteen float lanes as two AVX2 halves; the kernels only see the operators and Simd<float>.
-struct F32x16 {
-  __m256 lo, hi;
-};
-struct I32x16 {
-  __m256i lo, hi;
-};
-inline F32x16 operator+(F32x16 a, F32x16 b) { return {_mm256_add_ps(a.lo, b.lo), _mm256_add_ps(a.hi, b.hi)}; }
-inline F32x16 operator-(F32x16 a, F32x16 b) { return {_mm256_sub_ps(a.lo, b.lo), _mm256_sub_ps(a.hi, b.hi)}; }
-inline F32x16 operator*(F32x16 a, F32x16 b) { return {_mm256_mul_ps(a.lo, b.lo), _mm256_mul_ps(a.hi, b.hi)}; }
-inline F32x16& operator+=(F32x16& a, F32x16 b) { return a = a + b; }
-inline F32x16& operator-=(F32x16& a, F32x16 b) { return a = a - b; }
-inline F32x16& operator*=(F32x16& a, F32x16 b) { return a = a * b; }
+// Eight float lanes, one __m256 (whose arithmetic operators GCC/Clang provide), with
+// all-ones float lanes as masks. Half a tile row: the kernels run a pair whose box lies in
+// one half of the tile on this instead of the whole row (raster.cpp).
+struct Simd8 {
+  using V = __m256;
+  using M = __m256;
+  using Idx = __m256i;
 
-template <>
-struct Simd<float> {
-  using V = F32x16;
-  using M = F32x16;  // all-ones lanes are true
-  using Idx = I32x16;
-
-  static V set1(float x) { return {_mm256_set1_ps(x), _mm256_set1_ps(x)}; }
-  static V zero() { return {_mm256_setzero_ps(), _mm256_setzero_ps()}; }
-  static V load(const float* p) { return {_mm256_loadu_ps(p), _mm256_loadu_ps(p + 8)}; }
-  static void store(float* p, V v) {
-    _mm256_storeu_ps(p, v.lo);
-    _mm256_storeu_ps(p + 8, v.hi);
-  }
-  static V min(V a, V b) { return {_mm256_min_ps(a.lo, b.lo), _mm256_min_ps(a.hi, b.hi)}; }
-  static void istore(int32_t* p, Idx v) {
-    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v.lo);
-    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p + 8), v.hi);
-  }
-  static Idx iload(const int32_t* p) {
-    return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)),
-            _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + 8))};
-  }
-  static M all() {
-    const __m256 ones = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
-    return {ones, ones};
-  }
+  static V set1(float x) { return _mm256_set1_ps(x); }
+  static V zero() { return _mm256_setzero_ps(); }
+  static V min(V a, V b) { return _mm256_min_ps(a, b); }
+  static M all() { return _mm256_castsi256_ps(_mm256_set1_epi32(-1)); }
   static M none() { return zero(); }
-  template <int OP>
-  static M cmp(V a, V b) { return {_mm256_cmp_ps(a.lo, b.lo, OP), _mm256_cmp_ps(a.hi, b.hi, OP)}; }
-  static M lt(V a, V b) { return cmp<_CMP_LT_OQ>(a, b); }
-  static M le(V a, V b) { return cmp<_CMP_LE_OQ>(a, b); }
-  static M ge(V a, V b) { return cmp<_CMP_GE_OQ>(a, b); }
-  static M ilt(Idx a, Idx b) {
-    return {_mm256_castsi256_ps(_mm256_cmpgt_epi32(b.lo, a.lo)),
-            _mm256_castsi256_ps(_mm256_cmpgt_epi32(b.hi, a.hi))};
-  }
-  static M mand(M a, M b) { return {_mm256_and_ps(a.lo, b.lo), _mm256_and_ps(a.hi, b.hi)}; }
-  static M mor(M a, M b) { return {_mm256_or_ps(a.lo, b.lo), _mm256_or_ps(a.hi, b.hi)}; }
-  static M mandnot(M a, M b) { return {_mm256_andnot_ps(b.lo, a.lo), _mm256_andnot_ps(b.hi, a.hi)}; }
+  static M lt(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
+  static M le(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LE_OQ); }
+  static M ge(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_GE_OQ); }
+  static M ilt(Idx a, Idx b) { return _mm256_castsi256_ps(_mm256_cmpgt_epi32(b, a)); }
+  static M mand(M a, M b) { return _mm256_and_ps(a, b); }
+  static M mor(M a, M b) { return _mm256_or_ps(a, b); }
+  static M mandnot(M a, M b) { return _mm256_andnot_ps(b, a); }  // a and not b
   static M mnot(M a) { return mandnot(all(), a); }
-  static int bits(M m) { return _mm256_movemask_ps(m.lo) | (_mm256_movemask_ps(m.hi) << 8); }
-  static bool any(M m) { return !_mm256_testz_ps(_mm256_or_ps(m.lo, m.hi), _mm256_or_ps(m.lo, m.hi)); }
+  static int bits(M m) { return _mm256_movemask_ps(m); }
+  static bool any(M m) { return !_mm256_testz_ps(m, m); }
   static int count(M m) { return __builtin_popcount(unsigned(bits(m))); }
-  static bool get(M m, int i) { return (bits(m) >> i) & 1; }
   static M lanes_in(int lo, int hi) {  // lanes lo <= i < hi
-    const __m256i i0 = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    const __m256i i1 = _mm256_setr_epi32(8, 9, 10, 11, 12, 13, 14, 15);
-    const __m256i l = _mm256_set1_epi32(lo - 1), h = _mm256_set1_epi32(hi);
-    return {_mm256_castsi256_ps(_mm256_and_si256(_mm256_cmpgt_epi32(i0, l), _mm256_cmpgt_epi32(h, i0))),
-            _mm256_castsi256_ps(_mm256_and_si256(_mm256_cmpgt_epi32(i1, l), _mm256_cmpgt_epi32(h, i1)))};
+    const __m256i i = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    return _mm256_castsi256_ps(_mm256_and_si256(_mm256_cmpgt_epi32(i, _mm256_set1_epi32(lo - 1)),
+                                                _mm256_cmpgt_epi32(_mm256_set1_epi32(hi), i)));
   }
-  static V select(M m, V a, V b) { return {_mm256_blendv_ps(b.lo, a.lo, m.lo), _mm256_blendv_ps(b.hi, a.hi, m.hi)}; }
-  static V keep(M m, V a) { return mand(m, a); }  // a where m, else 0
-  static Idx iset1(int x) { return {_mm256_set1_epi32(x), _mm256_set1_epi32(x)}; }
+  static V select(M m, V a, V b) { return _mm256_blendv_ps(b, a, m); }
+  static V keep(M m, V a) { return _mm256_and_ps(m, a); }  // a where m, else 0
+  static Idx iset1(int x) { return _mm256_set1_epi32(x); }
   static Idx iselect(M m, Idx a, Idx b) {
-    const V r = select(m, {_mm256_castsi256_ps(a.lo), _mm256_castsi256_ps(a.hi)},
-                       {_mm256_castsi256_ps(b.lo), _mm256_castsi256_ps(b.hi)});
-    return {_mm256_castps_si256(r.lo), _mm256_castps_si256(r.hi)};
+    return _mm256_castps_si256(select(m, _mm256_castsi256_ps(a), _mm256_castsi256_ps(b)));
   }
-  static V abs(V a) {
-    const __m256 sign = _mm256_set1_ps(-0.0f);
-    return {_mm256_andnot_ps(sign, a.lo), _mm256_andnot_ps(sign, a.hi)};
-  }
+  static V abs(V a) { return _mm256_andnot_ps(_mm256_set1_ps(-0.0f), a); }
   // 12-bit reciprocal estimate + one Newton step (~2 ulp) for the backward's 1 / (1 - alpha),
   // whose argument alpha <= 0.99 keeps in [0.01, 1]; vdivps costs several times more.
-  static __m256 rcp8(__m256 a) {
-    const __m256 r = _mm256_rcp_ps(a);
+  static V rcp(V a) {
+    const V r = _mm256_rcp_ps(a);
     return _mm256_mul_ps(r, _mm256_fnmadd_ps(a, r, _mm256_set1_ps(2.0f)));
   }
-  static V rcp(V a) { return {rcp8(a.lo), rcp8(a.hi)}; }
   static float hsum(V a) {
-    const __m256 s = _mm256_add_ps(a.lo, a.hi);
-    __m128 q = _mm_add_ps(_mm256_castps256_ps128(s), _mm256_extractf128_ps(s, 1));
+    __m128 q = _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps(a, 1));
     q = _mm_add_ps(q, _mm_movehl_ps(q, q));
     q = _mm_add_ss(q, _mm_movehdup_ps(q));
     return _mm_cvtss_f32(q);
   }
   // The Cephes polynomial of cephes_expf, with vroundps for the nearest integer k and the
   // exponent bits of 2^k added as integers.
-  static __m256 exp8(__m256 x) {
+  static V exp(V x) {
     x = _mm256_min_ps(_mm256_max_ps(x, _mm256_set1_ps(-40.0f)), _mm256_set1_ps(80.0f));
-    const __m256 k = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
-                                     _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    __m256 r = _mm256_fnmadd_ps(k, _mm256_set1_ps(0.693359375f), x);
+    const V k = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
+                                _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    V r = _mm256_fnmadd_ps(k, _mm256_set1_ps(0.693359375f), x);
     r = _mm256_fnmadd_ps(k, _mm256_set1_ps(-2.12194440e-4f), r);
-    __m256 y = _mm256_set1_ps(1.9875691500e-4f);
+    V y = _mm256_set1_ps(1.9875691500e-4f);
     y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(1.3981999507e-3f));
     y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(8.3334519073e-3f));
     y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(4.1665795894e-2f));
@@ -296,7 +260,70 @@ struct Simd<float> {
     const __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(k), 23);
     return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y), e));
   }
-  static V exp(V x) { return {exp8(x.lo), exp8(x.hi)}; }
+};
+
+// Sixteen float lanes (a tile row) as two halves; h[0] holds lanes 0-7.
+struct F32x16 {
+  __m256 h[2];
+};
+struct I32x16 {
+  __m256i h[2];
+};
+inline F32x16 operator+(F32x16 a, F32x16 b) { return {a.h[0] + b.h[0], a.h[1] + b.h[1]}; }
+inline F32x16 operator-(F32x16 a, F32x16 b) { return {a.h[0] - b.h[0], a.h[1] - b.h[1]}; }
+inline F32x16 operator*(F32x16 a, F32x16 b) { return {a.h[0] * b.h[0], a.h[1] * b.h[1]}; }
+inline F32x16& operator+=(F32x16& a, F32x16 b) { return a = a + b; }
+inline F32x16& operator-=(F32x16& a, F32x16 b) { return a = a - b; }
+inline F32x16& operator*=(F32x16& a, F32x16 b) { return a = a * b; }
+
+template <>
+struct Simd<float> {
+  using V = F32x16;
+  using M = F32x16;  // all-ones lanes are true
+  using Idx = I32x16;
+  using Half = Simd8;  // the lane set of half a row (raster.cpp runs small boxes on it)
+  using H = Half;
+
+  static V set1(float x) { return {H::set1(x), H::set1(x)}; }
+  static V zero() { return {H::zero(), H::zero()}; }
+  static V load(const float* p) { return {_mm256_loadu_ps(p), _mm256_loadu_ps(p + 8)}; }
+  static void store(float* p, V v) {
+    _mm256_storeu_ps(p, v.h[0]);
+    _mm256_storeu_ps(p + 8, v.h[1]);
+  }
+  static V min(V a, V b) { return {H::min(a.h[0], b.h[0]), H::min(a.h[1], b.h[1])}; }
+  static void istore(int32_t* p, Idx v) {
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v.h[0]);
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(p + 8), v.h[1]);
+  }
+  static Idx iload(const int32_t* p) {
+    return {_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)),
+            _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + 8))};
+  }
+  static M all() { return {H::all(), H::all()}; }
+  static M none() { return zero(); }
+  static M lt(V a, V b) { return {H::lt(a.h[0], b.h[0]), H::lt(a.h[1], b.h[1])}; }
+  static M le(V a, V b) { return {H::le(a.h[0], b.h[0]), H::le(a.h[1], b.h[1])}; }
+  static M ge(V a, V b) { return {H::ge(a.h[0], b.h[0]), H::ge(a.h[1], b.h[1])}; }
+  static M ilt(Idx a, Idx b) { return {H::ilt(a.h[0], b.h[0]), H::ilt(a.h[1], b.h[1])}; }
+  static M mand(M a, M b) { return {H::mand(a.h[0], b.h[0]), H::mand(a.h[1], b.h[1])}; }
+  static M mor(M a, M b) { return {H::mor(a.h[0], b.h[0]), H::mor(a.h[1], b.h[1])}; }
+  static M mandnot(M a, M b) { return {H::mandnot(a.h[0], b.h[0]), H::mandnot(a.h[1], b.h[1])}; }
+  static M mnot(M a) { return {H::mnot(a.h[0]), H::mnot(a.h[1])}; }
+  static bool any(M m) { return H::any(H::mor(m.h[0], m.h[1])); }
+  static int count(M m) { return H::count(m.h[0]) + H::count(m.h[1]); }
+  static bool get(M m, int i) { return (H::bits(m.h[i >> 3]) >> (i & 7)) & 1; }
+  static M lanes_in(int lo, int hi) { return {H::lanes_in(lo, hi), H::lanes_in(lo - 8, hi - 8)}; }
+  static V select(M m, V a, V b) { return {H::select(m.h[0], a.h[0], b.h[0]), H::select(m.h[1], a.h[1], b.h[1])}; }
+  static V keep(M m, V a) { return {H::keep(m.h[0], a.h[0]), H::keep(m.h[1], a.h[1])}; }
+  static Idx iset1(int x) { return {H::iset1(x), H::iset1(x)}; }
+  static Idx iselect(M m, Idx a, Idx b) {
+    return {H::iselect(m.h[0], a.h[0], b.h[0]), H::iselect(m.h[1], a.h[1], b.h[1])};
+  }
+  static V abs(V a) { return {H::abs(a.h[0]), H::abs(a.h[1])}; }
+  static V rcp(V a) { return {H::rcp(a.h[0]), H::rcp(a.h[1])}; }
+  static float hsum(V a) { return H::hsum(a.h[0] + a.h[1]); }
+  static V exp(V x) { return {H::exp(x.h[0]), H::exp(x.h[1])}; }
 };
 #else
 constexpr const char* SIMD_FLOAT = "generic";
