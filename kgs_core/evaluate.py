@@ -38,7 +38,9 @@ def lpips_status() -> tuple[object | None, str]:
 
 def render_at(model: KinematicsGS, frame: Frame, exposure: float = 0.0, dt: float = 1.0, background=None,
               colors: torch.Tensor | None = None, static: bool = False):
-    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static)
+    """The rendered image only (its Gaussians' velocities are not computed where not needed)."""
+    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static,
+                        velocity=False)
 
 
 def dynamic_mask_render(model: KinematicsGS, frame: Frame, dt: float) -> np.ndarray:

@@ -115,6 +115,28 @@ def test_physical_velocity_is_the_central_difference_of_the_deformed_position():
     assert torch.allclose(g.means, m.positions(idx, t)[0], rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("kr_form", ["convolve", "paper"])
+def test_sharp_render_skips_the_velocity_only_where_nothing_depends_on_it(kr_form, monkeypatch):
+    """`at(..., velocity=False)`: at exposure 0 under the convolve form the Gaussians are the
+    same without the velocity, so its two extra field samples are skipped; under the paper's
+    form (whose basis follows v even when sharp) and at exposure > 0 they are not."""
+    m = moving_model(velocity="physical", kr_form=kr_form)
+    times_seen = []
+    at_times = m.deform.at_times
+    monkeypatch.setattr(m.deform, "at_times", lambda x, tt, **kw: times_seen.append(len(tt)) or at_times(x, tt, **kw))
+    for exposure in (0.0, 0.7):
+        full = m.at(0.4, exposure=exposure, dt=0.05)
+        lean = m.at(0.4, exposure=exposure, dt=0.05, velocity=False)
+        skipped = exposure == 0 and kr_form == "convolve"
+        assert times_seen[-2:] == [3, 1 if skipped else 3]
+        assert (lean.velocity is None) == skipped
+        assert full.velocity.abs().max() > 1e-3
+        assert torch.allclose(lean.means, full.means, rtol=1e-5, atol=1e-7)
+        assert torch.allclose(lean.covars6, full.covars6, rtol=1e-4, atol=1e-9)
+        if exposure > 0 and kr_form == "convolve":  # the velocity does shape the blurred covariance
+            assert not torch.allclose(m.at(0.4, exposure=0.0, dt=0.05).covars6, full.covars6, rtol=1e-4, atol=1e-9)
+
+
 def test_packed_covariances_through_the_model_match_the_full_matrices():
     """Static Gaussians: the packed C++ covariance equals `R S S^T R^T` in PyTorch; a render
     from packed `(N, 6)` covariances equals one from `(N, 3, 3)`, gradients included."""

@@ -208,19 +208,23 @@ class KinematicsGS(nn.Module):
         return self.params.means[idx] + off.dx, off
 
     def at(self, t: float, exposure: float = 0.0, dt: float = 1.0, noise: float = 0.0,
-           camera_motion: tuple[Tensor, Tensor] | None = None) -> GaussiansAt:
+           camera_motion: tuple[Tensor, Tensor] | None = None, velocity: bool = True) -> GaussiansAt:
         """Gaussians at time `t`. `exposure` (fraction of the frame interval `dt`) sets the
         kinematic elongation: 0 renders sharp. `noise` is the training-time jitter of `t`.
         `camera_motion = (A (3, 3), b (3,))`: the camera's own motion during the exposure, as
         the world-frame velocity `A x + b` it gives a still point `x` relative to the camera
         (`camera_motion_from_poses`); every Gaussian is then blurred along its velocity relative
-        to the camera (`convolve` form only)."""
+        to the camera (`convolve` form only). `velocity=False`: the caller will not read
+        `.velocity`; where the Gaussians do not depend on it (the `convolve` form at exposure 0)
+        its two extra field samples are skipped and `.velocity` is None."""
         p = self.params
         n = len(p)
         scales = self.scales()
         cov6 = packed_covariance(p.quats, scales)  # C++ when built: the static path is most of N
         means = p.means
-        velocity = torch.zeros(n, 3)
+        # Under the convolve form a sharp render adds (0^2 / 12) v v^T: v is not needed for it.
+        skip_velocity = not velocity and exposure == 0 and self.config.kr_form == "convolve"
+        velocities = None if skip_velocity else torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         blur_camera = camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
@@ -233,14 +237,15 @@ class KinematicsGS(nn.Module):
                     unpack_covariance(cov6[still]), means[still].detach() @ A.T + b, dt * exposure)))
         if len(idx):
             x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6[idx],
-                                               camera_motion if blur_camera else None)
+                                               camera_motion if blur_camera else None, skip_velocity)
             means = means.index_put((idx,), x_t)
             cov6 = cov6.index_put((idx,), cov_dyn)
-            velocity = velocity.index_put((idx,), v.detach())
+            if velocities is not None:
+                velocities = velocities.index_put((idx,), v.detach())
             dx_all = dx_all.index_put((idx,), dx)
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
-                           velocity=velocity, offsets_dx=dx_all)
+                           velocity=velocities, offsets_dx=dx_all)
 
     def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0) -> tuple[Tensor, GaussiansAt]:
         """Only the dynamic Gaussians at time `t` (what changes when a viewer scrubs time):
@@ -257,12 +262,14 @@ class KinematicsGS(nn.Module):
                                 dynamic=torch.ones(len(idx), dtype=torch.bool), velocity=v.detach(), offsets_dx=dx)
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
-                cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None
-                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
+                skip_velocity: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Deformed positions, packed covariances `(D, 6)`, velocities and offsets `dx` of the
-        Gaussians `idx`; `cov6_pred` is their packed canonical covariance."""
+        Gaussians `idx`; `cov6_pred` is their packed canonical covariance. `skip_velocity`
+        (only where the covariance does not depend on it): the residual covariance, which is
+        what the convolve form gives at exposure 0, and zero velocities."""
         p, cfg = self.params, self.config
-        kinematic = cfg.kinematic and self.decomposed
+        kinematic = cfg.kinematic and self.decomposed and not skip_velocity
         # The physical velocity's two samples around t share one batched field evaluation with t.
         h = 0.5 * dt * max(exposure, 0.5)
         physical = kinematic and cfg.velocity == "physical"

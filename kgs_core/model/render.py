@@ -17,12 +17,14 @@ def camera_tensors(cam: Camera) -> tuple[torch.Tensor, torch.Tensor]:
 
 def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0.0, dt: float = 1.0,
                  background: torch.Tensor | None = None, colors: torch.Tensor | None = None, noise: float = 0.0,
-                 static: bool = False, camera_motion=None) -> tuple[Rendered, GaussiansAt]:
+                 static: bool = False, camera_motion=None, velocity: bool = True) -> tuple[Rendered, GaussiansAt]:
     """Renders `model` at time `t` from `cam`. `exposure` 0 renders sharp; `colors (N, C)`
     replaces the SH colours (e.g. a dynamic-flag channel); `static` skips the deformation
     (the static 3DGS baseline); `camera_motion` blurs along the camera's own motion as well
-    (`KinematicsGS.at`)."""
-    g = model.at_static() if static else model.at(t, exposure=exposure, dt=dt, noise=noise, camera_motion=camera_motion)
+    (`KinematicsGS.at`); `velocity=False` when the caller does not read `g.velocity` (lets a
+    sharp render skip the physical velocity's extra field samples)."""
+    g = model.at_static() if static else model.at(t, exposure=exposure, dt=dt, noise=noise, camera_motion=camera_motion,
+                                                  velocity=velocity)
     viewmat, K = camera_tensors(cam)
     if colors is not None:
         kw = dict(colors=colors)

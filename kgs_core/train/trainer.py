@@ -62,7 +62,7 @@ def evaluation_frames(scene: Scene, count: int) -> list[tuple[Frame, str]]:
 def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background, static: bool = False) -> float:
     vals = []
     for frame, kind in frames:
-        out, _ = render_model(model, frame.camera, frame.time, 0.0, scene.dt, background, static=static)
+        out, _ = render_model(model, frame.camera, frame.time, 0.0, scene.dt, background, static=static, velocity=False)
         vals.append(psnr(out.image, cache.get(frame, kind)))
     return float(np.mean(vals))
 
@@ -200,7 +200,8 @@ class Trainer:
         c, scene, model = self.cfg, self.scene, self.model
         noise = 0.0 if self.static_only else self.noise.sigma(it)
         out, g = render_model(model, frame.camera, frame.time, scene.exposure, scene.dt, self.background,
-                              noise=noise, static=self.static_only, camera_motion=self.camera_motion.get(frame.id))
+                              noise=noise, static=self.static_only, camera_motion=self.camera_motion.get(frame.id),
+                              velocity=False)
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if not self.static_only:
@@ -273,7 +274,7 @@ class Trainer:
             with torch.enable_grad():
                 ones = torch.ones(len(model), 1, requires_grad=True)
                 out, _ = render_model(model, frames[i].camera, frames[i].time, self.scene.exposure, self.scene.dt,
-                                      colors=ones, static=self.static_only)
+                                      colors=ones, static=self.static_only, velocity=False)
                 (grad,) = torch.autograd.grad(out.image.sum(), ones)
             total += grad[:, 0]
         return total
