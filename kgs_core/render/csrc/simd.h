@@ -100,25 +100,28 @@ struct SimdGeneric {
   }
 };
 
-// exp(x) for x <= 0 on 16 float lanes (Cephes expf polynomial, ~2 ulp). Inputs below -40
-// give exp(-40) ~ 4e-18: far below any alpha threshold, and lanes outside a Gaussian's
-// footprint stay out of denormal numbers, which cost ~100 cycles each.
+// Cephes expf, shared by every float path: exp(x) = 2^k exp(r) with k = round(x / ln 2),
+// r = x - k ln 2 (ln 2 split in two so the product is exact), and
+// exp(r) ~ 1 + r + r^2 P(r) with P's coefficients, highest degree first. Inputs are
+// clamped to [-40, 80]: exp(-40) ~ 4e-18 is far below any alpha threshold, and lanes
+// outside a Gaussian's footprint stay out of denormal numbers, which cost ~100 cycles each.
+constexpr float EXP_LOG2E = 1.44269504088896341f, EXP_LN2_HI = 0.693359375f, EXP_LN2_LO = -2.12194440e-4f;
+constexpr float EXP_P[6] = {1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f,
+                            4.1665795894e-2f, 1.6666665459e-1f, 5.0000001201e-1f};
+
+// exp(x) for x <= 0 on 16 float lanes of generic vectors (~2 ulp).
 template <typename V, typename IV>
 inline V cephes_expf(V x) {
   x = x < -40.0f ? V{} - 40.0f : x;
   x = x > 80.0f ? V{} + 80.0f : x;
-  const V kt = x * 1.44269504088896341f + 0.5f;
+  const V kt = x * EXP_LOG2E + 0.5f;
   V kf = __builtin_convertvector(__builtin_convertvector(kt, IV), V);
   kf = kf > kt ? kf - 1.0f : kf;  // floor
-  V r = x - kf * 0.693359375f;
-  r = r - kf * -2.12194440e-4f;
+  V r = x - kf * EXP_LN2_HI;
+  r = r - kf * EXP_LN2_LO;
   const V z = r * r;
-  V y = V{} + 1.9875691500e-4f;
-  y = y * r + 1.3981999507e-3f;
-  y = y * r + 8.3334519073e-3f;
-  y = y * r + 4.1665795894e-2f;
-  y = y * r + 1.6666665459e-1f;
-  y = y * r + 5.0000001201e-1f;
+  V y = V{} + EXP_P[0];
+  for (int i = 1; i < 6; ++i) y = y * r + EXP_P[i];
   y = y * z + r + 1.0f;
   const IV bits = (__builtin_convertvector(kf, IV) + 127) << 23;
   return y * (V)bits;  // same-size vector cast = bit cast
@@ -172,21 +175,16 @@ struct Simd<float> {
     return r * (2.0f - a * r);
   }
   static float hsum(V a) { return _mm512_reduce_add_ps(a); }
-  // The same polynomial as cephes_expf, with AVX-512's rounding and exponent instructions:
+  // The Cephes expf (EXP_P), with AVX-512's rounding and exponent instructions:
   // vrndscaleps for the nearest integer k and vscalefps for p(r) * 2^k replace the emulated
   // floor and the bit assembly (7 instructions fewer in the kernels' hottest line).
   static V exp(V x) {
     x = _mm512_min_ps(_mm512_max_ps(x, set1(-40.0f)), set1(80.0f));
-    const V k = _mm512_roundscale_ps(x * set1(1.44269504088896341f),
-                                     _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    V r = _mm512_fnmadd_ps(k, set1(0.693359375f), x);
-    r = _mm512_fnmadd_ps(k, set1(-2.12194440e-4f), r);
-    V y = set1(1.9875691500e-4f);
-    y = _mm512_fmadd_ps(y, r, set1(1.3981999507e-3f));
-    y = _mm512_fmadd_ps(y, r, set1(8.3334519073e-3f));
-    y = _mm512_fmadd_ps(y, r, set1(4.1665795894e-2f));
-    y = _mm512_fmadd_ps(y, r, set1(1.6666665459e-1f));
-    y = _mm512_fmadd_ps(y, r, set1(5.0000001201e-1f));
+    const V k = _mm512_roundscale_ps(x * set1(EXP_LOG2E), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    V r = _mm512_fnmadd_ps(k, set1(EXP_LN2_HI), x);
+    r = _mm512_fnmadd_ps(k, set1(EXP_LN2_LO), r);
+    V y = set1(EXP_P[0]);
+    for (int i = 1; i < 6; ++i) y = _mm512_fmadd_ps(y, r, set1(EXP_P[i]));
     y = _mm512_fmadd_ps(y, r * r, r + set1(1.0f));
     return _mm512_scalef_ps(y, k);
   }
@@ -242,21 +240,16 @@ struct Simd8 {
     q = _mm_add_ss(q, _mm_movehdup_ps(q));
     return _mm_cvtss_f32(q);
   }
-  // The Cephes polynomial of cephes_expf, with vroundps for the nearest integer k and the
-  // exponent bits of 2^k added as integers.
+  // The Cephes expf (EXP_P), with vroundps for the nearest integer k and the exponent bits
+  // of 2^k added as integers.
   static V exp(V x) {
     x = _mm256_min_ps(_mm256_max_ps(x, _mm256_set1_ps(-40.0f)), _mm256_set1_ps(80.0f));
-    const V k = _mm256_round_ps(_mm256_mul_ps(x, _mm256_set1_ps(1.44269504088896341f)),
-                                _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    V r = _mm256_fnmadd_ps(k, _mm256_set1_ps(0.693359375f), x);
-    r = _mm256_fnmadd_ps(k, _mm256_set1_ps(-2.12194440e-4f), r);
-    V y = _mm256_set1_ps(1.9875691500e-4f);
-    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(1.3981999507e-3f));
-    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(8.3334519073e-3f));
-    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(4.1665795894e-2f));
-    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(1.6666665459e-1f));
-    y = _mm256_fmadd_ps(y, r, _mm256_set1_ps(5.0000001201e-1f));
-    y = _mm256_fmadd_ps(y, _mm256_mul_ps(r, r), _mm256_add_ps(r, _mm256_set1_ps(1.0f)));
+    const V k = _mm256_round_ps(_mm256_mul_ps(x, set1(EXP_LOG2E)), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    V r = _mm256_fnmadd_ps(k, set1(EXP_LN2_HI), x);
+    r = _mm256_fnmadd_ps(k, set1(EXP_LN2_LO), r);
+    V y = set1(EXP_P[0]);
+    for (int i = 1; i < 6; ++i) y = _mm256_fmadd_ps(y, r, set1(EXP_P[i]));
+    y = _mm256_fmadd_ps(y, _mm256_mul_ps(r, r), _mm256_add_ps(r, set1(1.0f)));
     const __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(k), 23);
     return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y), e));
   }
