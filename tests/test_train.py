@@ -172,7 +172,7 @@ def test_importance_pass_leaves_no_gradients(scene, tmp_path):
     assert not leaked, leaked
 
 
-def test_knn_graph_survives_a_state_round_trip(scene, tmp_path):
+def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields(scene, tmp_path):
     """The coarse-to-fine kNN graph is built when the dynamic set changes; a model restored
     from its state must use that graph, not rebuild one from the positions it has now."""
     from kgs_core.model.dynamic import KinematicsGS
@@ -194,6 +194,20 @@ def test_knn_graph_survives_a_state_round_trip(scene, tmp_path):
     bad = model.state()
     bad["knn"] = graph + len(graph)  # indices past the dynamic set
     with pytest.raises(ValueError, match="'knn'"):
+        KinematicsGS.from_state(bad)
+    # Every per-Gaussian field must have one row per Gaussian, and the split mask be boolean.
+    for field, value in [("dynamic", model.dynamic[:-1]), ("variance", model.variance[1:]),
+                         ("params.opacity_logits", model.params.opacity_logits.detach()[:-2])]:
+        bad = model.state()
+        if field.startswith("params."):
+            bad["params"][field.split(".")[1]] = value
+        else:
+            bad[field] = value
+        with pytest.raises(ValueError, match=rf"'{field}': expected {len(model)} rows"):
+            KinematicsGS.from_state(bad)
+    bad = model.state()
+    bad["dynamic"] = model.dynamic.float()
+    with pytest.raises(ValueError, match="'dynamic': expected a bool mask"):
         KinematicsGS.from_state(bad)
 
 

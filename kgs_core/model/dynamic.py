@@ -320,14 +320,28 @@ class KinematicsGS(nn.Module):
     @classmethod
     def from_state(cls, state: dict) -> "KinematicsGS":
         params = GaussianParams(**{k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
+        n = len(params)
+        _check_per_gaussian(params.items(), n, "params.")
         model = cls(params, ModelConfig.from_dict(state["config"]))
         model.load_state_dict(state["networks"])
         model.decomposed = bool(state["decomposed"])
+        _check_per_gaussian([("dynamic", state["dynamic"]), ("variance", state["variance"])], n)
+        if state["dynamic"].dtype != torch.bool:
+            raise ValueError(f"model state field 'dynamic': expected a bool mask, got {state['dynamic'].dtype}")
         model.dynamic = state["dynamic"].clone()
         model.variance = state["variance"].clone()
         model.min_scale = float(state["min_scale"])
         model._knn = _checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model
+
+
+def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
+    """Every per-Gaussian field of a state has the same leading length (a mismatch would fail
+    far away, inside an index or the rasteriser)."""
+    for name, value in fields:
+        if not isinstance(value, Tensor) or value.dim() == 0 or len(value) != n:
+            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise ValueError(f"model state field '{prefix}{name}': expected {n} rows (one per Gaussian), got {got}")
 
 
 def _checked_knn(knn, n_dynamic: int) -> Tensor | None:
