@@ -304,7 +304,9 @@ inline int slot_stride(int channels) { return (COLOR0 + channels + LANES - 1) / 
 // ABS: also accumulate |dL/dmean2d| per pixel (AbsGS densification); without it the mean
 // and conic gradients come from five moments of gp (per-Gaussian constants factored out
 // of the row loop), which halves that part of the loop.
-template <typename S, bool ABS>
+// NC: the channel count when known at compile time (3, the training render), 0 otherwise:
+// with it the per-channel loops unroll and the pair's colour gradients stay in registers.
+template <typename S, bool ABS, int NC>
 void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
                    const S* background, const S* t_final,
                    const int32_t* n_contrib, const S* g_image, const S* g_alpha,
@@ -312,7 +314,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
   using X = Simd<S>;
   using V = typename X::V;
   using Idx = typename X::Idx;
-  const int C = s.channels;
+  const int C = NC > 0 ? NC : s.channels;
   const int stride = slot_stride(C);
   V px = lane_px<S>(t);
   // Per-pixel state. dL/dalpha of a Gaussian at a pixel is
@@ -371,7 +373,13 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
       // Moments of gp = dL/dpower over the pixels: sum gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2.
       YV m_x = Y::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x;
       YV a_d = m_x, a_amx = m_x, a_amy = m_x;
-      for (int ch = 0; ch < C; ++ch) part(s_col[ch]) = Y::zero();
+      // The pair's colour gradient per lane: locals when NC is known, else the scratch.
+      YV col_local[NC > 0 ? NC : 1];
+      auto col_acc = [&](int ch) -> YV& {
+        if constexpr (NC > 0) return col_local[ch];
+        else return part(s_col[ch]);
+      };
+      for (int ch = 0; ch < C; ++ch) col_acc(ch) = Y::zero();
       const GaussLanes<Y, S> gl(part(px), p, lane0);
       const YV& dx = gl.dx;
       const YV gz = Y::set1(p.z), ca = Y::set1(p.ca), cb = Y::set1(p.cb), cc = Y::set1(p.cc);
@@ -394,7 +402,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
         for (int ch = 0; ch < C; ++ch) {
           const YV gc = part(gC[size_t(ch) * TILE + r]);
           gcc += gc * Y::set1(col[ch]);
-          part(s_col[ch]) += w * gc;
+          col_acc(ch) += w * gc;
         }
         const YV dal = inv * (part(gAT[r]) - Bg_r) + Ti * gcc;
         Bg_r += w * gcc;
@@ -427,7 +435,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
       slot[DEPTH] = Y::hsum(a_d);
       slot[ABS_MX] = ABS ? Y::hsum(a_amx) : S(0);
       slot[ABS_MY] = ABS ? Y::hsum(a_amy) : S(0);
-      for (int ch = 0; ch < C; ++ch) slot[COLOR0 + ch] = Y::hsum(part(s_col[ch]));
+      for (int ch = 0; ch < C; ++ch) slot[COLOR0 + ch] = Y::hsum(col_acc(ch));
     });
   }
 }
@@ -480,11 +488,14 @@ void raster_backward(const RasterShape& s, const TileLists& L, int64_t n, const 
     for (int tile = 0; tile < n_tiles; ++tile) {
       const TileGeom t = tile_geom(s, L.tile_offsets, tile);
       if (absgrad)
-        backward_tile<S, true>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
-                               g_depth, slots.data(), scratch);
+        backward_tile<S, true, 0>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
+                                  g_depth, slots.data(), scratch);
+      else if (C == 3)
+        backward_tile<S, false, 3>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
+                                   g_depth, slots.data(), scratch);
       else
-        backward_tile<S, false>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
-                                g_depth, slots.data(), scratch);
+        backward_tile<S, false, 0>(s, t, records, background, t_final, n_contrib, g_image, g_alpha,
+                                   g_depth, slots.data(), scratch);
     }
   }
   // Each Gaussian's slots are contiguous (rank-major) and summed in list order, into one
