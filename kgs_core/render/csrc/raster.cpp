@@ -216,7 +216,8 @@ inline auto on_pair_lanes(const PairRec<S>& p, Run&& run) {
   return run(X{}, WholeRow{}, 0);
 }
 
-template <typename S>
+// NC: the channel count when known at compile time (3, as in training), 0 otherwise.
+template <typename S, int NC>
 void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
                   const S* background, S* image, S* alpha_out, S* depth_out,
                   S* t_final, int32_t* n_contrib, std::vector<typename Simd<S>::V>& acc) {
@@ -224,7 +225,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
   using V = typename X::V;
   using M = typename X::M;
   using Idx = typename X::Idx;
-  const int C = s.channels;
+  const int C = NC > 0 ? NC : s.channels;
   V px = lane_px<S>(t);
   V T[TILE], dacc[TILE];
   Idx last[TILE];
@@ -464,8 +465,11 @@ void raster_forward(const RasterShape& s, const TileLists& L, int64_t n, const S
     std::vector<typename Simd<S>::V> acc;
 #pragma omp for schedule(dynamic, 1)
     for (int tile = 0; tile < n_tiles; ++tile) {
-      forward_tile(s, tile_geom(s, L.tile_offsets, tile), records, background, image, alpha,
-                   depth_acc, t_final, n_contrib, acc);
+      const TileGeom t = tile_geom(s, L.tile_offsets, tile);
+      if (s.channels == 3)
+        forward_tile<S, 3>(s, t, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
+      else
+        forward_tile<S, 0>(s, t, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
     }
   }
 }
