@@ -197,7 +197,7 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
     except _ext.ExtensionUnavailable as exc:
         print(f"C++ rasteriser unavailable: {exc}", file=sys.stderr)
         return 1
-    print(f"C++ rasteriser ready in {time.perf_counter() - t0:.1f} s: {mod.__file__}")
+    print(f"C++ rasteriser ready in {time.perf_counter() - t0:.1f} s ({mod.simd_path()} SIMD path): {mod.__file__}")
     return 0
 
 

@@ -93,3 +93,11 @@ def test_bench_quality_runs_end_to_end(tmp_path):
 
     rates = json.loads((tmp_path / "runs" / "bench.json").read_text())["seconds_per_iteration"]
     assert set(rates) == {"full", "no split, D3DGS-like (split)"} and all(v > 0 for v in rates.values())
+
+
+def test_build_ext_reports_the_compiled_simd_path():
+    r = kgs("build-ext", timeout=900)  # built once per machine; cached for every later call
+    if r.returncode == 1 and "unavailable" in r.stderr:
+        pytest.skip(r.stderr.strip())
+    assert r.returncode == 0, r.stderr
+    assert re.search(r"ready in [\d.]+ s \((avx512|avx2|generic) SIMD path\): \S+\.so", r.stdout), r.stdout
