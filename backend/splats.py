@@ -270,9 +270,10 @@ class RunView:
             idx, means, covs, vels, rgba = tr.at(float(t))
             header["interpolated"] = True
         else:
-            with self.compute:
-                idx_t, g = m.at_dynamic(float(t), exposure, self.dt)
-            idx, means, covs, vels = idx_t.numpy(), g.means.numpy(), g.covars.numpy(), g.velocity.numpy()
+            with self.compute:  # without velocities a sharp frame skips their field samples
+                idx_t, g = m.at_dynamic(float(t), exposure, self.dt, velocity=velocity)
+            idx, means, covs = idx_t.numpy(), g.means.numpy(), g.covars.numpy()
+            vels = g.velocity.numpy() if g.velocity is not None else None
             rgba = rgba_of(g.sh, g.opacities)
             header["interpolated"] = False
         sel = keep[idx]

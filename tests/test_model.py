@@ -117,7 +117,7 @@ def test_physical_velocity_is_the_central_difference_of_the_deformed_position():
 
 @pytest.mark.parametrize("kr_form", ["convolve", "paper"])
 def test_sharp_render_skips_the_velocity_only_where_nothing_depends_on_it(kr_form, monkeypatch):
-    """`at(..., velocity=False)`: at exposure 0 under the convolve form the Gaussians are the
+    """`at` / `at_dynamic(..., velocity=False)`: at exposure 0 under the convolve form the Gaussians are the
     same without the velocity, so its two extra field samples are skipped; under the paper's
     form (whose basis follows v even when sharp) and at exposure > 0 they are not."""
     m = moving_model(velocity="physical", kr_form=kr_form)
@@ -135,6 +135,10 @@ def test_sharp_render_skips_the_velocity_only_where_nothing_depends_on_it(kr_for
         assert torch.allclose(lean.covars6, full.covars6, rtol=1e-4, atol=1e-9)
         if exposure > 0 and kr_form == "convolve":  # the velocity does shape the blurred covariance
             assert not torch.allclose(m.at(0.4, exposure=0.0, dt=0.05).covars6, full.covars6, rtol=1e-4, atol=1e-9)
+        # The server's dynamic-only path makes the same choice.
+        _, lean_dyn = m.at_dynamic(0.4, exposure, 0.05, velocity=False)
+        assert times_seen[-1] == (1 if skipped else 3) and (lean_dyn.velocity is None) == skipped
+        assert torch.allclose(lean_dyn.covars6, full.covars6, rtol=1e-4, atol=1e-9)
 
 
 def test_packed_covariances_through_the_model_match_the_full_matrices():

@@ -293,3 +293,18 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     with TestClient(app2) as c2:
         statuses = {r["id"]: r["status"] for r in c2.get("/api/runs").json()}
     assert statuses[done["id"]] == "done" and statuses[long["id"]] == "cancelled" and statuses[failed["id"]] == "failed"
+
+
+def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
+    """A client that does not show velocities gets the same dynamic splats from the exact
+    path (which then skips the velocity's field samples at exposure 0), without the block."""
+    from kgs_backend.splats import RunView
+
+    view = RunView(copy_run)
+    h_v, rec_v, vel = unpack_buffer(view.dynamic_buffer(0.3, velocity=True, exact=True))
+    h_n, rec_n, no_vel = unpack_buffer(view.dynamic_buffer(0.3, velocity=False, exact=True))
+    assert h_v["velocity"] and vel.shape == (len(rec_v), 3) and len(rec_v) > 0
+    assert not h_n["velocity"] and no_vel is None
+    assert np.array_equal(rec_n["index"], rec_v["index"])
+    assert np.allclose(rec_n["position"].astype(np.float64), rec_v["position"].astype(np.float64), atol=1e-3)
+    assert np.allclose(rec_n["covariance"].astype(np.float64), rec_v["covariance"].astype(np.float64), atol=1e-3)

@@ -215,16 +215,13 @@ class KinematicsGS(nn.Module):
         the world-frame velocity `A x + b` it gives a still point `x` relative to the camera
         (`camera_motion_from_poses`); every Gaussian is then blurred along its velocity relative
         to the camera (`convolve` form only). `velocity=False`: the caller will not read
-        `.velocity`; where the Gaussians do not depend on it (the `convolve` form at exposure 0)
-        its two extra field samples are skipped and `.velocity` is None."""
+        `.velocity`, which is then None where computing it can be skipped (`_deform`)."""
         p = self.params
         n = len(p)
         scales = self.scales()
         cov6 = packed_covariance(p.quats, scales)  # C++ when built: the static path is most of N
         means = p.means
-        # Under the convolve form a sharp render adds (0^2 / 12) v v^T: v is not needed for it.
-        skip_velocity = not velocity and exposure == 0 and self.config.kr_form == "convolve"
-        velocities = None if skip_velocity else torch.zeros(n, 3)
+        velocities = torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         blur_camera = camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
@@ -237,38 +234,42 @@ class KinematicsGS(nn.Module):
                     unpack_covariance(cov6[still]), means[still].detach() @ A.T + b, dt * exposure)))
         if len(idx):
             x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6[idx],
-                                               camera_motion if blur_camera else None, skip_velocity)
+                                               camera_motion if blur_camera else None, velocity)
             means = means.index_put((idx,), x_t)
             cov6 = cov6.index_put((idx,), cov_dyn)
-            if velocities is not None:
-                velocities = velocities.index_put((idx,), v.detach())
+            velocities = None if v is None else velocities.index_put((idx,), v.detach())
             dx_all = dx_all.index_put((idx,), dx)
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocities, offsets_dx=dx_all)
 
-    def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0) -> tuple[Tensor, GaussiansAt]:
+    def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0,
+                   velocity: bool = True) -> tuple[Tensor, GaussiansAt]:
         """Only the dynamic Gaussians at time `t` (what changes when a viewer scrubs time):
-        `(idx (D,), GaussiansAt of D)`; the static ones are `at_static()` restricted to the rest."""
+        `(idx (D,), GaussiansAt of D)`; the static ones are `at_static()` restricted to the rest.
+        `velocity` as in `at`."""
         p = self.params
         idx = torch.arange(len(p)) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         scales = self.scales()[idx]
         cov6 = packed_covariance(p.quats[idx], scales)
         if len(idx):
-            x_t, cov6, v, dx = self._deform(idx, t, exposure, dt, 0.0, scales, cov6)
+            x_t, cov6, v, dx = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
         else:
             x_t, v, dx = p.means[idx], torch.zeros(0, 3), torch.zeros(0, 3)
         return idx, GaussiansAt(means=x_t, covars6=cov6, opacities=p.opacities[idx], sh=p.sh()[idx],
-                                dynamic=torch.ones(len(idx), dtype=torch.bool), velocity=v.detach(), offsets_dx=dx)
+                                dynamic=torch.ones(len(idx), dtype=torch.bool),
+                                velocity=None if v is None else v.detach(), offsets_dx=dx)
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
-                skip_velocity: bool = False) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                velocity: bool = True) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
         """Deformed positions, packed covariances `(D, 6)`, velocities and offsets `dx` of the
-        Gaussians `idx`; `cov6_pred` is their packed canonical covariance. `skip_velocity`
-        (only where the covariance does not depend on it): the residual covariance, which is
-        what the convolve form gives at exposure 0, and zero velocities."""
+        Gaussians `idx`; `cov6_pred` is their packed canonical covariance. `velocity=False`
+        (the caller will not read it): under the convolve form at exposure 0 the covariance
+        gets `(0^2 / 12) v v^T`, so the velocity's two extra field samples are skipped, the
+        covariance is the residual one (the same matrix) and the velocity is None."""
         p, cfg = self.params, self.config
+        skip_velocity = not velocity and exposure == 0 and cfg.kr_form == "convolve"
         kinematic = cfg.kinematic and self.decomposed and not skip_velocity
         # The physical velocity's two samples around t share one batched field evaluation with t.
         h = 0.5 * dt * max(exposure, 0.5)
@@ -291,7 +292,7 @@ class KinematicsGS(nn.Module):
                 speed * dt, basis=cfg.basis, lambda_s=cfg.lambda_s, still_len=cfg.still_len)
         else:
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
-            v = torch.zeros_like(x_t)
+            v = None if skip_velocity else torch.zeros_like(x_t)
             cov = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
         return x_t, pack_covariance(cov), v, off.dx
 
