@@ -26,6 +26,8 @@ constexpr int LANES = 16;
 
 // Whether a lane set X also offers half rows (X::Half: LANES / 2 lanes, and X's vectors
 // expose them as .h[0], .h[1]). Only the AVX2 path does: there a half row is one register.
+// (AVX-512VL half rows, 256-bit ops with mask registers, were measured on a Zen 4, whose
+// 512-bit ops occupy a 256-bit pipe twice: no gain, docs/performance.md, session 9.)
 template <class X, class = void>
 struct has_half_rows : std::false_type {};
 template <class X>
@@ -109,6 +111,46 @@ constexpr float EXP_LOG2E = 1.44269504088896341f, EXP_LN2_HI = 0.693359375f, EXP
 constexpr float EXP_P[6] = {1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f,
                             4.1665795894e-2f, 1.6666665459e-1f, 5.0000001201e-1f};
 
+// The Cephes expf on x86 vectors, written once (cephes_exp_x86) for __m512 or __m256 through
+// the overloads below, each ISA's own (fmadd and friends as explicit intrinsics: -std=c++17
+// turns off FMA contraction).
+#if defined(__AVX512F__)
+inline __m512 fmadd(__m512 a, __m512 b, __m512 c) { return _mm512_fmadd_ps(a, b, c); }
+inline __m512 fnmadd(__m512 a, __m512 b, __m512 c) { return _mm512_fnmadd_ps(a, b, c); }
+inline __m512 vmin(__m512 a, __m512 b) { return _mm512_min_ps(a, b); }
+inline __m512 vmax(__m512 a, __m512 b) { return _mm512_max_ps(a, b); }
+// vrndscaleps for the nearest integer k and vscalefps for p(r) * 2^k replace the emulated
+// rounding and the exponent-bit assembly (7 instructions fewer in the kernels' hottest line).
+inline __m512 round_nearest(__m512 x) { return _mm512_roundscale_ps(x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
+inline __m512 times_pow2(__m512 y, __m512 k) { return _mm512_scalef_ps(y, k); }
+#elif defined(__AVX2__) && defined(__FMA__)
+inline __m256 fmadd(__m256 a, __m256 b, __m256 c) { return _mm256_fmadd_ps(a, b, c); }
+inline __m256 fnmadd(__m256 a, __m256 b, __m256 c) { return _mm256_fnmadd_ps(a, b, c); }
+inline __m256 vmin(__m256 a, __m256 b) { return _mm256_min_ps(a, b); }
+inline __m256 vmax(__m256 a, __m256 b) { return _mm256_max_ps(a, b); }
+// vroundps, and the exponent bits of 2^k added as integers.
+inline __m256 round_nearest(__m256 x) { return _mm256_round_ps(x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
+inline __m256 times_pow2(__m256 y, __m256 k) {
+  const __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(k), 23);
+  return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y), e));
+}
+#endif
+
+#if defined(__AVX512F__) || (defined(__AVX2__) && defined(__FMA__))
+template <typename V>
+inline V cephes_exp_x86(V x) {
+  const auto c = [](float f) { return V{} + f; };  // broadcast
+  x = vmin(vmax(x, c(-40.0f)), c(80.0f));
+  const V k = round_nearest(x * c(EXP_LOG2E));
+  V r = fnmadd(k, c(EXP_LN2_HI), x);
+  r = fnmadd(k, c(EXP_LN2_LO), r);
+  V y = c(EXP_P[0]);
+  for (int i = 1; i < 6; ++i) y = fmadd(y, r, c(EXP_P[i]));
+  y = fmadd(y, r * r, r + c(1.0f));
+  return times_pow2(y, k);
+}
+#endif
+
 // exp(x) for x <= 0 on 16 float lanes of generic vectors (~2 ulp).
 template <typename V, typename IV>
 inline V cephes_expf(V x) {
@@ -175,19 +217,7 @@ struct Simd<float> {
     return r * (2.0f - a * r);
   }
   static float hsum(V a) { return _mm512_reduce_add_ps(a); }
-  // The Cephes expf (EXP_P), with AVX-512's rounding and exponent instructions:
-  // vrndscaleps for the nearest integer k and vscalefps for p(r) * 2^k replace the emulated
-  // floor and the bit assembly (7 instructions fewer in the kernels' hottest line).
-  static V exp(V x) {
-    x = _mm512_min_ps(_mm512_max_ps(x, set1(-40.0f)), set1(80.0f));
-    const V k = _mm512_roundscale_ps(x * set1(EXP_LOG2E), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    V r = _mm512_fnmadd_ps(k, set1(EXP_LN2_HI), x);
-    r = _mm512_fnmadd_ps(k, set1(EXP_LN2_LO), r);
-    V y = set1(EXP_P[0]);
-    for (int i = 1; i < 6; ++i) y = _mm512_fmadd_ps(y, r, set1(EXP_P[i]));
-    y = _mm512_fmadd_ps(y, r * r, r + set1(1.0f));
-    return _mm512_scalef_ps(y, k);
-  }
+  static V exp(V x) { return cephes_exp_x86(x); }
 };
 #elif defined(__AVX2__) && defined(__FMA__)
 constexpr const char* SIMD_FLOAT = "avx2";
@@ -240,19 +270,7 @@ struct Simd8 {
     q = _mm_add_ss(q, _mm_movehdup_ps(q));
     return _mm_cvtss_f32(q);
   }
-  // The Cephes expf (EXP_P), with vroundps for the nearest integer k and the exponent bits
-  // of 2^k added as integers.
-  static V exp(V x) {
-    x = _mm256_min_ps(_mm256_max_ps(x, _mm256_set1_ps(-40.0f)), _mm256_set1_ps(80.0f));
-    const V k = _mm256_round_ps(_mm256_mul_ps(x, set1(EXP_LOG2E)), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-    V r = _mm256_fnmadd_ps(k, set1(EXP_LN2_HI), x);
-    r = _mm256_fnmadd_ps(k, set1(EXP_LN2_LO), r);
-    V y = set1(EXP_P[0]);
-    for (int i = 1; i < 6; ++i) y = _mm256_fmadd_ps(y, r, set1(EXP_P[i]));
-    y = _mm256_fmadd_ps(y, _mm256_mul_ps(r, r), _mm256_add_ps(r, set1(1.0f)));
-    const __m256i e = _mm256_slli_epi32(_mm256_cvtps_epi32(k), 23);
-    return _mm256_castsi256_ps(_mm256_add_epi32(_mm256_castps_si256(y), e));
-  }
+  static V exp(V x) { return cephes_exp_x86(x); }
 };
 
 // Sixteen float lanes (a tile row) as two halves; h[0] holds lanes 0-7.
