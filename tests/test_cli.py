@@ -74,6 +74,33 @@ def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
         assert step_ms > 0
 
 
+def test_bench_raster_writes_rows_training_step_and_stage_breakdown(tmp_path):
+    """A tiny `bench raster --stages`: a row per backend with the scene's measured overlap,
+    the training step, and every C++ stage timed, in the JSON and in the markdown."""
+    import json
+
+    from kgs_app.bench.raster import STAGES
+
+    js, md = tmp_path / "r.json", tmp_path / "r.md"
+    r = kgs("bench", "raster", "--n", "2000", "--res", "64", "--backends", "cpu", "torch", "--repeat", "1",
+            "--no-memory", "--stages", "--json", str(js), "--markdown", str(md), timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(js.read_text())
+    assert [row["backend"] for row in out["rows"]] == ["cpu", "torch"]
+    for row in out["rows"]:
+        assert row["forward_ms"] > 0 and row["backward_ms"] > 0
+        assert 10 < row["overlap"] < 60  # the scene is sized for ~30 Gaussians per pixel
+    assert out["train_step"]["step_ms"] > 0
+    (stage,) = out["stages"]
+    assert (stage["n"], stage["res"]) == (2000, 64) and list(stage["ms"]) == list(STAGES)
+    assert all(ms > 0 for ms in stage["ms"].values())
+    text = md.read_text()
+    for name in STAGES:
+        assert re.search(rf"^\| {name} \| \d+\.\d\d \|$", text, flags=re.M), name
+    # the cpu row exists for this size, so the rest of its fwd+bwd is a number, not a dash
+    assert re.search(r"^\| autograd \+ Python \(fwd\+bwd − stages\) \| -?\d+\.\d\d \|$", text, flags=re.M)
+
+
 @pytest.mark.slow
 def test_bench_quality_runs_end_to_end(tmp_path):
     """A tiny `bench quality`: both configurations get a table row (and one more for an

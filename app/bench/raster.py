@@ -87,6 +87,52 @@ def overlap(out, opacities) -> float:
         return float(area.sum()) / (out.image.shape[0] * out.image.shape[1])
 
 
+# The stages of one cpu forward + backward, in call order, as `stage_times` names them.
+STAGES = ("covariance forward", "projection forward", "binning", "raster forward",
+          "raster backward", "projection backward", "covariance backward")
+
+
+def stage_times(n: int, res: int, repeat: int) -> dict[str, float]:
+    """Median ms of each C++ stage of a cpu forward + backward, each called alone through the
+    extension on the benchmark's scene (`STAGES`); what `rasterize` adds on top of their sum
+    is autograd and Python."""
+    from kgs_core.render import _ext
+
+    ext = _ext.load()
+    scene = random_scene(n, res, res, overlap=30.0, seed=0)
+    means, quats, scales, opac, colors = [t.contiguous() for t in scene.tensors()]
+    viewmat, K = scene.viewmat.double().contiguous(), scene.K.double().contiguous()
+    camera = (viewmat, K, res, res, 0.01, 1e10, 0.3, False)
+    background = torch.zeros(3)
+    g_image = torch.rand(res, res, 3, generator=torch.Generator().manual_seed(1))
+    g_alpha, g_depth = torch.zeros(res, res), torch.zeros(res, res)
+
+    cov6 = ext.covar_forward(quats, scales)
+    m2d, conics, depths, opac_eff, radii, bbox = ext.project_forward(means, cov6, opac, *camera)
+    lists = ext.bin_gaussians(bbox, radii, depths, res, res)
+    _, _, _, t_final, n_contrib, records = ext.raster_forward(
+        m2d, conics, opac_eff, colors, depths, bbox, background, *lists, res, res)
+    g = ext.raster_backward(records, background, *lists, t_final, n_contrib, g_image, g_alpha, g_depth,
+                            n, res, res, False)
+    g_cov6 = torch.rand(n, 6, generator=torch.Generator().manual_seed(2))
+    calls = {
+        "covariance forward": lambda: ext.covar_forward(quats, scales),
+        "projection forward": lambda: ext.project_forward(means, cov6, opac, *camera),
+        "binning": lambda: ext.bin_gaussians(bbox, radii, depths, res, res),
+        "raster forward": lambda: ext.raster_forward(m2d, conics, opac_eff, colors, depths, bbox, background,
+                                                     *lists, res, res),
+        "raster backward": lambda: ext.raster_backward(records, background, *lists, t_final, n_contrib, g_image,
+                                                       g_alpha, g_depth, n, res, res, False),
+        "projection backward": lambda: ext.project_backward(means, cov6, opac, *camera, radii, g[0], g[1], g[4], g[2]),
+        "covariance backward": lambda: ext.covar_backward(quats, scales, g_cov6),
+    }
+    out = {}
+    for name in STAGES:
+        calls[name]()  # warm-up: the reusable buffers grow to size once
+        out[name] = statistics.median(_timed(calls[name], repeat))
+    return out
+
+
 def bench_train_step(n: int, res: int, repeat: int, sh_degree: int = 3) -> dict:
     """One optimisation step: SH colours, projection, raster, L1 + D-SSIM, backward, Adam."""
     scene = random_scene(n, res, res, overlap=30.0, seed=0)
@@ -137,7 +183,23 @@ print((status('VmHWM') - base) / 1024)
     return float(out.stdout.strip().splitlines()[-1])
 
 
-def to_markdown(rows: list[Row], step: dict, mem: dict | None) -> str:
+def stages_markdown(stages: list[dict], rows: list[Row]) -> list[str]:
+    """One column per measured size: each stage's ms, and the rest of the measured cpu
+    fwd+bwd (autograd and Python) where that size has a row."""
+    fwd_bwd = {(r.n, r.res): r.forward_ms + r.backward_ms for r in rows if r.backend == "cpu"}
+    head = [f"N = {st['n']:,} at {st['res']}²" for st in stages]
+    lines = ["| stage (ms) | " + " | ".join(head) + " |", "|---|" + "---:|" * len(stages)]
+    for name in STAGES:
+        lines.append(f"| {name} | " + " | ".join(f"{st['ms'][name]:.2f}" for st in stages) + " |")
+    rest = []
+    for st in stages:
+        total = fwd_bwd.get((st["n"], st["res"]))
+        rest.append("—" if total is None else f"{total - sum(st['ms'].values()):.2f}")
+    lines.append("| autograd + Python (fwd+bwd − stages) | " + " | ".join(rest) + " |")
+    return lines
+
+
+def to_markdown(rows: list[Row], step: dict, mem: dict | None, stages: list[dict] | None = None) -> str:
     lines = [
         f"Machine: {machine()}",
         "",
@@ -159,6 +221,8 @@ def to_markdown(rows: list[Row], step: dict, mem: dict | None) -> str:
             f"Peak extra resident memory, one forward + backward, N = {mem['n']:,} at "
             f"{mem['res']}²: **{mem['mb']:.0f} MB**"
         )
+    if stages:
+        lines += ["", *stages_markdown(stages, rows)]
     return "\n".join(lines)
 
 
@@ -169,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backends", nargs="+", default=["cpu", "torch"], choices=["cpu", "torch"])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocess")
+    ap.add_argument("--stages", action="store_true",
+                    help="also time each C++ stage of the cpu forward + backward alone, per N and size")
     ap.add_argument("--markdown", help="also write the results as markdown to this file")
     ap.add_argument("--json", help="also write raw results as JSON to this file")
     args = ap.parse_args(argv)
@@ -189,13 +255,21 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_memory:
         mem = {"n": max(args.n), "res": max(args.res), "mb": peak_memory_mb(max(args.n), max(args.res))}
         print(f"peak extra memory N={mem['n']:,} {mem['res']}²: {mem['mb']:.0f} MB")
-    md = to_markdown(rows, step, mem)
+    stages = []
+    if args.stages:
+        for n in args.n:
+            for res in args.res:
+                ms = stage_times(n, res, max(args.repeat, 5))
+                stages.append({"n": n, "res": res, "ms": ms})
+                print(f"stages N={n:>7,} {res:>4}²  " + "  ".join(f"{k} {v:.2f}" for k, v in ms.items()), flush=True)
+    md = to_markdown(rows, step, mem, stages)
     if args.markdown:
         with open(args.markdown, "w") as f:
             f.write(md + "\n")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": machine(), "rows": [asdict(r) for r in rows], "train_step": step, "memory": mem}, f, indent=2)
+            json.dump({"machine": machine(), "rows": [asdict(r) for r in rows], "train_step": step, "memory": mem,
+                       "stages": stages}, f, indent=2)
     return 0
 
 
