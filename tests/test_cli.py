@@ -93,8 +93,10 @@ def test_bench_raster_writes_rows_training_step_and_stage_breakdown(tmp_path):
     assert out["train_step"]["step_ms"] > 0
     (stage,) = out["stages"]
     assert (stage["n"], stage["res"]) == (2000, 64) and list(stage["ms"]) == list(STAGES.values())
-    assert all(ms > 0 for ms in stage["ms"].values())  # every stage ran inside rasterize
-    assert stage["rest_ms"] == pytest.approx(stage["fwd_bwd_ms"] - sum(stage["ms"].values()))
+    assert all(ms > 0 for ms in stage["ms"].values())  # the stand-in saw every stage inside rasterize
+    # The stages run inside the timed calls: together they cannot take longer than the calls
+    # (timing anything outside them, or a stage twice, would break this).
+    assert 0 < sum(stage["ms"].values()) <= stage["fwd_bwd_ms"]
     text = md.read_text()
     for label in [*STAGES.values(), "autograd + Python (the rest)", "fwd+bwd"]:
         assert re.search(rf"^\| {re.escape(label)} \| -?\d+\.\d\d \|$", text, flags=re.M), label

@@ -203,8 +203,8 @@ print((status('VmHWM') - base) / 1024)
 
 def stages_markdown(stages: list[dict]) -> list[str]:
     """One column per measured size: each stage's ms inside the pipeline, the rest, the total."""
-    lines = ["| stage (ms, inside rasterize's fwd+bwd) | " + " | ".join(f"N = {st['n']:,} at {st['res']}²" for st in stages) + " |",
-             "|---|" + "---:|" * len(stages)]
+    sizes = " | ".join(f"N = {st['n']:,} at {st['res']}²" for st in stages)
+    lines = [f"| stage (ms, inside rasterize's fwd+bwd) | {sizes} |", "|---|" + "---:|" * len(stages)]
     for label in STAGES.values():
         lines.append(f"| {label} | " + " | ".join(f"{st['ms'][label]:.2f}" for st in stages) + " |")
     lines.append("| autograd + Python (the rest) | " + " | ".join(f"{st['rest_ms']:.2f}" for st in stages) + " |")
@@ -247,7 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocess")
     ap.add_argument("--stages", action="store_true",
-                    help="also time each C++ stage inside the cpu forward + backward, per N and size, and what autograd and Python add")
+                    help="also time each C++ stage inside the cpu forward + backward, per N and size, "
+                         "and what autograd and Python add")
     ap.add_argument("--markdown", help="also write the results as markdown to this file")
     ap.add_argument("--json", help="also write raw results as JSON to this file")
     args = ap.parse_args(argv)
