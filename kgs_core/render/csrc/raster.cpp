@@ -10,7 +10,9 @@
 // The forward first writes a compact record per (tile, Gaussian) pair in tile-list order
 // (screen-space parameters, its box clipped to the tile, its colour), which the backward
 // reuses: the kernels stream memory forward instead of missing the cache on a scene-wide
-// array per pair (those misses were ~15 % of the forward).
+// array per pair (those misses were ~15 % of the forward). The forward kernel then cuts
+// each record's box to the rows and lanes where the pair contributed, so the backward
+// never evaluates a row in which every lane failed the alpha test.
 //
 // The backward walks the same lists back to front, recovering each pixel's transmittance
 // by division (alpha <= ALPHA_MAX keeps 1 - alpha >= 0.01), and writes one gradient slot
@@ -45,8 +47,9 @@ static_assert(TILE == LANES, "one tile row is one 16-lane vector");
 static_assert(RECORD_HEAD == 9, "read_pair and build_pairs spell out the record head");
 
 // One (tile, Gaussian) pair as the kernels read it from its record: RECORD_HEAD scalars
-// (mx, my, ca, cb, cc, opacity, depth, the box clipped to the tile as four bytes, the
-// pair's index in rank-major order as an int32), then the colour channels.
+// (mx, my, ca, cb, cc, opacity, depth, the box clipped to the tile as four bytes (after the
+// forward kernel: cut to where the pair contributed), the pair's index in rank-major order
+// as an int32), then the colour channels.
 template <typename S>
 struct PairRec {
   S mx, my, ca, cb, cc, op, z;
@@ -216,9 +219,32 @@ inline auto on_pair_lanes(const PairRec<S>& p, Run&& run) {
   return run(X{}, WholeRow{}, 0);
 }
 
+// Overwrites a pair record's box with the span of the rows and lanes in which the pair
+// contributed to some pixel (bit r of `rows`: row r; bit i of `lanes`: lane i), or with an
+// empty box when it contributed nowhere.
+template <typename S>
+inline void write_used_box(S* rec, unsigned rows, unsigned lanes) {
+  uint8_t clip[4];
+  std::memcpy(clip, rec + 7, 4);
+  if (rows == 0 || lanes == 0) {
+    clip[3] = clip[2];  // no row
+  } else {
+    clip[0] = uint8_t(__builtin_ctz(lanes));
+    clip[1] = uint8_t(32 - __builtin_clz(lanes));
+    clip[2] = uint8_t(__builtin_ctz(rows));
+    clip[3] = uint8_t(32 - __builtin_clz(rows));
+  }
+  std::memcpy(rec + 7, clip, 4);
+}
+
 // NC: the channel count when known at compile time (3, as in training), 0 otherwise.
+// Besides the pixels, the forward cuts each pair's record to the rows and lanes where it
+// contributed (write_used_box; pairs behind a finished tile to nothing): the backward then
+// skips the rows where every lane failed the alpha test (23 % of the box's rows on the
+// benchmark scene: python -m kgs_app.bench.occupancy) without evaluating them. A lane that
+// did not contribute adds exact zeros in the backward, so the gradients are unchanged.
 template <typename S, int NC>
-void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
+void forward_tile(const RasterShape& s, const TileGeom& t, S* records,
                   const S* background, S* image, S* alpha_out, S* depth_out,
                   S* t_final, int32_t* n_contrib, std::vector<typename Simd<S>::V>& acc) {
   using X = Simd<S>;
@@ -240,9 +266,12 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     done[r] = r < t.h ? X::mnot(X::lanes_in(0, t.w)) : X::all();
     n_done += X::count(done[r]);
   }
-  for (int k = t.begin; k < t.end && n_done < TILE_PIXELS; ++k) {
-    const PairRec<S> p = read_pair(records + size_t(k) * (RECORD_HEAD + C));
+  int k = t.begin;
+  for (; k < t.end && n_done < TILE_PIXELS; ++k) {
+    S* rec = records + size_t(k) * (RECORD_HEAD + C);
+    const PairRec<S> p = read_pair(rec);
     const S* col = p.col;
+    unsigned used_rows = 0, used_lanes = 0;  // bit r: row r, bit i: lane i
     // Whether a pixel stopped (its transmittance fell below T_MIN) at this pair.
     const bool stopped = on_pair_lanes<X>(p, [&](auto lanes, auto part, int lane0) __attribute__((always_inline)) {
       using Y = decltype(lanes);
@@ -251,7 +280,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
       const auto list_pos = Y::iset1(k - t.begin + 1);
       const GaussLanes<Y, S> gl(part(px), p, lane0);
       const YV gz = Y::set1(p.z);
-      YM any_term = Y::none();
+      YM any_term = Y::none(), any_use = Y::none();
       for (int r = p.y0; r < p.y1; ++r) {
         YM& done_r = part(done[r]);
         YV& T_r = part(T[r]);
@@ -261,6 +290,8 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
         const YV test_t = T_r * (Y::set1(S(1)) - e.alpha);
         const YM term = Y::mand(in, Y::lt(test_t, Y::set1(S(T_MIN))));
         const YM use = Y::mandnot(in, term);
+        used_rows |= unsigned(Y::any(use)) << r;  // branch-free: the tests do not predict
+        any_use = Y::mor(any_use, use);
         const YV w = Y::keep(use, e.alpha * T_r);
         T_r = Y::select(use, test_t, T_r);
         part(last[r]) = Y::iselect(use, list_pos, part(last[r]));
@@ -269,13 +300,16 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const S* records,
         part(dacc[r]) += w * gz;
         for (int ch = 0; ch < C; ++ch) part(acc[size_t(ch) * TILE + r]) += w * Y::set1(col[ch]);
       }
+      used_lanes = Y::bits(any_use) << lane0;
       return Y::any(any_term);
     });
+    write_used_box(rec, used_rows, used_lanes);
     if (stopped) {
       n_done = 0;
       for (int r = 0; r < TILE; ++r) n_done += X::count(done[r]);
     }
   }
+  for (; k < t.end; ++k) write_used_box(records + size_t(k) * (RECORD_HEAD + C), 0u, 0u);
   S Tl[TILE], dl[TILE], cl[TILE];
   int32_t ll[TILE];
   for (int r = 0; r < t.h; ++r) {
@@ -366,6 +400,10 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     const PairRec<S> p = read_pair(records + size_t(k) * (RECORD_HEAD + C));
     const S* col = p.col;
     S* slot = slots + size_t(p.rank_slot) * stride;  // rank-major: summed sequentially
+    if (p.y0 >= p.y1) {  // contributed to no pixel in the forward
+      std::fill(slot, slot + COLOR0 + C, S(0));
+      continue;
+    }
     on_pair_lanes<X>(p, [&](auto lanes, auto part, int lane0) __attribute__((always_inline)) {
       using Y = decltype(lanes);
       using YM = typename Y::M;

@@ -77,6 +77,11 @@ struct SimdGeneric {
     for (int i = 0; i < LANES; ++i) n += m[i] != 0;
     return n;
   }
+  static unsigned bits(M m) {  // lane i -> bit i
+    unsigned b = 0;
+    for (int i = 0; i < LANES; ++i) b |= unsigned(m[i] != 0) << i;
+    return b;
+  }
   static bool get(M m, int i) { return m[i] != 0; }
   static M lanes_in(int lo, int hi) {  // lanes lo <= i < hi
     M m;
@@ -201,6 +206,7 @@ struct Simd<float> {
   static M mnot(M a) { return M(~a); }
   static bool any(M m) { return m != 0; }
   static int count(M m) { return __builtin_popcount(unsigned(m)); }
+  static unsigned bits(M m) { return unsigned(m); }
   static bool get(M m, int i) { return (m >> i) & 1; }
   static M lanes_in(int lo, int hi) {
     return hi <= lo ? M(0) : M(((1u << hi) - 1u) & ~((1u << lo) - 1u));
@@ -243,7 +249,7 @@ struct Simd8 {
   static M mor(M a, M b) { return _mm256_or_ps(a, b); }
   static M mandnot(M a, M b) { return _mm256_andnot_ps(b, a); }  // a and not b
   static M mnot(M a) { return mandnot(all(), a); }
-  static int bits(M m) { return _mm256_movemask_ps(m); }
+  static unsigned bits(M m) { return unsigned(_mm256_movemask_ps(m)); }
   static bool any(M m) { return !_mm256_testz_ps(m, m); }
   static int count(M m) { return __builtin_popcount(unsigned(bits(m))); }
   static M lanes_in(int lo, int hi) {  // lanes lo <= i < hi
@@ -323,6 +329,7 @@ struct Simd<float> {
   static M mnot(M a) { return {H::mnot(a.h[0]), H::mnot(a.h[1])}; }
   static bool any(M m) { return H::any(H::mor(m.h[0], m.h[1])); }
   static int count(M m) { return H::count(m.h[0]) + H::count(m.h[1]); }
+  static unsigned bits(M m) { return H::bits(m.h[0]) | H::bits(m.h[1]) << 8; }
   static bool get(M m, int i) { return (H::bits(m.h[i >> 3]) >> (i & 7)) & 1; }
   static M lanes_in(int lo, int hi) { return {H::lanes_in(lo, hi), H::lanes_in(lo - 8, hi - 8)}; }
   static V select(M m, V a, V b) { return {H::select(m.h[0], a.h[0], b.h[0]), H::select(m.h[1], a.h[1], b.h[1])}; }
