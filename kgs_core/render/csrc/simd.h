@@ -99,38 +99,49 @@ struct SimdGeneric {
     for (int i = 0; i < LANES; ++i) s += a[i];
     return s;
   }
-  // exp(x) for the rasteriser's x <= 0: exact libm per lane (the float path below is fast).
-  static V exp(V x) {
+  // 2^x for the rasteriser's x <= 0: exact libm per lane (the float paths below are fast).
+  static V exp2(V x) {
     V out;
-    for (int i = 0; i < LANES; ++i) out[i] = std::exp(x[i]);
+    for (int i = 0; i < LANES; ++i) out[i] = std::exp2(x[i]);
     return out;
   }
 };
 
-// Cephes expf, shared by every float path: exp(x) = 2^k exp(r) with k = round(x / ln 2),
-// r = x - k ln 2 (ln 2 split in two so the product is exact), and
-// exp(r) ~ 1 + r + r^2 P(r) with P's coefficients, highest degree first. Inputs are
-// clamped to [-40, 80]: exp(-40) ~ 4e-18 is far below any alpha threshold, and lanes
-// outside a Gaussian's footprint stay out of denormal numbers, which cost ~100 cycles each.
-constexpr float EXP_LOG2E = 1.44269504088896341f, EXP_LN2_HI = 0.693359375f, EXP_LN2_LO = -2.12194440e-4f;
-constexpr float EXP_P[6] = {1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f,
-                            4.1665795894e-2f, 1.6666665459e-1f, 5.0000001201e-1f};
+// 2^x on float lanes, shared by every float path (the kernels evaluate the Gaussians in
+// base 2: their per-pair constants carry the factor log2(e)). 2^x = 2^k 2^f with k =
+// round(x) and f = x - k in [-1/2, 1/2], exact; 2^f ~ 1 + c1 f + ... + c6 f^6 with Cephes
+// exp2f's coefficients (~2e-7 relative). The polynomial runs in Estrin's form, three
+// multiply-adds deep where Horner's is six: the tile kernels are bound by the latency of
+// this chain, not by its operation count (docs/performance.md, session 10). Inputs are
+// clamped to [-60, 120]: 2^-60 ~ 9e-19 is far below any alpha threshold, and lanes outside a
+// Gaussian's footprint stay out of denormal numbers, which cost ~100 cycles each.
+constexpr float EXP2_LO = -60.0f, EXP2_HI = 120.0f;
+constexpr float EXP2_C[7] = {1.0f, 6.931472028550421e-1f, 2.402264791363012e-1f, 5.550332471162809e-2f,
+                             9.618437357674640e-3f, 1.339887440266574e-3f, 1.535336188319500e-4f};
+constexpr float LOG2E = 1.44269504088896341f;
 
-// The Cephes expf on x86 vectors, written once (cephes_exp_x86) for __m512 or __m256 through
-// the overloads below, each ISA's own (fmadd and friends as explicit intrinsics: -std=c++17
+// 2^f for f in [-1/2, 1/2], Estrin's form, through the ISA's multiply-add `fma(a, b, c)`.
+template <typename V, typename Fma>
+inline V exp2_poly(V f, Fma fma) {
+  const auto c = [](float v) { return V{} + v; };  // broadcast
+  const V f2 = f * f, f4 = f2 * f2;
+  const V lo = fma(f2, fma(c(EXP2_C[3]), f, c(EXP2_C[2])), fma(c(EXP2_C[1]), f, c(EXP2_C[0])));
+  const V hi = fma(c(EXP2_C[6]), f2, fma(c(EXP2_C[5]), f, c(EXP2_C[4])));
+  return fma(f4, hi, lo);
+}
+
+// Each x86 ISA's overloads for exp2_x86 (multiply-add as an explicit intrinsic: -std=c++17
 // turns off FMA contraction).
 #if defined(__AVX512F__)
 inline __m512 fmadd(__m512 a, __m512 b, __m512 c) { return _mm512_fmadd_ps(a, b, c); }
-inline __m512 fnmadd(__m512 a, __m512 b, __m512 c) { return _mm512_fnmadd_ps(a, b, c); }
 inline __m512 vmin(__m512 a, __m512 b) { return _mm512_min_ps(a, b); }
 inline __m512 vmax(__m512 a, __m512 b) { return _mm512_max_ps(a, b); }
-// vrndscaleps for the nearest integer k and vscalefps for p(r) * 2^k replace the emulated
+// vrndscaleps for the nearest integer k and vscalefps for p(f) * 2^k replace the emulated
 // rounding and the exponent-bit assembly (7 instructions fewer in the kernels' hottest line).
 inline __m512 round_nearest(__m512 x) { return _mm512_roundscale_ps(x, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); }
 inline __m512 times_pow2(__m512 y, __m512 k) { return _mm512_scalef_ps(y, k); }
 #elif defined(__AVX2__) && defined(__FMA__)
 inline __m256 fmadd(__m256 a, __m256 b, __m256 c) { return _mm256_fmadd_ps(a, b, c); }
-inline __m256 fnmadd(__m256 a, __m256 b, __m256 c) { return _mm256_fnmadd_ps(a, b, c); }
 inline __m256 vmin(__m256 a, __m256 b) { return _mm256_min_ps(a, b); }
 inline __m256 vmax(__m256 a, __m256 b) { return _mm256_max_ps(a, b); }
 // vroundps, and the exponent bits of 2^k added as integers.
@@ -143,34 +154,24 @@ inline __m256 times_pow2(__m256 y, __m256 k) {
 
 #if defined(__AVX512F__) || (defined(__AVX2__) && defined(__FMA__))
 template <typename V>
-inline V cephes_exp_x86(V x) {
+inline V exp2_x86(V x) {
   const auto c = [](float f) { return V{} + f; };  // broadcast
-  x = vmin(vmax(x, c(-40.0f)), c(80.0f));
-  const V k = round_nearest(x * c(EXP_LOG2E));
-  V r = fnmadd(k, c(EXP_LN2_HI), x);
-  r = fnmadd(k, c(EXP_LN2_LO), r);
-  V y = c(EXP_P[0]);
-  for (int i = 1; i < 6; ++i) y = fmadd(y, r, c(EXP_P[i]));
-  y = fmadd(y, r * r, r + c(1.0f));
-  return times_pow2(y, k);
+  x = vmin(vmax(x, c(EXP2_LO)), c(EXP2_HI));
+  const V k = round_nearest(x);
+  return times_pow2(exp2_poly(x - k, [](V a, V b, V d) { return fmadd(a, b, d); }), k);
 }
 #endif
 
-// exp(x) for x <= 0 on 16 float lanes of generic vectors (~2 ulp).
+// 2^x on 16 float lanes of generic vectors (GCC vector extensions), as above.
 template <typename V, typename IV>
-inline V cephes_expf(V x) {
-  x = x < -40.0f ? V{} - 40.0f : x;
-  x = x > 80.0f ? V{} + 80.0f : x;
-  const V kt = x * EXP_LOG2E + 0.5f;
-  V kf = __builtin_convertvector(__builtin_convertvector(kt, IV), V);
-  kf = kf > kt ? kf - 1.0f : kf;  // floor
-  V r = x - kf * EXP_LN2_HI;
-  r = r - kf * EXP_LN2_LO;
-  const V z = r * r;
-  V y = V{} + EXP_P[0];
-  for (int i = 1; i < 6; ++i) y = y * r + EXP_P[i];
-  y = y * z + r + 1.0f;
-  const IV bits = (__builtin_convertvector(kf, IV) + 127) << 23;
+inline V exp2_generic(V x) {
+  x = x < EXP2_LO ? V{} + EXP2_LO : x;
+  x = x > EXP2_HI ? V{} + EXP2_HI : x;
+  const V kt = x + 0.5f;
+  V k = __builtin_convertvector(__builtin_convertvector(kt, IV), V);
+  k = k > kt ? k - 1.0f : k;  // floor(x + 1/2)
+  const V y = exp2_poly(x - k, [](V a, V b, V d) { return a * b + d; });
+  const IV bits = (__builtin_convertvector(k, IV) + 127) << 23;
   return y * (V)bits;  // same-size vector cast = bit cast
 }
 
@@ -223,7 +224,7 @@ struct Simd<float> {
     return r * (2.0f - a * r);
   }
   static float hsum(V a) { return _mm512_reduce_add_ps(a); }
-  static V exp(V x) { return cephes_exp_x86(x); }
+  static V exp2(V x) { return exp2_x86(x); }
 };
 #elif defined(__AVX2__) && defined(__FMA__)
 constexpr const char* SIMD_FLOAT = "avx2";
@@ -276,7 +277,7 @@ struct Simd8 {
     q = _mm_add_ss(q, _mm_movehdup_ps(q));
     return _mm_cvtss_f32(q);
   }
-  static V exp(V x) { return cephes_exp_x86(x); }
+  static V exp2(V x) { return exp2_x86(x); }
 };
 
 // Sixteen float lanes (a tile row) as two halves; h[0] holds lanes 0-7.
@@ -341,14 +342,14 @@ struct Simd<float> {
   static V abs(V a) { return {H::abs(a.h[0]), H::abs(a.h[1])}; }
   static V rcp(V a) { return {H::rcp(a.h[0]), H::rcp(a.h[1])}; }
   static float hsum(V a) { return H::hsum(a.h[0] + a.h[1]); }
-  static V exp(V x) { return {H::exp(x.h[0]), H::exp(x.h[1])}; }
+  static V exp2(V x) { return {H::exp2(x.h[0]), H::exp2(x.h[1])}; }
 };
 #else
 constexpr const char* SIMD_FLOAT = "generic";
 
 template <>
 struct Simd<float> : SimdGeneric<float> {
-  static V exp(V x) { return cephes_expf<V, M>(x); }
+  static V exp2(V x) { return exp2_generic<V, M>(x); }
 };
 #endif
 
