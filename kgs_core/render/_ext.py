@@ -22,7 +22,10 @@ import torch
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "raster.cpp", "sh.cpp", "ssim.cpp", "kplanes.cpp"]
 HEADERS = ["kernels.h", "simd.h"]
-CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno", "-Wno-psabi"]
+# -fno-trapping-math: nothing here reads floating-point exception flags, and it lets GCC
+# evaluate both sides of a select, which the vectorised projection backward needs on AVX2.
+CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno",
+          "-fno-trapping-math", "-Wno-psabi"]
 LDFLAGS = ["-fopenmp"]
 
 _lock = threading.Lock()

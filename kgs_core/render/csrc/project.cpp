@@ -2,6 +2,9 @@
 // One Gaussian per loop iteration; OpenMP over Gaussians.
 #include <algorithm>
 #include <cmath>
+#include <limits>
+
+#include <omp.h>
 
 #include "kernels.h"
 
@@ -24,7 +27,10 @@ struct CamS {
   S t[3];
   S fx, fy, cx, cy;
   S lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg;
+  S near_plane, far_plane;
   explicit CamS(const Camera& c) {
+    near_plane = S(c.near_plane);
+    far_plane = S(c.far_plane);
     for (int r = 0; r < 3; ++r) {
       for (int k = 0; k < 3; ++k) R.m[3 * r + k] = S(c.viewmat[4 * r + k]);
       t[r] = S(c.viewmat[4 * r + 3]);
@@ -61,15 +67,18 @@ inline void unpack_cov(const S* c, S out[9]) {
   out[6] = c[2]; out[7] = c[4]; out[8] = c[5];
 }
 
-// Returns false when the Gaussian cannot be seen (outside near/far, degenerate).
+// Everything project_one computes, with no early exit (so that the backward's loop over
+// Gaussians, which only recomputes visible ones, vectorises). Returns whether the Gaussian
+// can be seen (inside near/far, not degenerate, finite); the fields are meaningless if not.
 template <typename S>
-inline bool project_one(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
-                        S eps2d, bool antialiased, Projected<S>& P) {
+__attribute__((always_inline)) inline bool project_math(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
+                         S eps2d, bool antialiased, Projected<S>& P) {
   const auto& R = cam.R;
   for (int r = 0; r < 3; ++r)
     P.p[r] = R(r, 0) * mean[0] + R(r, 1) * mean[1] + R(r, 2) * mean[2] + cam.t[r];
   const S z = P.p[2];
-  if (!(z >= S(c.near_plane) && z <= S(c.far_plane))) return false;
+  // (& rather than &&: no conditional loads, which stop GCC vectorising the backward)
+  const bool in_depth = (z >= cam.near_plane) & (z <= cam.far_plane);
   const S xz = P.p[0] / z, yz = P.p[1] / z;
   P.txz = std::min(cam.lim_x_pos, std::max(-cam.lim_x_neg, xz));
   P.tyz = std::min(cam.lim_y_pos, std::max(-cam.lim_y_neg, yz));
@@ -99,11 +108,19 @@ inline bool project_one(const CamS<S>& cam, const Camera& c, const S* mean, cons
   const S p = P.cov2d[0], q = P.cov2d[1], r = P.cov2d[2];
   P.det0 = p * r - q * q;
   P.det1 = (p + eps2d) * (r + eps2d) - q * q;
-  if (!(P.det1 > S(0)) || !std::isfinite(P.det1)) return false;
+  const bool det_ok = (P.det1 > S(0)) & (P.det1 <= std::numeric_limits<S>::max());
   P.comp = antialiased ? (P.det0 > S(0) ? std::sqrt(P.det0 / P.det1) : S(0)) : S(1);
   P.u = cam.fx * xz + cam.cx;
   P.v = cam.fy * yz + cam.cy;
-  return std::isfinite(P.u) && std::isfinite(P.v);
+  const S big = std::numeric_limits<S>::max();
+  return in_depth & det_ok & (std::abs(P.u) <= big) & (std::abs(P.v) <= big);
+}
+
+// Returns false when the Gaussian cannot be seen (outside near/far, degenerate).
+template <typename S>
+inline bool project_one(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
+                        S eps2d, bool antialiased, Projected<S>& P) {
+  return project_math(cam, c, mean, cov, eps2d, antialiased, P);
 }
 
 }  // namespace
@@ -146,43 +163,69 @@ void project_forward(int64_t n, const S* means, const S* covars, const S* opacit
   }
 }
 
-template <typename S>
-void project_backward(int64_t n, const S* means, const S* covars, const S* opacities,
-                      const Camera& c, S eps2d, bool antialiased, const int32_t* radii,
-                      const S* g_means2d, const S* g_conics, const S* g_depths,
-                      const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities) {
-  const CamS<S> cam(c);
+// The backward over Gaussians [begin, end). A function of its own so that its pointers stay
+// __restrict (OpenMP's outlined loop bodies lose the qualifier, and GCC then gave up on
+// vectorising behind 57 run-time alias checks), and branch-free (selects instead of ifs),
+// so that GCC runs it over a vector of Gaussians (anti-aliasing is a template parameter for
+// the same reason: a select on a run-time flag stopped it).
+template <typename S, bool antialiased>
+__attribute__((noinline)) void project_backward_range(
+    int64_t begin, int64_t end, const CamS<S>& cam, const Camera& c, const S* __restrict means,
+    const S* __restrict covars, const S* __restrict opacities, S eps2d,
+    const int32_t* __restrict radii, const S* __restrict g_means2d, const S* __restrict g_conics,
+    const S* __restrict g_depths, const S* __restrict g_opac_eff, S* __restrict g_means,
+    S* __restrict g_covars, S* __restrict g_opacities) {
   const auto& R = cam.R;
-#pragma omp parallel for schedule(static)
-  for (int64_t i = 0; i < n; ++i) {
-    for (int k = 0; k < 3; ++k) g_means[3 * i + k] = 0;
-    for (int k = 0; k < 6; ++k) g_covars[6 * i + k] = 0;
-    g_opacities[i] = 0;
-    if (radii[i] <= 0) continue;
+  // The per-Gaussian inputs pass through component-major buffers on the stack, a block at a
+  // time: GCC does not vectorise a stride of 6 at all, and it moves reads under the
+  // visibility select, which then need masked loads (none for strided data, none at all on
+  // AVX2 here); a read from a local buffer cannot fault, so it needs no mask.
+  constexpr int B = 128;
+  alignas(64) S cov_in[6][B], cov_out[6][B], g2d[2][B], gcon[3][B], opa[B], gop[B], gdep[B];
+  alignas(64) int32_t rad[B];
+  for (int64_t b0 = begin; b0 < end; b0 += B) {
+  const int m = int(std::min<int64_t>(B, end - b0));
+  for (int j = 0; j < m; ++j) {
+    const int64_t i = b0 + j;
+    for (int k = 0; k < 6; ++k) cov_in[k][j] = covars[6 * i + k];
+    for (int k = 0; k < 3; ++k) gcon[k][j] = g_conics[3 * i + k];
+    for (int k = 0; k < 2; ++k) g2d[k][j] = g_means2d[2 * i + k];
+    opa[j] = opacities[i];
+    gop[j] = g_opac_eff[i];
+    gdep[j] = g_depths[i];
+    rad[j] = radii[i];
+  }
+#pragma GCC ivdep  // Gaussians are independent: no run-time alias checks
+  for (int j = 0; j < m; ++j) {
+    const int64_t i = b0 + j;
+    const S cov[6] = {cov_in[0][j], cov_in[1][j], cov_in[2][j], cov_in[3][j], cov_in[4][j], cov_in[5][j]};
     Projected<S> P;
-    if (!project_one(cam, c, means + 3 * i, covars + 6 * i, eps2d, antialiased, P)) continue;
-    const S o = opacities[i];
-    const S go = g_opac_eff[i];
-    g_opacities[i] = go * P.comp;
+    const bool vis = project_math(cam, c, means + 3 * i, cov, eps2d, antialiased, P) & (rad[j] > 0);
+    const S o = opa[j];
+    const S go = gop[j];
+    const S ga = gcon[0][j], gb = gcon[1][j], gc = gcon[2][j];
+    const S gu = g2d[0][j], gv = g2d[1][j];
+    const S gz = gdep[j];
+    g_opacities[i] = vis ? go * P.comp : S(0);
     const S g_comp = go * o;
 
     // conic = inverse(cov2d + eps2d * I), written out per scalar (q appears twice).
     const S pd = P.cov2d[0] + eps2d, q = P.cov2d[1], rd = P.cov2d[2] + eps2d;
     const S det = P.det1, id2 = S(1) / (det * det);
-    const S ga = g_conics[3 * i], gb = g_conics[3 * i + 1], gc = g_conics[3 * i + 2];
     S gp = (-ga * rd * rd + gb * q * rd - gc * q * q) * id2;
     S gq = (S(2) * ga * q * rd - gb * (pd * rd + q * q) + S(2) * gc * pd * q) * id2;
     S gr = (-ga * q * q + gb * q * pd - gc * pd * pd) * id2;
-    if (antialiased && P.det0 > S(0)) {
+    {
+      const bool aa = antialiased & (P.det0 > S(0));
       const S k = g_comp * P.comp * S(0.5);
       const S p0 = P.cov2d[0], r0 = P.cov2d[2];
-      gp += k * (r0 / P.det0 - rd / P.det1);
-      gq += k * (-S(2) * q / P.det0 + S(2) * q / P.det1);
-      gr += k * (p0 / P.det0 - pd / P.det1);
+      gp = aa ? gp + k * (r0 / P.det0 - rd / P.det1) : gp;
+      gq = aa ? gq + k * (-S(2) * q / P.det0 + S(2) * q / P.det1) : gq;
+      gr = aa ? gr + k * (p0 / P.det0 - pd / P.det1) : gr;
     }
     // cov2d = J sc J^T with the symmetric matrix gradient G2.
     const S G2[4] = {gp, gq * S(0.5), gq * S(0.5), gr};
-    const S* J = P.J;
+    const S (&J)[6] = P.J;
     S G2J[6];  // G2 (2x2) @ J (2x3)
     for (int r = 0; r < 2; ++r)
       for (int k = 0; k < 3; ++k) G2J[3 * r + k] = G2[2 * r] * J[k] + G2[2 * r + 1] * J[3 + k];
@@ -199,27 +242,18 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
     S gpc[3] = {0, 0, 0};
     // J00 = fx/z, J11 = fy/z, J02 = -fx txz / z, J12 = -fy tyz / z.
     gpc[2] += -gJ[0] * cam.fx * iz2 - gJ[4] * cam.fy * iz2;
-    if (P.clamp_x) {
-      gpc[2] += gJ[2] * cam.fx * P.txz * iz2;
-    } else {
-      gpc[0] += -gJ[2] * cam.fx * iz2;
-      gpc[2] += gJ[2] * S(2) * cam.fx * x * iz2 * iz;
-    }
-    if (P.clamp_y) {
-      gpc[2] += gJ[5] * cam.fy * P.tyz * iz2;
-    } else {
-      gpc[1] += -gJ[5] * cam.fy * iz2;
-      gpc[2] += gJ[5] * S(2) * cam.fy * y * iz2 * iz;
-    }
+    gpc[0] += P.clamp_x ? S(0) : -gJ[2] * cam.fx * iz2;
+    gpc[2] += P.clamp_x ? gJ[2] * cam.fx * P.txz * iz2 : gJ[2] * S(2) * cam.fx * x * iz2 * iz;
+    gpc[1] += P.clamp_y ? S(0) : -gJ[5] * cam.fy * iz2;
+    gpc[2] += P.clamp_y ? gJ[5] * cam.fy * P.tyz * iz2 : gJ[5] * S(2) * cam.fy * y * iz2 * iz;
     // means2d = (fx x/z + cx, fy y/z + cy)
-    const S gu = g_means2d[2 * i], gv = g_means2d[2 * i + 1];
     gpc[0] += gu * cam.fx * iz;
     gpc[1] += gv * cam.fy * iz;
     gpc[2] += -(gu * cam.fx * x + gv * cam.fy * y) * iz2;
-    gpc[2] += g_depths[i];
+    gpc[2] += gz;
     // p = R m + t
     for (int k = 0; k < 3; ++k)
-      g_means[3 * i + k] = R(0, k) * gpc[0] + R(1, k) * gpc[1] + R(2, k) * gpc[2];
+      g_means[3 * i + k] = vis ? R(0, k) * gpc[0] + R(1, k) * gpc[1] + R(2, k) * gpc[2] : S(0);
     // sc = R sw R^T  ->  gsw = R^T gsc R
     S tmp[9], gsw[9];
     for (int r = 0; r < 3; ++r)
@@ -228,9 +262,36 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
     for (int r = 0; r < 3; ++r)
       for (int k = 0; k < 3; ++k)
         gsw[3 * r + k] = tmp[3 * r] * R(0, k) + tmp[3 * r + 1] * R(1, k) + tmp[3 * r + 2] * R(2, k);
-    S* gc6 = g_covars + 6 * i;
-    gc6[0] = gsw[0]; gc6[1] = gsw[1] + gsw[3]; gc6[2] = gsw[2] + gsw[6];
-    gc6[3] = gsw[4]; gc6[4] = gsw[5] + gsw[7]; gc6[5] = gsw[8];
+    cov_out[0][j] = vis ? gsw[0] : S(0);
+    cov_out[1][j] = vis ? gsw[1] + gsw[3] : S(0);
+    cov_out[2][j] = vis ? gsw[2] + gsw[6] : S(0);
+    cov_out[3][j] = vis ? gsw[4] : S(0);
+    cov_out[4][j] = vis ? gsw[5] + gsw[7] : S(0);
+    cov_out[5][j] = vis ? gsw[8] : S(0);
+  }
+  for (int j = 0; j < m; ++j)
+    for (int k = 0; k < 6; ++k) g_covars[6 * (b0 + j) + k] = cov_out[k][j];
+  }
+}
+
+template <typename S>
+void project_backward(int64_t n, const S* means, const S* covars, const S* opacities,
+                      const Camera& c, S eps2d, bool antialiased, const int32_t* radii,
+                      const S* g_means2d, const S* g_conics, const S* g_depths,
+                      const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities) {
+  const CamS<S> cam(c);
+#pragma omp parallel
+  {
+    const int64_t threads = omp_get_num_threads(), t = omp_get_thread_num();
+    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
+    if (antialiased)
+      project_backward_range<S, true>(begin, end, cam, c, means, covars, opacities, eps2d, radii,
+                                      g_means2d, g_conics, g_depths, g_opac_eff, g_means, g_covars,
+                                      g_opacities);
+    else
+      project_backward_range<S, false>(begin, end, cam, c, means, covars, opacities, eps2d, radii,
+                                       g_means2d, g_conics, g_depths, g_opac_eff, g_means, g_covars,
+                                       g_opacities);
   }
 }
 
