@@ -67,9 +67,9 @@ inline void unpack_cov(const S* c, S out[9]) {
   out[6] = c[2]; out[7] = c[4]; out[8] = c[5];
 }
 
-// Everything project_one computes, with no early exit (so that the backward's loop over
-// Gaussians, which only recomputes visible ones, vectorises). Returns whether the Gaussian
-// can be seen (inside near/far, not degenerate, finite); the fields are meaningless if not.
+// Everything the projection computes for one Gaussian, with no early exit (so that the loops
+// over Gaussians vectorise). Returns whether the Gaussian can be seen (inside near/far, not
+// degenerate, finite); the fields are meaningless if not.
 template <typename S>
 __attribute__((always_inline)) inline bool project_math(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
                          S eps2d, bool antialiased, Projected<S>& P) {
@@ -116,50 +116,85 @@ __attribute__((always_inline)) inline bool project_math(const CamS<S>& cam, cons
   return in_depth & det_ok & (std::abs(P.u) <= big) & (std::abs(P.v) <= big);
 }
 
-// Returns false when the Gaussian cannot be seen (outside near/far, degenerate).
-template <typename S>
-inline bool project_one(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
-                        S eps2d, bool antialiased, Projected<S>& P) {
-  return project_math(cam, c, mean, cov, eps2d, antialiased, P);
-}
 
 }  // namespace
+
+// The forward over Gaussians [begin, end), a block at a time in three loops, so that GCC
+// vectorises the first and the last (see project_backward_range for why the restrict
+// worker, the block buffers and the template flag): the projection, then the level
+// 2 ln(o / ALPHA_MIN) in double (libm's log: scalar), then the box, in double as before.
+template <typename S, bool antialiased>
+__attribute__((noinline)) void project_forward_range(
+    int64_t begin, int64_t end, const CamS<S>& cam, const Camera& c, const S* __restrict means,
+    const S* __restrict covars, const S* __restrict opacities, S eps2d, S* __restrict means2d,
+    S* __restrict conics, S* __restrict depths, S* __restrict opac_eff, int32_t* __restrict radii,
+    int32_t* __restrict bbox) {
+  constexpr int B = 128;
+  alignas(64) S cov_in[6][B], opa[B], u_[B], v_[B], pd_[B], q_[B], rd_[B], det_[B], z_[B], o_[B];
+  alignas(64) double level[B];
+  alignas(64) int32_t ok[B];
+  const double width = double(c.width), height = double(c.height);
+  for (int64_t b0 = begin; b0 < end; b0 += B) {
+    const int m = int(std::min<int64_t>(B, end - b0));
+    for (int j = 0; j < m; ++j) {
+      for (int k = 0; k < 6; ++k) cov_in[k][j] = covars[6 * (b0 + j) + k];
+      opa[j] = opacities[b0 + j];
+    }
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+      const S cov[6] = {cov_in[0][j], cov_in[1][j], cov_in[2][j], cov_in[3][j], cov_in[4][j], cov_in[5][j]};
+      Projected<S> P;
+      const bool seen = project_math(cam, c, means + 3 * (b0 + j), cov, eps2d, antialiased, P);
+      const S o = opa[j] * P.comp;
+      // A Gaussian whose peak alpha is below ALPHA_MIN never touches a pixel.
+      ok[j] = seen & (o >= S(ALPHA_MIN));
+      u_[j] = P.u; v_[j] = P.v; z_[j] = P.p[2]; o_[j] = o; det_[j] = P.det1;
+      pd_[j] = P.cov2d[0] + eps2d; q_[j] = P.cov2d[1]; rd_[j] = P.cov2d[2] + eps2d;
+    }
+    for (int j = 0; j < m; ++j)
+      level[j] = ok[j] ? 2.0 * std::log(double(o_[j]) / double(ALPHA_MIN)) : 0.0;
+#pragma GCC ivdep
+    for (int j = 0; j < m; ++j) {
+      const int64_t i = b0 + j;
+      // Exact bounding box of the ellipse where o * exp(-d^2/2) >= ALPHA_MIN.
+      const double rx = std::min(MAX_EXTENT, std::sqrt(std::max(0.0, level[j] * double(pd_[j]))));
+      const double ry = std::min(MAX_EXTENT, std::sqrt(std::max(0.0, level[j] * double(rd_[j]))));
+      const double u = std::clamp(double(u_[j]), -1e9, 1e9), v = std::clamp(double(v_[j]), -1e9, 1e9);
+      const double x0 = std::max(0.0, std::floor(u - rx)), x1 = std::min(width, std::ceil(u + rx));
+      const double y0 = std::max(0.0, std::floor(v - ry)), y1 = std::min(height, std::ceil(v + ry));
+      const bool vis = (ok[j] != 0) & (x0 < x1) & (y0 < y1);
+      bbox[4 * i + 0] = vis ? int32_t(x0) : 0;
+      bbox[4 * i + 1] = vis ? int32_t(y0) : 0;
+      bbox[4 * i + 2] = vis ? int32_t(x1) : 0;
+      bbox[4 * i + 3] = vis ? int32_t(y1) : 0;
+      radii[i] = vis ? int32_t(std::max(1.0, std::ceil(std::max(rx, ry)))) : 0;
+      means2d[2 * i] = vis ? u_[j] : S(0);
+      means2d[2 * i + 1] = vis ? v_[j] : S(0);
+      const S det = det_[j];
+      conics[3 * i] = vis ? rd_[j] / det : S(0);
+      conics[3 * i + 1] = vis ? -q_[j] / det : S(0);
+      conics[3 * i + 2] = vis ? pd_[j] / det : S(0);
+      depths[i] = vis ? z_[j] : S(0);
+      opac_eff[i] = vis ? o_[j] : S(0);
+    }
+  }
+}
 
 template <typename S>
 void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
                      const Camera& c, S eps2d, bool antialiased, S* means2d, S* conics,
                      S* depths, S* opac_eff, int32_t* radii, int32_t* bbox) {
   const CamS<S> cam(c);
-#pragma omp parallel for schedule(static)
-  for (int64_t i = 0; i < n; ++i) {
-    Projected<S> P;
-    radii[i] = 0;
-    means2d[2 * i] = means2d[2 * i + 1] = 0;
-    conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = 0;
-    depths[i] = 0;
-    opac_eff[i] = 0;
-    for (int k = 0; k < 4; ++k) bbox[4 * i + k] = 0;
-    if (!project_one(cam, c, means + 3 * i, covars + 6 * i, eps2d, antialiased, P)) continue;
-    const S o = opacities[i] * P.comp;
-    // A Gaussian whose peak alpha is below ALPHA_MIN never touches a pixel.
-    if (!(o >= S(ALPHA_MIN))) continue;
-    const S pd = P.cov2d[0] + eps2d, q = P.cov2d[1], rd = P.cov2d[2] + eps2d;
-    // Exact bounding box of the ellipse where o * exp(-d^2/2) >= ALPHA_MIN.
-    const double level = 2.0 * std::log(double(o) / double(ALPHA_MIN));
-    const double rx = std::min(MAX_EXTENT, std::sqrt(std::max(0.0, level * double(pd))));
-    const double ry = std::min(MAX_EXTENT, std::sqrt(std::max(0.0, level * double(rd))));
-    const double u = std::clamp(double(P.u), -1e9, 1e9), v = std::clamp(double(P.v), -1e9, 1e9);
-    const double x0 = std::max(0.0, std::floor(u - rx)), x1 = std::min(double(c.width), std::ceil(u + rx));
-    const double y0 = std::max(0.0, std::floor(v - ry)), y1 = std::min(double(c.height), std::ceil(v + ry));
-    if (!(x0 < x1 && y0 < y1)) continue;
-    bbox[4 * i + 0] = int32_t(x0); bbox[4 * i + 1] = int32_t(y0);
-    bbox[4 * i + 2] = int32_t(x1); bbox[4 * i + 3] = int32_t(y1);
-    radii[i] = int32_t(std::max(1.0, std::ceil(std::max(rx, ry))));
-    means2d[2 * i] = P.u; means2d[2 * i + 1] = P.v;
-    const S det = P.det1;
-    conics[3 * i] = rd / det; conics[3 * i + 1] = -q / det; conics[3 * i + 2] = pd / det;
-    depths[i] = P.p[2];
-    opac_eff[i] = o;
+#pragma omp parallel
+  {
+    const int64_t threads = omp_get_num_threads(), t = omp_get_thread_num();
+    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
+    if (antialiased)
+      project_forward_range<S, true>(begin, end, cam, c, means, covars, opacities, eps2d, means2d,
+                                     conics, depths, opac_eff, radii, bbox);
+    else
+      project_forward_range<S, false>(begin, end, cam, c, means, covars, opacities, eps2d, means2d,
+                                      conics, depths, opac_eff, radii, bbox);
   }
 }
 
