@@ -318,14 +318,21 @@ void forward_tile(const RasterShape& s, const TileGeom& t, S* records,
   int32_t ll[TILE];
   for (int r = 0; r < t.h; ++r) {
     X::store(Tl, T[r]);
-    X::store(dl, dacc[r]);
-    X::istore(ll, last[r]);
     const size_t row = size_t(t.py0 + r) * s.width + t.px0;
-    for (int i = 0; i < t.w; ++i) {
-      alpha_out[row + i] = S(1) - Tl[i];
-      depth_out[row + i] = dl[i];
-      t_final[row + i] = Tl[i];
-      n_contrib[row + i] = ll[i];
+    if (t.w == TILE) {  // straight vector stores (the staging cost ~10 % at 256²)
+      X::store(alpha_out + row, X::set1(S(1)) - T[r]);
+      X::store(depth_out + row, dacc[r]);
+      X::store(t_final + row, T[r]);
+      X::istore(n_contrib + row, last[r]);
+    } else {
+      X::store(dl, dacc[r]);
+      X::istore(ll, last[r]);
+      for (int i = 0; i < t.w; ++i) {
+        alpha_out[row + i] = S(1) - Tl[i];
+        depth_out[row + i] = dl[i];
+        t_final[row + i] = Tl[i];
+        n_contrib[row + i] = ll[i];
+      }
     }
     for (int ch = 0; ch < C; ++ch) {
       X::store(cl, acc[size_t(ch) * TILE + r]);
@@ -372,29 +379,41 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     S tf[TILE], ga[TILE], gd[TILE], gc[TILE];
     int32_t nc[TILE];
     for (int r = 0; r < TILE; ++r) {
-      std::fill(tf, tf + TILE, S(1));
-      std::fill(ga, ga + TILE, S(0));
-      std::fill(gd, gd + TILE, S(0));
-      std::fill(nc, nc + TILE, 0);
       const size_t row = size_t(t.py0 + r) * s.width + t.px0;
-      if (r < t.h) {
-        for (int i = 0; i < t.w; ++i) {
-          tf[i] = t_final[row + i];
-          ga[i] = g_alpha[row + i];
-          gd[i] = g_depth[row + i];
-          nc[i] = n_contrib[row + i];
+      const bool whole_row = r < t.h && t.w == TILE;
+      if (whole_row) {  // straight vector loads (the staging below cost ~10 % at 256²)
+        Tcur[r] = X::load(t_final + row);
+        gAT[r] = X::load(g_alpha + row) * Tcur[r];
+        gD[r] = X::load(g_depth + row);
+        last[r] = X::iload(n_contrib + row);
+      } else {  // edge tiles: outside pixels read as finished, with no gradient
+        std::fill(tf, tf + TILE, S(1));
+        std::fill(ga, ga + TILE, S(0));
+        std::fill(gd, gd + TILE, S(0));
+        std::fill(nc, nc + TILE, 0);
+        if (r < t.h) {
+          for (int i = 0; i < t.w; ++i) {
+            tf[i] = t_final[row + i];
+            ga[i] = g_alpha[row + i];
+            gd[i] = g_depth[row + i];
+            nc[i] = n_contrib[row + i];
+          }
         }
+        Tcur[r] = X::load(tf);
+        gAT[r] = X::load(ga) * Tcur[r];
+        gD[r] = X::load(gd);
+        last[r] = X::iload(nc);
       }
-      const V Tfin = X::load(tf);
-      Tcur[r] = Tfin;
-      gAT[r] = X::load(ga) * Tfin;
-      gD[r] = X::load(gd);
-      last[r] = X::iload(nc);
+      const V Tfin = Tcur[r];
       Bg[r] = X::zero();
       for (int ch = 0; ch < C; ++ch) {
-        std::fill(gc, gc + TILE, S(0));
-        if (r < t.h)
-          for (int i = 0; i < t.w; ++i) gc[i] = g_image[(row + i) * C + ch];
+        if (whole_row) {
+          for (int i = 0; i < TILE; ++i) gc[i] = g_image[(row + i) * C + ch];
+        } else {
+          std::fill(gc, gc + TILE, S(0));
+          if (r < t.h)
+            for (int i = 0; i < t.w; ++i) gc[i] = g_image[(row + i) * C + ch];
+        }
         gC[size_t(ch) * TILE + r] = X::load(gc);
         Bg[r] += gC[size_t(ch) * TILE + r] * Tfin * X::set1(background[ch]);
       }
