@@ -54,23 +54,37 @@ class _Project(torch.autograd.Function):
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, lists, width, height, info, absgrad):
+        # depth: the expected depth (alpha-weighted depth sum / alpha, 0 where alpha <= 1e-6).
         image, alpha, depth, t_final, n_contrib, records = _ext.load().raster_forward(
             means2d, conics, opacities, colors, depths, bbox, background, *lists, width, height,
         )
         # The backward reads the per-pair records (parameters + colour) instead of the inputs.
-        ctx.save_for_backward(records, background, *lists, t_final, n_contrib)
+        ctx.save_for_backward(records, background, *lists, t_final, n_contrib, alpha, depth)
         ctx.size = (means2d.shape[0], width, height)
         ctx.info = info
         ctx.absgrad = absgrad
+        # Outputs outside the loss (training uses only the image) get None, not zero images.
+        ctx.set_materialize_grads(False)
         return image, alpha, depth
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_image, g_alpha, g_depth):
-        records, background, *lists, t_final, n_contrib = ctx.saved_tensors
+        records, background, *lists, t_final, n_contrib, alpha, depth = ctx.saved_tensors
+        if g_image is None:
+            g_image = torch.zeros(*t_final.shape, background.numel(), dtype=t_final.dtype)
+        # Through depth = depth_sum / alpha to the kernels' two per-pixel outputs.
+        g_depth_sum = torch.empty(0, dtype=t_final.dtype)
+        if g_depth is not None:
+            drawn = alpha > 1e-6
+            inv = torch.where(drawn, 1.0 / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+            g_depth_sum = g_depth * inv
+            g_alpha = -g_depth_sum * depth if g_alpha is None else g_alpha - g_depth_sum * depth
+        if g_alpha is None:
+            g_alpha = torch.empty(0, dtype=t_final.dtype)
         g_m2d, g_con, g_op, g_col, g_dep, abs_g = _ext.load().raster_backward(
             records, background, *lists, t_final, n_contrib,
-            g_image.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), *ctx.size, ctx.absgrad,
+            g_image.contiguous(), g_alpha.contiguous(), g_depth_sum.contiguous(), *ctx.size, ctx.absgrad,
         )
         if ctx.absgrad:
             ctx.info["means2d_absgrad"] = abs_g

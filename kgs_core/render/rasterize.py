@@ -141,11 +141,9 @@ def rasterize(
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     extra = {"absgrad": True} if absgrad else {}
-    image, alpha, depth_acc, info = impl.rasterize_to_pixels(
+    image, alpha, depth, info = impl.rasterize_to_pixels(
         proj, colors.to(means.dtype), background.to(means.dtype), width, height, **extra
     )
-    # Expected depth: a pixel's alpha-weighted depth divided by its alpha.
-    depth = torch.where(alpha > 1e-6, depth_acc / alpha.clamp_min(1e-6), torch.zeros_like(depth_acc))
     return Rendered(
         image=image,
         alpha=alpha.unsqueeze(-1),

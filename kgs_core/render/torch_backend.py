@@ -111,8 +111,9 @@ def project(
 def rasterize_to_pixels(
     proj: Projection, colors: Tensor, background: Tensor, width: int, height: int
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
-    """Composites front to back. Returns image `(H, W, C)`, alpha `(H, W)`, the
-    alpha-weighted depth sum `(H, W)` and an (empty) info dict."""
+    """Composites front to back. Returns image `(H, W, C)`, alpha `(H, W)`, the expected
+    depth `(H, W)` (alpha-weighted depth sum over alpha; 0 where alpha <= 1e-6) and an
+    (empty) info dict."""
     dtype = colors.dtype
     C = colors.shape[1]
     visible = proj.radii > 0
@@ -147,4 +148,6 @@ def rasterize_to_pixels(
     T_final = torch.cat([r[1] for r in rows]).reshape(height, width)
     depth_acc = torch.cat([r[2] for r in rows]).reshape(height, width)
     image = acc + T_final[..., None] * background
-    return image, 1.0 - T_final, depth_acc, {}
+    alpha = 1.0 - T_final
+    depth = torch.where(alpha > 1e-6, depth_acc / alpha.clamp_min(1e-6), torch.zeros_like(depth_acc))
+    return image, alpha, depth, {}

@@ -192,7 +192,13 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
                                     Tensor g_alpha, Tensor g_depth, int64_t n, int64_t width,
                                     int64_t height, bool absgrad) {
   const auto dt = records.scalar_type();
-  for (auto* t : {&records, &background, &t_final, &g_image, &g_alpha, &g_depth}) check(*t, "raster backward input", dt);
+  for (auto* t : {&records, &background, &t_final, &g_image}) check(*t, "raster backward input", dt);
+  // The alpha and depth gradients may be empty: those outputs took no part in the loss.
+  for (auto* t : {&g_alpha, &g_depth}) {
+    if (t->numel() == 0) continue;
+    check(*t, "raster backward input", dt);
+    TORCH_CHECK(t->numel() == t_final.numel(), "alpha and depth gradients must be (H, W)");
+  }
   check(n_contrib, "n_contrib", torch::kInt32);
   const int64_t C = background.numel();
   const auto lists = lists_of(tile_offsets, tile_ranks, order, rank_start, rank_pairs, width, height);
@@ -207,7 +213,8 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
     kgs::raster_backward<scalar_t>(
         shape, lists, n, records.data_ptr<scalar_t>(), background.data_ptr<scalar_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(), g_image.data_ptr<scalar_t>(),
-        g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
+        g_alpha.numel() ? g_alpha.data_ptr<scalar_t>() : nullptr,
+        g_depth.numel() ? g_depth.data_ptr<scalar_t>() : nullptr, g_means2d.data_ptr<scalar_t>(),
         g_conics.data_ptr<scalar_t>(), g_opac.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),
         g_depths.data_ptr<scalar_t>(), abs_g.data_ptr<scalar_t>(), absgrad);
   });

@@ -241,6 +241,15 @@ inline void write_used_box(S* rec, unsigned rows, unsigned lanes) {
   std::memcpy(rec + 7, clip, 4);
 }
 
+// A pixel's expected depth: its alpha-weighted depth sum over its alpha, 0 where alpha <= 1e-6
+// (as the PyTorch reference computes it; the backward of the division is in cpu_backend.py).
+template <typename S>
+inline typename Simd<S>::V expected_depth(typename Simd<S>::V depth_sum, typename Simd<S>::V alpha) {
+  using X = Simd<S>;
+  const auto eps = X::set1(S(1e-6));
+  return X::keep(X::lt(eps, alpha), X::div(depth_sum, X::max(alpha, eps)));
+}
+
 // NC: the channel count when known at compile time (3, as in training), 0 otherwise.
 // Besides the pixels, the forward cuts each pair's record to the rows and lanes where it
 // contributed (write_used_box; pairs behind a finished tile to nothing): the backward then
@@ -320,13 +329,14 @@ void forward_tile(const RasterShape& s, const TileGeom& t, S* records,
     X::store(Tl, T[r]);
     const size_t row = size_t(t.py0 + r) * s.width + t.px0;
     if (t.w == TILE) {  // straight vector stores (the staging cost ~10 % at 256²)
-      X::store(alpha_out + row, X::set1(S(1)) - T[r]);
-      X::store(depth_out + row, dacc[r]);
+      const V a = X::set1(S(1)) - T[r];
+      X::store(alpha_out + row, a);
+      X::store(depth_out + row, expected_depth<S>(dacc[r], a));
       X::store(t_final + row, T[r]);
       X::istore(n_contrib + row, last[r]);
     } else {
-      X::store(dl, dacc[r]);
       X::istore(ll, last[r]);
+      X::store(dl, expected_depth<S>(dacc[r], X::set1(S(1)) - T[r]));
       for (int i = 0; i < t.w; ++i) {
         alpha_out[row + i] = S(1) - Tl[i];
         depth_out[row + i] = dl[i];
@@ -383,8 +393,8 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
       const bool whole_row = r < t.h && t.w == TILE;
       if (whole_row) {  // straight vector loads (the staging below cost ~10 % at 256²)
         Tcur[r] = X::load(t_final + row);
-        gAT[r] = X::load(g_alpha + row) * Tcur[r];
-        gD[r] = X::load(g_depth + row);
+        gAT[r] = g_alpha ? X::load(g_alpha + row) * Tcur[r] : X::zero();
+        gD[r] = g_depth ? X::load(g_depth + row) : X::zero();
         last[r] = X::iload(n_contrib + row);
       } else {  // edge tiles: outside pixels read as finished, with no gradient
         std::fill(tf, tf + TILE, S(1));
@@ -394,8 +404,8 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
         if (r < t.h) {
           for (int i = 0; i < t.w; ++i) {
             tf[i] = t_final[row + i];
-            ga[i] = g_alpha[row + i];
-            gd[i] = g_depth[row + i];
+            ga[i] = g_alpha ? g_alpha[row + i] : S(0);
+            gd[i] = g_depth ? g_depth[row + i] : S(0);
             nc[i] = n_contrib[row + i];
           }
         }

@@ -49,6 +49,8 @@ struct SimdGeneric {
   }
   static void store(S* p, V v) { std::memcpy(p, &v, sizeof(V)); }
   static V min(V a, V b) { return a < b ? a : b; }
+  static V max(V a, V b) { return a > b ? a : b; }
+  static V div(V a, V b) { return a / b; }
   static void istore(int32_t* p, Idx v) {
     for (int i = 0; i < LANES; ++i) p[i] = int32_t(v[i]);
   }
@@ -193,6 +195,8 @@ struct Simd<float> {
   static V load(const float* p) { return _mm512_loadu_ps(p); }
   static void store(float* p, V v) { _mm512_storeu_ps(p, v); }
   static V min(V a, V b) { return _mm512_min_ps(a, b); }
+  static V max(V a, V b) { return _mm512_max_ps(a, b); }
+  static V div(V a, V b) { return _mm512_div_ps(a, b); }
   static void istore(int32_t* p, Idx v) { _mm512_storeu_si512(p, v); }
   static Idx iload(const int32_t* p) { return _mm512_loadu_si512(p); }
   static M all() { return M(0xFFFF); }
@@ -240,6 +244,8 @@ struct Simd8 {
   static V set1(float x) { return _mm256_set1_ps(x); }
   static V zero() { return _mm256_setzero_ps(); }
   static V min(V a, V b) { return _mm256_min_ps(a, b); }
+  static V max(V a, V b) { return _mm256_max_ps(a, b); }
+  static V div(V a, V b) { return _mm256_div_ps(a, b); }
   static M all() { return _mm256_castsi256_ps(_mm256_set1_epi32(-1)); }
   static M none() { return zero(); }
   static M lt(V a, V b) { return _mm256_cmp_ps(a, b, _CMP_LT_OQ); }
@@ -310,6 +316,8 @@ struct Simd<float> {
     _mm256_storeu_ps(p + 8, v.h[1]);
   }
   static V min(V a, V b) { return {H::min(a.h[0], b.h[0]), H::min(a.h[1], b.h[1])}; }
+  static V max(V a, V b) { return {H::max(a.h[0], b.h[0]), H::max(a.h[1], b.h[1])}; }
+  static V div(V a, V b) { return {H::div(a.h[0], b.h[0]), H::div(a.h[1], b.h[1])}; }
   static void istore(int32_t* p, Idx v) {
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), v.h[0]);
     _mm256_storeu_si256(reinterpret_cast<__m256i*>(p + 8), v.h[1]);
