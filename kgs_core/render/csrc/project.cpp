@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <type_traits>
 
 #include <omp.h>
 
@@ -180,22 +181,31 @@ __attribute__((noinline)) void project_forward_range(
   }
 }
 
-template <typename S>
-void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
-                     const Camera& c, S eps2d, bool antialiased, S* means2d, S* conics,
-                     S* depths, S* opac_eff, int32_t* radii, int32_t* bbox) {
-  const CamS<S> cam(c);
+// Runs work(begin, end, antialiased) on each OpenMP thread's contiguous share of [0, n), the
+// flag as a compile-time constant (std::true_type or std::false_type).
+template <typename Work>
+inline void per_thread_share(int64_t n, bool antialiased, Work&& work) {
 #pragma omp parallel
   {
     const int64_t threads = omp_get_num_threads(), t = omp_get_thread_num();
     const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
     if (antialiased)
-      project_forward_range<S, true>(begin, end, cam, c, means, covars, opacities, eps2d, means2d,
-                                     conics, depths, opac_eff, radii, bbox);
+      work(begin, end, std::true_type{});
     else
-      project_forward_range<S, false>(begin, end, cam, c, means, covars, opacities, eps2d, means2d,
-                                      conics, depths, opac_eff, radii, bbox);
+      work(begin, end, std::false_type{});
   }
+}
+
+template <typename S>
+void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
+                     const Camera& c, S eps2d, bool antialiased, S* means2d, S* conics,
+                     S* depths, S* opac_eff, int32_t* radii, int32_t* bbox) {
+  const CamS<S> cam(c);
+  per_thread_share(n, antialiased, [&](int64_t begin, int64_t end, auto aa) {
+    project_forward_range<S, decltype(aa)::value>(begin, end, cam, c, means, covars, opacities,
+                                                  eps2d, means2d, conics, depths, opac_eff, radii,
+                                                  bbox);
+  });
 }
 
 // The backward over Gaussians [begin, end). A function of its own so that its pointers stay
@@ -315,19 +325,11 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
                       const S* g_means2d, const S* g_conics, const S* g_depths,
                       const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities) {
   const CamS<S> cam(c);
-#pragma omp parallel
-  {
-    const int64_t threads = omp_get_num_threads(), t = omp_get_thread_num();
-    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
-    if (antialiased)
-      project_backward_range<S, true>(begin, end, cam, c, means, covars, opacities, eps2d, radii,
-                                      g_means2d, g_conics, g_depths, g_opac_eff, g_means, g_covars,
-                                      g_opacities);
-    else
-      project_backward_range<S, false>(begin, end, cam, c, means, covars, opacities, eps2d, radii,
-                                       g_means2d, g_conics, g_depths, g_opac_eff, g_means, g_covars,
-                                       g_opacities);
-  }
+  per_thread_share(n, antialiased, [&](int64_t begin, int64_t end, auto aa) {
+    project_backward_range<S, decltype(aa)::value>(begin, end, cam, c, means, covars, opacities,
+                                                   eps2d, radii, g_means2d, g_conics, g_depths,
+                                                   g_opac_eff, g_means, g_covars, g_opacities);
+  });
 }
 
 #define KGS_INSTANTIATE(S)                                                                  \
