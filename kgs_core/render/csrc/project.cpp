@@ -72,8 +72,9 @@ inline void unpack_cov(const S* c, S out[9]) {
 // over Gaussians vectorise). Returns whether the Gaussian can be seen (inside near/far, not
 // degenerate, finite); the fields are meaningless if not.
 template <typename S>
-__attribute__((always_inline)) inline bool project_math(const CamS<S>& cam, const Camera& c, const S* mean, const S* cov,
-                         S eps2d, bool antialiased, Projected<S>& P) {
+__attribute__((always_inline)) inline bool project_math(const CamS<S>& cam, const S* mean,
+                                                       const S* cov, S eps2d, bool antialiased,
+                                                       Projected<S>& P) {
   const auto& R = cam.R;
   for (int r = 0; r < 3; ++r)
     P.p[r] = R(r, 0) * mean[0] + R(r, 1) * mean[1] + R(r, 2) * mean[2] + cam.t[r];
@@ -145,7 +146,7 @@ __attribute__((noinline)) void project_forward_range(
     for (int j = 0; j < m; ++j) {
       const S cov[6] = {cov_in[0][j], cov_in[1][j], cov_in[2][j], cov_in[3][j], cov_in[4][j], cov_in[5][j]};
       Projected<S> P;
-      const bool seen = project_math(cam, c, means + 3 * (b0 + j), cov, eps2d, antialiased, P);
+      const bool seen = project_math(cam, means + 3 * (b0 + j), cov, eps2d, antialiased, P);
       const S o = opa[j] * P.comp;
       // A Gaussian whose peak alpha is below ALPHA_MIN never touches a pixel.
       ok[j] = seen & (o >= S(ALPHA_MIN));
@@ -215,7 +216,7 @@ void project_forward(int64_t n, const S* means, const S* covars, const S* opacit
 // the same reason: a select on a run-time flag stopped it).
 template <typename S, bool antialiased>
 __attribute__((noinline)) void project_backward_range(
-    int64_t begin, int64_t end, const CamS<S>& cam, const Camera& c, const S* __restrict means,
+    int64_t begin, int64_t end, const CamS<S>& cam, const S* __restrict means,
     const S* __restrict covars, const S* __restrict opacities, S eps2d,
     const int32_t* __restrict radii, const S* __restrict g_means2d, const S* __restrict g_conics,
     const S* __restrict g_depths, const S* __restrict g_opac_eff, S* __restrict g_means,
@@ -245,7 +246,7 @@ __attribute__((noinline)) void project_backward_range(
     const int64_t i = b0 + j;
     const S cov[6] = {cov_in[0][j], cov_in[1][j], cov_in[2][j], cov_in[3][j], cov_in[4][j], cov_in[5][j]};
     Projected<S> P;
-    const bool vis = project_math(cam, c, means + 3 * i, cov, eps2d, antialiased, P) & (rad[j] > 0);
+    const bool vis = project_math(cam, means + 3 * i, cov, eps2d, antialiased, P) & (rad[j] > 0);
     const S o = opa[j];
     const S go = gop[j];
     const S ga = gcon[0][j], gb = gcon[1][j], gc = gcon[2][j];
@@ -326,7 +327,7 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
                       const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities) {
   const CamS<S> cam(c);
   per_thread_share(n, antialiased, [&](int64_t begin, int64_t end, auto aa) {
-    project_backward_range<S, decltype(aa)::value>(begin, end, cam, c, means, covars, opacities,
+    project_backward_range<S, decltype(aa)::value>(begin, end, cam, means, covars, opacities,
                                                    eps2d, radii, g_means2d, g_conics, g_depths,
                                                    g_opac_eff, g_means, g_covars, g_opacities);
   });
