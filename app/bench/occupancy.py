@@ -84,6 +84,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    if args.n < 1 or args.res < 1:
+        ap.error(f"--n and --res must be positive, got --n {args.n} --res {args.res}")
     occ = scene_occupancy(args.n, args.res, args.seed)
     print(f"N={args.n:,} at {args.res}²: {asdict(occ)}")
     print(f"pairs that draw {occ.pairs_drawn / occ.pairs:.1%}, rows per pair {occ.rows / occ.pairs:.2f}, "

@@ -21,7 +21,7 @@ import torch
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "raster.cpp", "sh.cpp", "ssim.cpp", "kplanes.cpp"]
-HEADERS = ["kernels.h", "simd.h"]
+HEADERS = ["kernels.h", "simd.h", "parallel.h"]
 # -fno-trapping-math: nothing here reads floating-point exception flags, and it lets GCC
 # evaluate both sides of a select, which the vectorised projection backward needs on AVX2.
 CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno",

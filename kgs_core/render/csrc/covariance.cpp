@@ -3,9 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
-#include <omp.h>
-
 #include "kernels.h"
+#include "parallel.h"
 
 namespace kgs {
 namespace {
@@ -115,12 +114,9 @@ __attribute__((noinline)) void covar_backward_range(int64_t begin, int64_t end,
 template <typename S>
 void covar_backward(int64_t n, const S* quats, const S* scales, const S* g_cov6, S* g_quats,
                     S* g_scales) {
-#pragma omp parallel
-  {
-    const int64_t threads = omp_get_num_threads(), t = omp_get_thread_num();
-    covar_backward_range(n * t / threads, n * (t + 1) / threads, quats, scales, g_cov6, g_quats,
-                         g_scales);
-  }
+  per_thread_share(n, [&](int64_t begin, int64_t end) {
+    covar_backward_range(begin, end, quats, scales, g_cov6, g_quats, g_scales);
+  });
 }
 
 template void covar_forward<float>(int64_t, const float*, const float*, float*);

@@ -3,11 +3,9 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
-#include <type_traits>
-
-#include <omp.h>
 
 #include "kernels.h"
+#include "parallel.h"
 
 namespace kgs {
 namespace {
@@ -165,11 +163,13 @@ __attribute__((noinline)) void project_forward_range(
       const double x0 = std::max(0.0, std::floor(u - rx)), x1 = std::min(width, std::ceil(u + rx));
       const double y0 = std::max(0.0, std::floor(v - ry)), y1 = std::min(height, std::ceil(v + ry));
       const bool vis = (ok[j] != 0) & (x0 < x1) & (y0 < y1);
-      bbox[4 * i + 0] = vis ? int32_t(x0) : 0;
-      bbox[4 * i + 1] = vis ? int32_t(y0) : 0;
-      bbox[4 * i + 2] = vis ? int32_t(x1) : 0;
-      bbox[4 * i + 3] = vis ? int32_t(y1) : 0;
-      radii[i] = vis ? int32_t(std::max(1.0, std::ceil(std::max(rx, ry)))) : 0;
+      // (Selected before the conversion: an invisible lane may hold NaN, and converting NaN
+      // to an integer is undefined.)
+      bbox[4 * i + 0] = int32_t(vis ? x0 : 0.0);
+      bbox[4 * i + 1] = int32_t(vis ? y0 : 0.0);
+      bbox[4 * i + 2] = int32_t(vis ? x1 : 0.0);
+      bbox[4 * i + 3] = int32_t(vis ? y1 : 0.0);
+      radii[i] = int32_t(vis ? std::max(1.0, std::ceil(std::max(rx, ry))) : 0.0);
       means2d[2 * i] = vis ? u_[j] : S(0);
       means2d[2 * i + 1] = vis ? v_[j] : S(0);
       const S det = det_[j];
@@ -182,30 +182,17 @@ __attribute__((noinline)) void project_forward_range(
   }
 }
 
-// Runs work(begin, end, antialiased) on each OpenMP thread's contiguous share of [0, n), the
-// flag as a compile-time constant (std::true_type or std::false_type).
-template <typename Work>
-inline void per_thread_share(int64_t n, bool antialiased, Work&& work) {
-#pragma omp parallel
-  {
-    const int64_t threads = omp_get_num_threads(), t = omp_get_thread_num();
-    const int64_t begin = n * t / threads, end = n * (t + 1) / threads;
-    if (antialiased)
-      work(begin, end, std::true_type{});
-    else
-      work(begin, end, std::false_type{});
-  }
-}
-
 template <typename S>
 void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
                      const Camera& c, S eps2d, bool antialiased, S* means2d, S* conics,
                      S* depths, S* opac_eff, int32_t* radii, int32_t* bbox) {
   const CamS<S> cam(c);
-  per_thread_share(n, antialiased, [&](int64_t begin, int64_t end, auto aa) {
-    project_forward_range<S, decltype(aa)::value>(begin, end, cam, c, means, covars, opacities,
-                                                  eps2d, means2d, conics, depths, opac_eff, radii,
-                                                  bbox);
+  with_constant(antialiased, [&](auto aa) {
+    per_thread_share(n, [&](int64_t begin, int64_t end) {
+      project_forward_range<S, decltype(aa)::value>(begin, end, cam, c, means, covars, opacities,
+                                                    eps2d, means2d, conics, depths, opac_eff,
+                                                    radii, bbox);
+    });
   });
 }
 
@@ -230,93 +217,93 @@ __attribute__((noinline)) void project_backward_range(
   alignas(64) S cov_in[6][B], cov_out[6][B], g2d[2][B], gcon[3][B], opa[B], gop[B], gdep[B];
   alignas(64) int32_t rad[B];
   for (int64_t b0 = begin; b0 < end; b0 += B) {
-  const int m = int(std::min<int64_t>(B, end - b0));
-  for (int j = 0; j < m; ++j) {
-    const int64_t i = b0 + j;
-    for (int k = 0; k < 6; ++k) cov_in[k][j] = covars[6 * i + k];
-    for (int k = 0; k < 3; ++k) gcon[k][j] = g_conics[3 * i + k];
-    for (int k = 0; k < 2; ++k) g2d[k][j] = g_means2d[2 * i + k];
-    opa[j] = opacities[i];
-    gop[j] = g_opac_eff[i];
-    gdep[j] = g_depths[i];
-    rad[j] = radii[i];
-  }
-#pragma GCC ivdep  // Gaussians are independent: no run-time alias checks
-  for (int j = 0; j < m; ++j) {
-    const int64_t i = b0 + j;
-    const S cov[6] = {cov_in[0][j], cov_in[1][j], cov_in[2][j], cov_in[3][j], cov_in[4][j], cov_in[5][j]};
-    Projected<S> P;
-    const bool vis = project_math(cam, means + 3 * i, cov, eps2d, antialiased, P) & (rad[j] > 0);
-    const S o = opa[j];
-    const S go = gop[j];
-    const S ga = gcon[0][j], gb = gcon[1][j], gc = gcon[2][j];
-    const S gu = g2d[0][j], gv = g2d[1][j];
-    const S gz = gdep[j];
-    g_opacities[i] = vis ? go * P.comp : S(0);
-    const S g_comp = go * o;
-
-    // conic = inverse(cov2d + eps2d * I), written out per scalar (q appears twice).
-    const S pd = P.cov2d[0] + eps2d, q = P.cov2d[1], rd = P.cov2d[2] + eps2d;
-    const S det = P.det1, id2 = S(1) / (det * det);
-    S gp = (-ga * rd * rd + gb * q * rd - gc * q * q) * id2;
-    S gq = (S(2) * ga * q * rd - gb * (pd * rd + q * q) + S(2) * gc * pd * q) * id2;
-    S gr = (-ga * q * q + gb * q * pd - gc * pd * pd) * id2;
-    {
-      const bool aa = antialiased & (P.det0 > S(0));
-      const S k = g_comp * P.comp * S(0.5);
-      const S p0 = P.cov2d[0], r0 = P.cov2d[2];
-      gp = aa ? gp + k * (r0 / P.det0 - rd / P.det1) : gp;
-      gq = aa ? gq + k * (-S(2) * q / P.det0 + S(2) * q / P.det1) : gq;
-      gr = aa ? gr + k * (p0 / P.det0 - pd / P.det1) : gr;
+    const int m = int(std::min<int64_t>(B, end - b0));
+    for (int j = 0; j < m; ++j) {
+      const int64_t i = b0 + j;
+      for (int k = 0; k < 6; ++k) cov_in[k][j] = covars[6 * i + k];
+      for (int k = 0; k < 3; ++k) gcon[k][j] = g_conics[3 * i + k];
+      for (int k = 0; k < 2; ++k) g2d[k][j] = g_means2d[2 * i + k];
+      opa[j] = opacities[i];
+      gop[j] = g_opac_eff[i];
+      gdep[j] = g_depths[i];
+      rad[j] = radii[i];
     }
-    // cov2d = J sc J^T with the symmetric matrix gradient G2.
-    const S G2[4] = {gp, gq * S(0.5), gq * S(0.5), gr};
-    const S (&J)[6] = P.J;
-    S G2J[6];  // G2 (2x2) @ J (2x3)
-    for (int r = 0; r < 2; ++r)
-      for (int k = 0; k < 3; ++k) G2J[3 * r + k] = G2[2 * r] * J[k] + G2[2 * r + 1] * J[3 + k];
-    S gsc[9];  // J^T G2 J
-    for (int r = 0; r < 3; ++r)
-      for (int k = 0; k < 3; ++k) gsc[3 * r + k] = J[r] * G2J[k] + J[3 + r] * G2J[3 + k];
-    S gJ[6];  // 2 G2 J sc
-    for (int r = 0; r < 2; ++r)
-      for (int k = 0; k < 3; ++k)
-        gJ[3 * r + k] = S(2) * (G2J[3 * r] * P.sc[k] + G2J[3 * r + 1] * P.sc[3 + k] +
-                                G2J[3 * r + 2] * P.sc[6 + k]);
+#pragma GCC ivdep  // Gaussians are independent: no run-time alias checks
+    for (int j = 0; j < m; ++j) {
+      const int64_t i = b0 + j;
+      const S cov[6] = {cov_in[0][j], cov_in[1][j], cov_in[2][j], cov_in[3][j], cov_in[4][j], cov_in[5][j]};
+      Projected<S> P;
+      const bool vis = project_math(cam, means + 3 * i, cov, eps2d, antialiased, P) & (rad[j] > 0);
+      const S o = opa[j];
+      const S go = gop[j];
+      const S ga = gcon[0][j], gb = gcon[1][j], gc = gcon[2][j];
+      const S gu = g2d[0][j], gv = g2d[1][j];
+      const S gz = gdep[j];
+      g_opacities[i] = vis ? go * P.comp : S(0);
+      const S g_comp = go * o;
 
-    const S x = P.p[0], y = P.p[1], z = P.p[2], iz = S(1) / z, iz2 = iz * iz;
-    S gpc[3] = {0, 0, 0};
-    // J00 = fx/z, J11 = fy/z, J02 = -fx txz / z, J12 = -fy tyz / z.
-    gpc[2] += -gJ[0] * cam.fx * iz2 - gJ[4] * cam.fy * iz2;
-    gpc[0] += P.clamp_x ? S(0) : -gJ[2] * cam.fx * iz2;
-    gpc[2] += P.clamp_x ? gJ[2] * cam.fx * P.txz * iz2 : gJ[2] * S(2) * cam.fx * x * iz2 * iz;
-    gpc[1] += P.clamp_y ? S(0) : -gJ[5] * cam.fy * iz2;
-    gpc[2] += P.clamp_y ? gJ[5] * cam.fy * P.tyz * iz2 : gJ[5] * S(2) * cam.fy * y * iz2 * iz;
-    // means2d = (fx x/z + cx, fy y/z + cy)
-    gpc[0] += gu * cam.fx * iz;
-    gpc[1] += gv * cam.fy * iz;
-    gpc[2] += -(gu * cam.fx * x + gv * cam.fy * y) * iz2;
-    gpc[2] += gz;
-    // p = R m + t
-    for (int k = 0; k < 3; ++k)
-      g_means[3 * i + k] = vis ? R(0, k) * gpc[0] + R(1, k) * gpc[1] + R(2, k) * gpc[2] : S(0);
-    // sc = R sw R^T  ->  gsw = R^T gsc R
-    S tmp[9], gsw[9];
-    for (int r = 0; r < 3; ++r)
+      // conic = inverse(cov2d + eps2d * I), written out per scalar (q appears twice).
+      const S pd = P.cov2d[0] + eps2d, q = P.cov2d[1], rd = P.cov2d[2] + eps2d;
+      const S det = P.det1, id2 = S(1) / (det * det);
+      S gp = (-ga * rd * rd + gb * q * rd - gc * q * q) * id2;
+      S gq = (S(2) * ga * q * rd - gb * (pd * rd + q * q) + S(2) * gc * pd * q) * id2;
+      S gr = (-ga * q * q + gb * q * pd - gc * pd * pd) * id2;
+      {
+        const bool aa = antialiased & (P.det0 > S(0));
+        const S k = g_comp * P.comp * S(0.5);
+        const S p0 = P.cov2d[0], r0 = P.cov2d[2];
+        gp = aa ? gp + k * (r0 / P.det0 - rd / P.det1) : gp;
+        gq = aa ? gq + k * (-S(2) * q / P.det0 + S(2) * q / P.det1) : gq;
+        gr = aa ? gr + k * (p0 / P.det0 - pd / P.det1) : gr;
+      }
+      // cov2d = J sc J^T with the symmetric matrix gradient G2.
+      const S G2[4] = {gp, gq * S(0.5), gq * S(0.5), gr};
+      const S (&J)[6] = P.J;
+      S G2J[6];  // G2 (2x2) @ J (2x3)
+      for (int r = 0; r < 2; ++r)
+        for (int k = 0; k < 3; ++k) G2J[3 * r + k] = G2[2 * r] * J[k] + G2[2 * r + 1] * J[3 + k];
+      S gsc[9];  // J^T G2 J
+      for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k) gsc[3 * r + k] = J[r] * G2J[k] + J[3 + r] * G2J[3 + k];
+      S gJ[6];  // 2 G2 J sc
+      for (int r = 0; r < 2; ++r)
+        for (int k = 0; k < 3; ++k)
+          gJ[3 * r + k] = S(2) * (G2J[3 * r] * P.sc[k] + G2J[3 * r + 1] * P.sc[3 + k] +
+                                  G2J[3 * r + 2] * P.sc[6 + k]);
+
+      const S x = P.p[0], y = P.p[1], z = P.p[2], iz = S(1) / z, iz2 = iz * iz;
+      S gpc[3] = {0, 0, 0};
+      // J00 = fx/z, J11 = fy/z, J02 = -fx txz / z, J12 = -fy tyz / z.
+      gpc[2] += -gJ[0] * cam.fx * iz2 - gJ[4] * cam.fy * iz2;
+      gpc[0] += P.clamp_x ? S(0) : -gJ[2] * cam.fx * iz2;
+      gpc[2] += P.clamp_x ? gJ[2] * cam.fx * P.txz * iz2 : gJ[2] * S(2) * cam.fx * x * iz2 * iz;
+      gpc[1] += P.clamp_y ? S(0) : -gJ[5] * cam.fy * iz2;
+      gpc[2] += P.clamp_y ? gJ[5] * cam.fy * P.tyz * iz2 : gJ[5] * S(2) * cam.fy * y * iz2 * iz;
+      // means2d = (fx x/z + cx, fy y/z + cy)
+      gpc[0] += gu * cam.fx * iz;
+      gpc[1] += gv * cam.fy * iz;
+      gpc[2] += -(gu * cam.fx * x + gv * cam.fy * y) * iz2;
+      gpc[2] += gz;
+      // p = R m + t
       for (int k = 0; k < 3; ++k)
-        tmp[3 * r + k] = R(0, r) * gsc[k] + R(1, r) * gsc[3 + k] + R(2, r) * gsc[6 + k];
-    for (int r = 0; r < 3; ++r)
-      for (int k = 0; k < 3; ++k)
-        gsw[3 * r + k] = tmp[3 * r] * R(0, k) + tmp[3 * r + 1] * R(1, k) + tmp[3 * r + 2] * R(2, k);
-    cov_out[0][j] = vis ? gsw[0] : S(0);
-    cov_out[1][j] = vis ? gsw[1] + gsw[3] : S(0);
-    cov_out[2][j] = vis ? gsw[2] + gsw[6] : S(0);
-    cov_out[3][j] = vis ? gsw[4] : S(0);
-    cov_out[4][j] = vis ? gsw[5] + gsw[7] : S(0);
-    cov_out[5][j] = vis ? gsw[8] : S(0);
-  }
-  for (int j = 0; j < m; ++j)
-    for (int k = 0; k < 6; ++k) g_covars[6 * (b0 + j) + k] = cov_out[k][j];
+        g_means[3 * i + k] = vis ? R(0, k) * gpc[0] + R(1, k) * gpc[1] + R(2, k) * gpc[2] : S(0);
+      // sc = R sw R^T  ->  gsw = R^T gsc R
+      S tmp[9], gsw[9];
+      for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k)
+          tmp[3 * r + k] = R(0, r) * gsc[k] + R(1, r) * gsc[3 + k] + R(2, r) * gsc[6 + k];
+      for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 3; ++k)
+          gsw[3 * r + k] = tmp[3 * r] * R(0, k) + tmp[3 * r + 1] * R(1, k) + tmp[3 * r + 2] * R(2, k);
+      cov_out[0][j] = vis ? gsw[0] : S(0);
+      cov_out[1][j] = vis ? gsw[1] + gsw[3] : S(0);
+      cov_out[2][j] = vis ? gsw[2] + gsw[6] : S(0);
+      cov_out[3][j] = vis ? gsw[4] : S(0);
+      cov_out[4][j] = vis ? gsw[5] + gsw[7] : S(0);
+      cov_out[5][j] = vis ? gsw[8] : S(0);
+    }
+    for (int j = 0; j < m; ++j)
+      for (int k = 0; k < 6; ++k) g_covars[6 * (b0 + j) + k] = cov_out[k][j];
   }
 }
 
@@ -326,10 +313,12 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
                       const S* g_means2d, const S* g_conics, const S* g_depths,
                       const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities) {
   const CamS<S> cam(c);
-  per_thread_share(n, antialiased, [&](int64_t begin, int64_t end, auto aa) {
-    project_backward_range<S, decltype(aa)::value>(begin, end, cam, means, covars, opacities,
-                                                   eps2d, radii, g_means2d, g_conics, g_depths,
-                                                   g_opac_eff, g_means, g_covars, g_opacities);
+  with_constant(antialiased, [&](auto aa) {
+    per_thread_share(n, [&](int64_t begin, int64_t end) {
+      project_backward_range<S, decltype(aa)::value>(begin, end, cam, means, covars, opacities,
+                                                     eps2d, radii, g_means2d, g_conics, g_depths,
+                                                     g_opac_eff, g_means, g_covars, g_opacities);
+    });
   });
 }
 
