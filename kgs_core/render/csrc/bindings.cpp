@@ -110,25 +110,24 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
   check(radii, "radii", torch::kInt32);
   check(depths, "depths", depths.scalar_type());
   const int64_t n = radii.size(0);
+  TORCH_CHECK(bbox.numel() == 4 * n && depths.numel() == n, "bbox must be (N, 4) and depths (N,)");
   const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
-  auto offsets = torch::empty({tiles + 1}, bbox.options());
-  int64_t n_visible = 0;
-  const int64_t pairs = kgs::bin_count_pairs(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
-                                             int(width), int(height), offsets.data_ptr<int32_t>(),
-                                             &n_visible);
-  TORCH_CHECK(pairs < (int64_t(1) << 31), "too many tile/Gaussian pairs: ", pairs);
-  auto ranks = torch::empty({pairs}, bbox.options());
-  auto order = torch::empty({n_visible}, bbox.options());
-  auto rank_start = torch::empty({n_visible + 1}, bbox.options());
-  auto rank_pairs = torch::empty({pairs}, bbox.options());
-  AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "bin_fill", [&] {
-    kgs::bin_fill<scalar_t>(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
-                            depths.data_ptr<scalar_t>(), int(width), int(height),
-                            offsets.data_ptr<int32_t>(), order.data_ptr<int32_t>(),
-                            ranks.data_ptr<int32_t>(), rank_start.data_ptr<int32_t>(),
-                            rank_pairs.data_ptr<int32_t>());
+  auto opts = bbox.options();
+  auto offsets = torch::empty({tiles + 1}, opts), id_start = torch::empty({n + 1}, opts);
+  Tensor order, ranks, id_pairs;
+  auto allocate = [&](int64_t n_visible, int64_t pairs) {
+    TORCH_CHECK(pairs < (int64_t(1) << 31), "too many tile/Gaussian pairs: ", pairs);
+    order = torch::empty({n_visible}, opts);
+    ranks = torch::empty({pairs}, opts);
+    id_pairs = torch::empty({pairs}, opts);
+    return kgs::BinOutputs{offsets.data_ptr<int32_t>(), order.data_ptr<int32_t>(), ranks.data_ptr<int32_t>(),
+                           id_start.data_ptr<int32_t>(), id_pairs.data_ptr<int32_t>()};
+  };
+  AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "bin_gaussians", [&] {
+    kgs::bin_gaussians<scalar_t>(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
+                                 depths.data_ptr<scalar_t>(), int(width), int(height), allocate);
   });
-  return {offsets, ranks, order, rank_start, rank_pairs};
+  return {offsets, ranks, order, id_start, id_pairs};
 }
 
 kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
@@ -140,27 +139,27 @@ kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
 }
 
 kgs::TileLists lists_of(const Tensor& offsets, const Tensor& ranks, const Tensor& order,
-                        const Tensor& rank_start, const Tensor& rank_pairs, int64_t width,
+                        const Tensor& id_start, const Tensor& id_pairs, int64_t n, int64_t width,
                         int64_t height) {
   check(offsets, "tile_offsets", torch::kInt32);
   check(ranks, "tile_ranks", torch::kInt32);
   check(order, "order", torch::kInt32);
-  check(rank_start, "rank_start", torch::kInt32);
-  check(rank_pairs, "rank_pairs", torch::kInt32);
+  check(id_start, "id_start", torch::kInt32);
+  check(id_pairs, "id_pairs", torch::kInt32);
   const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
   TORCH_CHECK(offsets.numel() == tiles + 1, "tile_offsets does not match the image size");
-  TORCH_CHECK(rank_start.numel() == order.numel() + 1, "rank_start must have n_visible + 1 entries");
+  TORCH_CHECK(id_start.numel() == n + 1, "id_start must have one entry per Gaussian, plus one");
   const int64_t n_pairs = offsets.data_ptr<int32_t>()[tiles];
-  TORCH_CHECK(rank_pairs.numel() == n_pairs && ranks.numel() == n_pairs,
-              "tile_ranks and rank_pairs must have one entry per pair");
+  TORCH_CHECK(id_pairs.numel() == n_pairs && ranks.numel() == n_pairs,
+              "tile_ranks and id_pairs must have one entry per pair");
   return {order.numel(), n_pairs, order.data_ptr<int32_t>(), offsets.data_ptr<int32_t>(),
-          ranks.data_ptr<int32_t>(), rank_start.data_ptr<int32_t>(), rank_pairs.data_ptr<int32_t>()};
+          ranks.data_ptr<int32_t>(), id_start.data_ptr<int32_t>(), id_pairs.data_ptr<int32_t>()};
 }
 
 std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
                                    Tensor depths, Tensor bbox, Tensor background,
                                    Tensor tile_offsets, Tensor tile_ranks, Tensor order,
-                                   Tensor rank_start, Tensor rank_pairs, int64_t width,
+                                   Tensor id_start, Tensor id_pairs, int64_t width,
                                    int64_t height) {
   const auto dt = means2d.scalar_type();
   for (auto* t : {&means2d, &conics, &opac, &colors, &depths, &background}) check(*t, "raster input", dt);
@@ -168,7 +167,7 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
   const int64_t C = colors.size(1);
   TORCH_CHECK(background.numel() == C, "background must have ", C, " channels");
   const auto shape = shape_of(width, height, C);
-  const auto lists = lists_of(tile_offsets, tile_ranks, order, rank_start, rank_pairs, width, height);
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, id_pairs, means2d.size(0), width, height);
   auto opts = means2d.options();
   auto records = torch::empty({lists.n_pairs, kgs::RECORD_HEAD + C}, opts);
   auto image = torch::empty({height, width, C}, opts);
@@ -187,7 +186,7 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
 }
 
 std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor tile_offsets,
-                                    Tensor tile_ranks, Tensor order, Tensor rank_start, Tensor rank_pairs,
+                                    Tensor tile_ranks, Tensor order, Tensor id_start, Tensor id_pairs,
                                     Tensor t_final, Tensor n_contrib, Tensor g_image,
                                     Tensor g_alpha, Tensor g_depth, int64_t n, int64_t width,
                                     int64_t height, bool absgrad) {
@@ -201,7 +200,7 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
   }
   check(n_contrib, "n_contrib", torch::kInt32);
   const int64_t C = background.numel();
-  const auto lists = lists_of(tile_offsets, tile_ranks, order, rank_start, rank_pairs, width, height);
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, id_pairs, n, width, height);
   TORCH_CHECK(records.dim() == 2 && records.size(0) == lists.n_pairs && records.size(1) == kgs::RECORD_HEAD + C,
               "records do not match the tile lists");
   const auto shape = shape_of(width, height, C);

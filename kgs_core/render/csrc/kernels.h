@@ -11,6 +11,7 @@
 //    its transmittance would fall below T_MIN. Forward and backward share these rules.
 #pragma once
 #include <cstdint>
+#include <functional>
 
 namespace kgs {
 
@@ -46,18 +47,24 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
                       const S* g_means2d, const S* g_conics, const S* g_depths,
                       const S* g_opac_eff, S* g_means, S* g_covars, S* g_opacities);
 
-// Depth-sorted tile lists. bin_count_pairs fills tile_offsets (n_tiles + 1) and returns
-// the number of (tile, Gaussian) pairs and, through n_visible, the number of visible
-// Gaussians. bin_fill writes `order` (visible ids, front to back: rank -> id),
+// Where bin_gaussians writes the depth-sorted tile lists (see there).
+struct BinOutputs {
+  int32_t* tile_offsets;  // (n_tiles + 1,)
+  int32_t* order;         // (n_visible,)
+  int32_t* tile_ranks;    // (n_pairs,)
+  int32_t* id_start;      // (n + 1,)
+  int32_t* id_pairs;      // (n_pairs,)
+};
+
+// Depth-sorted tile lists of the visible Gaussians (radii > 0). Once it knows their sizes,
+// it calls allocate(n_visible, n_pairs) for the output arrays, then writes `tile_offsets`
+// (each tile's range in the pair lists), `order` (visible ids, front to back: rank -> id),
 // `tile_ranks` (per tile, ranks in increasing depth: the pair lists) and the same pairs
-// indexed by rank: rank r's pairs sit at positions rank_pairs[rank_start[r] ..
-// rank_start[r + 1]) of the pair lists (rank_start has n_visible + 1 entries).
-int64_t bin_count_pairs(int64_t n, const int32_t* bbox, const int32_t* radii, int width,
-                        int height, int32_t* tile_offsets, int64_t* n_visible);
+// indexed by Gaussian id: Gaussian g's pairs sit at positions id_pairs[id_start[g] ..
+// id_start[g + 1]) of the pair lists (an invisible Gaussian's range is empty).
 template <typename S>
-void bin_fill(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
-              int width, int height, const int32_t* tile_offsets, int32_t* order,
-              int32_t* tile_ranks, int32_t* rank_start, int32_t* rank_pairs);
+void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
+                   int width, int height, const std::function<BinOutputs(int64_t, int64_t)>& allocate);
 
 struct RasterShape {
   int width, height, channels;
@@ -70,8 +77,8 @@ struct TileLists {
   const int32_t* order;        // (n_visible,) rank -> Gaussian id
   const int32_t* tile_offsets; // (n_tiles + 1,)
   const int32_t* tile_ranks;   // (n_pairs,)
-  const int32_t* rank_start;   // (n_visible + 1,)
-  const int32_t* rank_pairs;   // (n_pairs,)
+  const int32_t* id_start;     // (n + 1,)
+  const int32_t* id_pairs;     // (n_pairs,)
 };
 
 // Per-pair records (see raster.cpp): RECORD_HEAD scalars then the pair's colour channels.
