@@ -168,7 +168,7 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
           const int32_t pos = cursor[q.tile[i]]++;
           const bool real = q.tile[i] != n_tiles;
           *(real ? out.tile_ranks + pos : discard) = int32_t(rank);
-          *(real ? out.id_pairs + j : discard + 1) = pos;
+          *(real ? out.pair_slot + pos : discard + 1) = j;
           j += real;
         }
       } else {
@@ -176,7 +176,7 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
           for (int tx = r.x0; tx < r.x1; ++tx) {
             const int32_t pos = cursor[ty * tiles_x + tx]++;
             out.tile_ranks[pos] = int32_t(rank);
-            out.id_pairs[j++] = pos;
+            out.pair_slot[pos] = j++;
           }
       }
     }

@@ -7,12 +7,15 @@
 // per-pixel state of a tile is 16 vectors and every update is straight-line SIMD code. On
 // AVX2 a pair whose box lies in one half of the tile runs on that register only.
 //
-// The forward first writes a compact record per (tile, Gaussian) pair in tile-list order
-// (screen-space parameters, its box clipped to the tile, its colour), which the backward
-// reuses: the kernels stream memory forward instead of missing the cache on a scene-wide
-// array per pair (those misses were ~15 % of the forward). The forward kernel then cuts
-// each record's box to the rows and lanes where the pair contributed, so the backward
-// never evaluates a row in which every lane failed the alpha test.
+// Each Gaussian's inputs are first packed into one 64-byte line (screen-space parameters,
+// box, colour), so that a pair costs one cache miss, not one per input array, and the
+// forward kernel prefetches the lines of the pairs a few steps ahead, where the misses hide
+// behind the arithmetic. As it finishes a pair, the forward writes the pair's record for
+// the backward (the line, with the box cut to the rows and lanes where the pair
+// contributed, and its gradient slot), so the backward streams memory forward and never
+// evaluates a row in which every lane failed the alpha test. (Session 11: copying the lines
+// into records in a separate pass before the forward cost ~1 ms at 50k / 256²; reading the
+// lines in the backward too cost it ~9 %.)
 //
 // The backward walks the same lists back to front, recovering each pixel's transmittance
 // by division (alpha <= ALPHA_MAX keeps 1 - alpha >= 0.01), and writes one gradient slot
@@ -21,7 +24,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
-#include <new>
 #include <vector>
 
 #include "kernels.h"
@@ -30,44 +32,34 @@
 namespace kgs {
 namespace {
 
-// Cache-line aligned storage for the packed per-Gaussian lines.
-template <typename T>
-struct AlignedAllocator {
-  using value_type = T;
-  AlignedAllocator() = default;
-  template <typename U>
-  AlignedAllocator(const AlignedAllocator<U>&) {}
-  T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
-  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
-  bool operator==(const AlignedAllocator&) const { return true; }
-  bool operator!=(const AlignedAllocator&) const { return false; }
-};
-
 static_assert(TILE == LANES, "one tile row is one 16-lane vector");
-static_assert(RECORD_HEAD == 9, "read_pair and build_pairs spell out the record head");
+static_assert(LINE_HEAD == 9, "read_pair and pack_gaussians spell out the line head");
 
-// One (tile, Gaussian) pair as the kernels read it from its record: RECORD_HEAD scalars
-// (mx, my, ca, cb, cc, opacity, depth, the box clipped to the tile as four bytes (after the
-// forward kernel: cut to where the pair contributed), the pair's slot in id-major order
-// as an int32), then the colour channels.
+// One (tile, Gaussian) pair as the kernels see it. The forward reads it from the Gaussian's
+// packed line (mx, my, ca, cb, cc, opacity, depth, its box in pixels as four int16 (x0, y0 |
+// x1, y1), then the colour channels) and the box on this tile; it then writes the pair's
+// record for the backward, the same head with the box cut to where the pair drew and the
+// pair's gradient slot in place of the pixel box (write_record).
 template <typename S>
 struct PairRec {
   S mx, my, ca, cb, cc, op, z;
   int x0, x1, y0, y1;  // tile-relative, ends exclusive
-  int32_t slot_index;
   const S* col;
 };
 
+// A pair's box on a tile, as four bytes x0, x1, y0, y1 (tile-relative, ends exclusive; empty
+// when y0 == y1).
+inline uint32_t pack_box(int x0, int x1, int y0, int y1) {
+  return uint32_t(x0) | uint32_t(x1) << 8 | uint32_t(y0) << 16 | uint32_t(y1) << 24;
+}
+
 template <typename S>
-inline PairRec<S> read_pair(const S* rec) {
+inline PairRec<S> read_pair(const S* line, uint32_t box) {
   PairRec<S> p;
-  p.mx = rec[0]; p.my = rec[1]; p.ca = rec[2]; p.cb = rec[3]; p.cc = rec[4];
-  p.op = rec[5]; p.z = rec[6];
-  uint8_t clip[4];
-  std::memcpy(clip, rec + 7, 4);
-  p.x0 = clip[0]; p.x1 = clip[1]; p.y0 = clip[2]; p.y1 = clip[3];
-  std::memcpy(&p.slot_index, rec + 8, 4);
-  p.col = rec + RECORD_HEAD;
+  p.mx = line[0]; p.my = line[1]; p.ca = line[2]; p.cb = line[3]; p.cc = line[4];
+  p.op = line[5]; p.z = line[6];
+  p.x0 = box & 0xff; p.x1 = box >> 8 & 0xff; p.y0 = box >> 16 & 0xff; p.y1 = box >> 24;
+  p.col = line + LINE_HEAD;
   return p;
 }
 
@@ -88,63 +80,47 @@ inline TileGeom tile_geom(const RasterShape& s, const int32_t* tile_offsets, int
   return g;
 }
 
-// Writes every pair's record in tile-list order (sequential writes). Depth order is random
-// in memory, so each pair's inputs cost cache misses: they are first packed per Gaussian,
-// in id order, into one 64-byte line (mx, my, ca, cb, cc, opacity, depth, box as 4 int16,
-// colour), which makes it one miss per pair instead of one per input array (gathering the
-// seven arrays in depth order took as long as the forward kernel).
+// Packs each Gaussian's inputs into one line of packed_stride(C) scalars, in id order.
 template <typename S>
-void build_pairs(const RasterShape& s, const TileLists& L, int64_t n, const S* means2d,
-                 const S* conics, const S* opac, const S* colors, const S* depths,
-                 const int32_t* bbox, S* records) {
-  const int C = s.channels;
-  const int R = RECORD_HEAD + C;
-  constexpr int LINE = 64 / sizeof(S);
-  const int P = (R + LINE - 1) / LINE * LINE;  // packed stride, whole cache lines
-  const int n_tiles = s.tiles_x * s.tiles_y;
-  thread_local std::vector<S, AlignedAllocator<S>> packed;
-  thread_local std::vector<int32_t> pair_slot;
-  packed.resize(size_t(n) * P);
-  pair_slot.resize(size_t(L.n_pairs));
-  S* G = packed.data();
-  int32_t* slot_of = pair_slot.data();
-#pragma omp parallel
-  {
-#pragma omp for schedule(static) nowait
-    for (int64_t g = 0; g < n; ++g) {
-      S* d = G + size_t(g) * P;
-      d[0] = means2d[2 * g]; d[1] = means2d[2 * g + 1];
-      d[2] = conics[3 * g]; d[3] = conics[3 * g + 1]; d[4] = conics[3 * g + 2];
-      d[5] = opac[g]; d[6] = depths[g];
-      int16_t box[4];
-      for (int q = 0; q < 4; ++q) box[q] = int16_t(std::min(bbox[4 * g + q], 32767));
-      std::memcpy(d + 7, box, 4);      // x0, y0
-      std::memcpy(d + 8, box + 2, 4);  // x1, y1
-      for (int ch = 0; ch < C; ++ch) d[RECORD_HEAD + ch] = colors[size_t(g) * C + ch];
-    }
-#pragma omp for schedule(static)
-    for (int64_t j = 0; j < L.n_pairs; ++j) slot_of[L.id_pairs[j]] = int32_t(j);
-#pragma omp for schedule(dynamic, 4)
-    for (int tile = 0; tile < n_tiles; ++tile) {
-      const TileGeom t = tile_geom(s, L.tile_offsets, tile);
-      for (int k = t.begin; k < t.end; ++k) {
-        if (k + 8 < t.end) __builtin_prefetch(G + size_t(L.order[L.tile_ranks[k + 8]]) * P);
-        const S* src = G + size_t(L.order[L.tile_ranks[k]]) * P;
-        S* rec = records + size_t(k) * R;
-        int16_t box[4];
-        std::memcpy(box, src + 7, 4);
-        std::memcpy(box + 2, src + 8, 4);
-        const uint8_t clip[4] = {uint8_t(std::clamp(box[0] - t.px0, 0, TILE)),
-                                 uint8_t(std::clamp(box[2] - t.px0, 0, TILE)),
-                                 uint8_t(std::clamp(box[1] - t.py0, 0, TILE)),
-                                 uint8_t(std::clamp(box[3] - t.py0, 0, TILE))};
-        for (int q = 0; q < 7; ++q) rec[q] = src[q];
-        std::memcpy(rec + 7, clip, 4);
-        std::memcpy(rec + 8, slot_of + k, 4);
-        for (int ch = 0; ch < C; ++ch) rec[RECORD_HEAD + ch] = src[RECORD_HEAD + ch];
-      }
-    }
+void pack_gaussians(int64_t n, int C, const S* means2d, const S* conics, const S* opac,
+                    const S* colors, const S* depths, const int32_t* bbox, S* packed) {
+  const int P = packed_stride<S>(C);
+#pragma omp parallel for schedule(static)
+  for (int64_t g = 0; g < n; ++g) {
+    S* d = packed + size_t(g) * P;
+    d[0] = means2d[2 * g]; d[1] = means2d[2 * g + 1];
+    d[2] = conics[3 * g]; d[3] = conics[3 * g + 1]; d[4] = conics[3 * g + 2];
+    d[5] = opac[g]; d[6] = depths[g];
+    int16_t box[4];
+    for (int q = 0; q < 4; ++q) box[q] = int16_t(std::min(bbox[4 * g + q], 32767));
+    std::memcpy(d + 7, box, 4);      // x0, y0
+    std::memcpy(d + 8, box + 2, 4);  // x1, y1
+    for (int ch = 0; ch < C; ++ch) d[LINE_HEAD + ch] = colors[size_t(g) * C + ch];
+    for (int q = LINE_HEAD + C; q < P; ++q) d[q] = S(0);
   }
+}
+
+// The pair lists as the forward walks them: the k-th pair's packed line, and the line a
+// few pairs ahead brought toward the cache.
+template <typename S>
+struct PairLines {
+  const S* packed;
+  int stride;
+  const int32_t* order;
+  const int32_t* tile_ranks;
+  static constexpr int AHEAD = 6;
+  const S* line(int k) const { return packed + size_t(order[tile_ranks[k]]) * stride; }
+  void prefetch(int k) const { __builtin_prefetch(line(k)); }
+};
+
+// A Gaussian's pixel box (from its packed line) clipped to a tile.
+template <typename S>
+inline uint32_t box_on_tile(const S* line, const TileGeom& t) {
+  int16_t box[4];
+  std::memcpy(box, line + 7, 4);
+  std::memcpy(box + 2, line + 8, 4);
+  return pack_box(std::clamp(box[0] - t.px0, 0, TILE), std::clamp(box[2] - t.px0, 0, TILE),
+                  std::clamp(box[1] - t.py0, 0, TILE), std::clamp(box[3] - t.py0, 0, TILE));
 }
 
 // What one Gaussian contributes along a tile row (or the part of it that the lane set X
@@ -223,22 +199,25 @@ inline auto on_pair_lanes(const PairRec<S>& p, Run&& run) {
   return run(X{}, WholeRow{}, 0);
 }
 
-// Overwrites a pair record's box with the span of the rows and lanes in which the pair
-// contributed to some pixel (bit r of `rows`: row r; bit i of `lanes`: lane i), or with an
-// empty box when it contributed nowhere.
+// The span of the rows and lanes in which a pair contributed to some pixel (bit r of
+// `rows`: row r; bit i of `lanes`: lane i) as a packed box; empty when it contributed
+// nowhere.
+inline uint32_t used_box(unsigned rows, unsigned lanes) {
+  if (rows == 0 || lanes == 0) return 0;
+  return pack_box(__builtin_ctz(lanes), 32 - __builtin_clz(lanes), __builtin_ctz(rows),
+                  32 - __builtin_clz(rows));
+}
+
+// A pair's record for the backward: the line's parameters and colour, with its used box and
+// gradient slot in the two box scalars. Written by the forward while the line is in L1, so
+// the backward streams the records instead of missing the cache on a line per pair (reading
+// the lines there cost the backward ~9 %).
 template <typename S>
-inline void write_used_box(S* rec, unsigned rows, unsigned lanes) {
-  uint8_t clip[4];
-  std::memcpy(clip, rec + 7, 4);
-  if (rows == 0 || lanes == 0) {
-    clip[3] = clip[2];  // no row
-  } else {
-    clip[0] = uint8_t(__builtin_ctz(lanes));
-    clip[1] = uint8_t(32 - __builtin_clz(lanes));
-    clip[2] = uint8_t(__builtin_ctz(rows));
-    clip[3] = uint8_t(32 - __builtin_clz(rows));
-  }
-  std::memcpy(rec + 7, clip, 4);
+inline void write_record(S* rec, const S* line, uint32_t box, int32_t slot, int C) {
+  for (int q = 0; q < 7; ++q) rec[q] = line[q];
+  std::memcpy(rec + 7, &box, 4);
+  std::memcpy(rec + 8, &slot, 4);
+  for (int ch = 0; ch < C; ++ch) rec[LINE_HEAD + ch] = line[LINE_HEAD + ch];
 }
 
 // A pixel's expected depth: its alpha-weighted depth sum over its alpha, 0 where alpha <= 1e-6
@@ -251,14 +230,14 @@ inline typename Simd<S>::V expected_depth(typename Simd<S>::V depth_sum, typenam
 }
 
 // NC: the channel count when known at compile time (3, as in training), 0 otherwise.
-// Besides the pixels, the forward cuts each pair's record to the rows and lanes where it
-// contributed (write_used_box; pairs behind a finished tile to nothing): the backward then
+// Besides the pixels, the forward writes each pair's box cut to the rows and lanes where it
+// contributed (used_box; pairs behind a finished tile: empty): the backward then
 // skips the rows where every lane failed the alpha test (23 % of the box's rows on the
 // benchmark scene: python -m kgs_app.bench.occupancy) without evaluating them. A lane that
 // did not contribute adds exact zeros in the backward, so the gradients are unchanged.
 template <typename S, int NC>
-void forward_tile(const RasterShape& s, const TileGeom& t, S* records,
-                  const S* background, S* image, S* alpha_out, S* depth_out,
+void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& lines,
+                  const int32_t* pair_slot, S* records, const S* background, S* image, S* alpha_out, S* depth_out,
                   S* t_final, int32_t* n_contrib, std::vector<typename Simd<S>::V>& acc) {
   using X = Simd<S>;
   using V = typename X::V;
@@ -281,8 +260,9 @@ void forward_tile(const RasterShape& s, const TileGeom& t, S* records,
   }
   int k = t.begin;
   for (; k < t.end && n_done < TILE_PIXELS; ++k) {
-    S* rec = records + size_t(k) * (RECORD_HEAD + C);
-    const PairRec<S> p = read_pair(rec);
+    if (k + lines.AHEAD < t.end) lines.prefetch(k + lines.AHEAD);
+    const S* line = lines.line(k);
+    const PairRec<S> p = read_pair(line, box_on_tile(line, t));
     const S* col = p.col;
     unsigned used_rows = 0, used_lanes = 0;  // bit r: row r, bit i: lane i
     // Whether a pixel stopped (its transmittance fell below T_MIN) at this pair.
@@ -316,13 +296,19 @@ void forward_tile(const RasterShape& s, const TileGeom& t, S* records,
       used_lanes = Y::bits(any_use) << lane0;
       return Y::any(any_term);
     });
-    write_used_box(rec, used_rows, used_lanes);
+    write_record(records + size_t(k) * (LINE_HEAD + C), line, used_box(used_rows, used_lanes),
+                 pair_slot[k], C);
     if (stopped) {
       n_done = 0;
       for (int r = 0; r < TILE; ++r) n_done += X::count(done[r]);
     }
   }
-  for (; k < t.end; ++k) write_used_box(records + size_t(k) * (RECORD_HEAD + C), 0u, 0u);
+  for (; k < t.end; ++k) {  // behind a finished tile: an empty box and the slot to zero
+    S* rec = records + size_t(k) * (LINE_HEAD + C);
+    const uint32_t empty = 0;
+    std::memcpy(rec + 7, &empty, 4);
+    std::memcpy(rec + 8, pair_slot + k, 4);
+  }
   S Tl[TILE], dl[TILE], cl[TILE];
   int32_t ll[TILE];
   for (int r = 0; r < t.h; ++r) {
@@ -363,8 +349,7 @@ inline int slot_stride(int channels) { return (COLOR0 + channels + LANES - 1) / 
 // NC: the channel count when known at compile time (3, the training render), 0 otherwise:
 // with it the per-channel loops unroll and the pair's colour gradients stay in registers.
 template <typename S, bool ABS, int NC>
-void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
-                   const S* background, const S* t_final,
+void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, const S* background, const S* t_final,
                    const int32_t* n_contrib, const S* g_image, const S* g_alpha,
                    const S* g_depth, S* slots, std::vector<typename Simd<S>::V>& scratch) {
   using X = Simd<S>;
@@ -430,13 +415,18 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records,
     }
   }
   for (int k = t.end - 1; k >= t.begin; --k) {
-    const PairRec<S> p = read_pair(records + size_t(k) * (RECORD_HEAD + C));
-    const S* col = p.col;
-    S* slot = slots + size_t(p.slot_index) * stride;  // id-major: summed sequentially
-    if (p.y0 >= p.y1) {  // contributed to no pixel in the forward
+    const S* rec = records + size_t(k) * (LINE_HEAD + C);
+    uint32_t box;
+    int32_t slot_index;
+    std::memcpy(&box, rec + 7, 4);
+    std::memcpy(&slot_index, rec + 8, 4);
+    S* slot = slots + size_t(slot_index) * stride;  // id-major: summed sequentially
+    if ((box >> 16 & 0xff) >= box >> 24) {  // contributed to no pixel in the forward
       std::fill(slot, slot + COLOR0 + C, S(0));
       continue;
     }
+    const PairRec<S> p = read_pair(rec, box);
+    const S* col = p.col;
     on_pair_lanes<X>(p, [&](auto lanes, auto part, int lane0) __attribute__((always_inline)) {
       using Y = decltype(lanes);
       using YM = typename Y::M;
@@ -527,10 +517,11 @@ std::vector<T>& reusable_slots() {
 template <typename S>
 void raster_forward(const RasterShape& s, const TileLists& L, int64_t n, const S* means2d,
                     const S* conics, const S* opac, const S* colors, const S* depths, const int32_t* bbox,
-                    const S* background, S* records, S* image, S* alpha, S* depth_acc,
-                    S* t_final, int32_t* n_contrib) {
+                    const S* background, S* packed, S* records, S* image, S* alpha,
+                    S* depth_acc, S* t_final, int32_t* n_contrib) {
   const int n_tiles = s.tiles_x * s.tiles_y;
-  build_pairs(s, L, n, means2d, conics, opac, colors, depths, bbox, records);
+  pack_gaussians(n, s.channels, means2d, conics, opac, colors, depths, bbox, packed);
+  const PairLines<S> lines{packed, packed_stride<S>(s.channels), L.order, L.tile_ranks};
 #pragma omp parallel
   {
     std::vector<typename Simd<S>::V> acc;
@@ -538,9 +529,9 @@ void raster_forward(const RasterShape& s, const TileLists& L, int64_t n, const S
     for (int tile = 0; tile < n_tiles; ++tile) {
       const TileGeom t = tile_geom(s, L.tile_offsets, tile);
       if (s.channels == 3)
-        forward_tile<S, 3>(s, t, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
+        forward_tile<S, 3>(s, t, lines, L.pair_slot, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
       else
-        forward_tile<S, 0>(s, t, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
+        forward_tile<S, 0>(s, t, lines, L.pair_slot, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
     }
   }
 }
@@ -611,7 +602,7 @@ void raster_backward(const RasterShape& s, const TileLists& L, int64_t n, const 
   template void raster_forward<S>(const RasterShape&, const TileLists&, int64_t, const S*,     \
                                   const S*,                                                    \
                                   const S*, const S*, const S*, const int32_t*, const S*, S*,  \
-                                  S*, S*, S*, S*, int32_t*);                                   \
+                                  S*, S*, S*, S*, S*, int32_t*);                               \
   template void raster_backward<S>(const RasterShape&, const TileLists&, int64_t, const S*,    \
                                    const S*, const S*, const int32_t*, const S*, const S*,     \
                                    const S*, S*, S*, S*, S*, S*, S*, bool);
