@@ -223,10 +223,11 @@ def test_means2d_gradient_and_absgrad_for_densification():
     absg = out.info["means2d_absgrad"]
     # Signed weights make pixel contributions cancel: the sum of |.| is strictly larger.
     assert (absg >= g.abs() - 1e-6).all() and bool((absg > g.abs() + 1e-6).any())
-    # Asking for it changes nothing else.
-    assert torch.allclose(grads[False][0], g, rtol=1e-5, atol=1e-7)
-    for a, b in zip(grads[False][1], grads[True][1]):
-        assert torch.allclose(a, b, rtol=1e-5, atol=1e-7)
+    # Asking for it changes nothing else. (With it the backward runs its general path; without,
+    # narrow pairs may take the AVX-512 two-rows path, which sums the same terms in another
+    # order: equal up to float rounding at each gradient's scale.)
+    for a, b in zip([grads[False][0], *grads[False][1]], [g, *grads[True][1]]):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(a.abs().max()))
     with pytest.raises(ValueError, match="absgrad"):
         rasterize(leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2],
                   colors=leaves[4], backend="torch", absgrad=True)

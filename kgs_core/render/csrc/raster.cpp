@@ -24,6 +24,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <type_traits>
 #include <vector>
 
 #include "kernels.h"
@@ -343,6 +344,102 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& l
 enum Slot { MX = 0, MY, CA, CB, CC, OP, DEPTH, ABS_MX, ABS_MY, COLOR0 };
 inline int slot_stride(int channels) { return (COLOR0 + channels + LANES - 1) / LANES * LANES; }
 
+#if defined(__AVX512F__)
+// The backward of one pair whose used lanes span at most 8 (most pairs: a footprint draws
+// ~4 of a row's 16 lanes), two rows per 16-lane vector: lanes 0-7 hold columns a .. a + 7
+// of row r, lanes 8-15 the same columns of row r + 1. The per-pixel state is gathered from
+// the two row vectors with one two-source permute each and the two running values (T, the
+// "behind" sum) are merged back with masked permutes, ~12 shuffles per row pair against a
+// whole row evaluation saved. Each pixel's own chain of operations is unchanged; only the
+// pair's lane sums add in a different order. Same rules and outputs as backward_tile's
+// general path (the colour channels known at compile time, no absgrad).
+template <int NC>
+inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, int list_pos_i,
+                                   __m512* Tcur, __m512* Bg, const __m512* gAT, const __m512* gD,
+                                   const __m512i* last, const __m512* gC, float* slot) {
+  using X = Simd<float>;
+  constexpr float LOG2E = 1.4426950408889634f;
+  const int a = std::min(p.x0, 8);
+  const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+  const __m512i col = _mm512_add_epi32(_mm512_set1_epi32(a), _mm512_and_si512(lane, _mm512_set1_epi32(7)));
+  const __m512i upper = _mm512_srli_epi32(lane, 3);  // 0 for row r, 1 for row r + 1
+  // Lane j reads column col[j] of the first row vector, or of the second (index + 16).
+  const __m512i gather = _mm512_add_epi32(col, _mm512_slli_epi32(upper, 4));
+  const __m512i back0 = _mm512_sub_epi32(lane, _mm512_set1_epi32(a));  // row r's column c <- lane c - a
+  const __m512i back1 = _mm512_add_epi32(back0, _mm512_set1_epi32(8));  // row r + 1's <- lane c - a + 8
+  const __mmask16 window = __mmask16(0xFFu << a);
+  const __mmask16 in_cols = __mmask16(_mm512_cmpge_epi32_mask(col, _mm512_set1_epi32(p.x0)) &
+                                      _mm512_cmplt_epi32_mask(col, _mm512_set1_epi32(p.x1)));
+  const __m512 dx = _mm512_add_ps(_mm512_cvtepi32_ps(col), _mm512_set1_ps(float(t.px0) + 0.5f - p.mx));
+  const __m512 row_off = _mm512_cvtepi32_ps(upper);
+  const __m512 p0 = X::set1(-0.5f * LOG2E * p.ca) * dx * dx;
+  const __m512 p1 = X::set1(-LOG2E * p.cb) * dx;
+  const __m512 half_cc = X::set1(0.5f * LOG2E * p.cc);
+  const __m512i list_pos = _mm512_set1_epi32(list_pos_i);
+  const __m512 gz = X::set1(p.z), one = X::set1(1.0f);
+  __m512 m_x = X::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x, a_d = m_x;
+  __m512 col_acc[NC];
+  for (int ch = 0; ch < NC; ++ch) col_acc[ch] = X::zero();
+  for (int r = p.y0; r < p.y1; r += 2) {
+    const bool two = r + 1 < p.y1;
+    const int r1 = two ? r + 1 : r;  // a lone last row reads itself twice; its upper half is off
+    const __mmask16 in_box = __mmask16(in_cols & (two ? 0xFFFFu : 0x00FFu));
+    const __m512i last_rr = _mm512_permutex2var_epi32(last[r], gather, last[r1]);
+    if (!(in_box & _mm512_cmplt_epi32_mask(list_pos, last_rr))) continue;
+    const __m512 dy = X::set1(float(t.py0 + r) + 0.5f - p.my) + row_off;
+    const __m512 power = dy * p1 + (p0 - half_cc * dy * dy);
+    const __m512 G = X::exp2(power);
+    const __m512 a_raw = X::set1(p.op) * G;
+    const __m512 alpha = X::min(a_raw, X::set1(ALPHA_MAX));
+    const __mmask16 use = in_box & X::le(power, X::zero()) & X::ge(alpha, X::set1(ALPHA_MIN)) &
+                          _mm512_cmplt_epi32_mask(list_pos, last_rr);
+    if (!use) continue;
+    const __m512 T = _mm512_permutex2var_ps(Tcur[r], gather, Tcur[r1]);
+    __m512 B = _mm512_permutex2var_ps(Bg[r], gather, Bg[r1]);
+    const __m512 gA = _mm512_permutex2var_ps(gAT[r], gather, gAT[r1]);
+    const __m512 gd = _mm512_permutex2var_ps(gD[r], gather, gD[r1]);
+    const __m512 inv = X::rcp(one - alpha);
+    const __m512 Ti = T * inv;
+    const __m512 w = X::keep(use, alpha * Ti);
+    __m512 gcc = gd * gz;
+    for (int ch = 0; ch < NC; ++ch) {
+      const __m512 gc = _mm512_permutex2var_ps(gC[ch * TILE + r], gather, gC[ch * TILE + r1]);
+      gcc += gc * X::set1(p.col[ch]);
+      col_acc[ch] += w * gc;
+    }
+    const __m512 dal = inv * (gA - B) + Ti * gcc;
+    B += w * gcc;
+    a_d += w * gd;
+    const __m512 T_new = X::select(use, Ti, T);
+    Tcur[r] = _mm512_mask_permutexvar_ps(Tcur[r], window, back0, T_new);
+    Bg[r] = _mm512_mask_permutexvar_ps(Bg[r], window, back0, B);
+    if (two) {
+      Tcur[r1] = _mm512_mask_permutexvar_ps(Tcur[r1], window, back1, T_new);
+      Bg[r1] = _mm512_mask_permutexvar_ps(Bg[r1], window, back1, B);
+    }
+    const __mmask16 live = use & X::lt(a_raw, X::set1(ALPHA_MAX));
+    const __m512 gp = X::keep(live, dal * a_raw);
+    a_op += X::keep(live, dal * G);
+    const __m512 gpdx = gp * dx;
+    m_x += gpdx;
+    m_y += gp * dy;
+    m_xx += gpdx * dx;
+    m_xy += gpdx * dy;
+    m_yy += gp * dy * dy;
+  }
+  const float sx = X::hsum(m_x), sy = X::hsum(m_y);
+  slot[MX] = p.ca * sx + p.cb * sy;
+  slot[MY] = p.cb * sx + p.cc * sy;
+  slot[CA] = -0.5f * X::hsum(m_xx);
+  slot[CB] = -X::hsum(m_xy);
+  slot[CC] = -0.5f * X::hsum(m_yy);
+  slot[OP] = X::hsum(a_op);
+  slot[DEPTH] = X::hsum(a_d);
+  slot[ABS_MX] = slot[ABS_MY] = 0.0f;
+  for (int ch = 0; ch < NC; ++ch) slot[COLOR0 + ch] = X::hsum(col_acc[ch]);
+}
+#endif
+
 // ABS: also accumulate |dL/dmean2d| per pixel (AbsGS densification); without it the mean
 // and conic gradients come from five moments of gp (per-Gaussian constants factored out
 // of the row loop), which halves that part of the loop.
@@ -427,6 +524,14 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
     }
     const PairRec<S> p = read_pair(rec, box);
     const S* col = p.col;
+#if defined(__AVX512F__)
+    if constexpr (std::is_same_v<S, float> && NC > 0 && !ABS) {
+      if (p.x1 - p.x0 <= 8 && p.y1 - p.y0 >= 2) {
+        backward_pair_two_rows<NC>(t, p, k - t.begin, Tcur, Bg, gAT, gD, last, gC, slot);
+        continue;
+      }
+    }
+#endif
     on_pair_lanes<X>(p, [&](auto lanes, auto part, int lane0) __attribute__((always_inline)) {
       using Y = decltype(lanes);
       using YM = typename Y::M;
