@@ -230,6 +230,7 @@ inline typename Simd<S>::V expected_depth(typename Simd<S>::V depth_sum, typenam
   return X::keep(X::lt(eps, alpha), X::div(depth_sum, X::max(alpha, eps)));
 }
 
+
 // NC: the channel count when known at compile time (3, as in training), 0 otherwise.
 // Besides the pixels, the forward writes each pair's box cut to the rows and lanes where it
 // contributed (used_box; pairs behind a finished tile: empty): the backward then
@@ -345,87 +346,127 @@ enum Slot { MX = 0, MY, CA, CB, CC, OP, DEPTH, ABS_MX, ABS_MY, COLOR0 };
 inline int slot_stride(int channels) { return (COLOR0 + channels + LANES - 1) / LANES * LANES; }
 
 #if defined(__AVX512F__)
-// The backward of one pair whose used lanes span at most 8 (most pairs: a footprint draws
-// ~4 of a row's 16 lanes), two rows per 16-lane vector: lanes 0-7 hold columns a .. a + 7
-// of row r, lanes 8-15 the same columns of row r + 1. The per-pixel state is gathered from
-// the two row vectors with one two-source permute each and the two running values (T, the
-// "behind" sum) are merged back with masked permutes, ~12 shuffles per row pair against a
-// whole row evaluation saved. Each pixel's own chain of operations is unchanged; only the
-// pair's lane sums add in a different order. Same rules and outputs as backward_tile's
-// general path (the colour channels known at compile time, no absgrad).
+// Two rows per 16-lane vector in the backward, for a pair whose used lanes span at most 8
+// (at ~30 Gaussians per pixel a footprint draws ~4 of a row's 16 lanes): lanes 0-7 hold
+// columns a .. a + 7 of row r, lanes 8-15 the same columns of row r + 1. The tile's
+// per-pixel state stays in whole-row vectors; a pair gathers the values it reads with one
+// two-source permute each and merges the two it changes back with masked permutes. Every
+// lane computes exactly what the one-row path computes for its pixel (same operations,
+// same rounding: the alpha test agrees with the forward's), so only the pair's lane sums
+// add in another order. (The forward was tried the same way and lost ~15 %: all of its
+// seven per-pixel values change per pair, and merging masks costs round trips through
+// integer registers.)
+struct TwoRows {
+  using X = Simd<float>;
+  int a;                      // first column of the window
+  __m512i gather;             // lane j <- column of row r (index < 16) or row r + 1 (+ 16)
+  __m512i back0, back1;       // row r's / row r + 1's column c <- lane c - a / c - a + 8
+  __mmask16 window;           // the window's columns in a row vector
+  __mmask16 in_cols;          // lanes whose column lies in the pair's box
+  __m512 px;                  // pixel-centre x per lane
+  TwoRows(const TileGeom& t, const PairRec<float>& p) {
+    a = std::min(p.x0, 8);
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const __m512i col = _mm512_add_epi32(_mm512_set1_epi32(a), _mm512_and_si512(lane, _mm512_set1_epi32(7)));
+    gather = _mm512_add_epi32(col, _mm512_slli_epi32(_mm512_srli_epi32(lane, 3), 4));
+    back0 = _mm512_sub_epi32(lane, _mm512_set1_epi32(a));
+    back1 = _mm512_add_epi32(back0, _mm512_set1_epi32(8));
+    window = __mmask16(0xFFu << a);
+    in_cols = __mmask16(_mm512_cmpge_epi32_mask(col, _mm512_set1_epi32(p.x0)) &
+                        _mm512_cmplt_epi32_mask(col, _mm512_set1_epi32(p.x1)));
+    // As lane_px: float(px0 + column) + 0.5.
+    px = _mm512_cvtepi32_ps(_mm512_add_epi32(col, _mm512_set1_epi32(t.px0))) + X::set1(0.5f);
+  }
+  // The lanes of rows r and r1 as a mask (r1 == r: a lone last row; its upper half is off).
+  static __mmask16 rows(int r, int r1) { return __mmask16(r1 != r ? 0xFFFFu : 0x00FFu); }
+  __m512 get(const __m512* v, int r, int r1) const { return _mm512_permutex2var_ps(v[r], gather, v[r1]); }
+  __m512i get(const __m512i* v, int r, int r1) const { return _mm512_permutex2var_epi32(v[r], gather, v[r1]); }
+  // Writes the window of both rows back from `x` (constant masks: deriving the row masks
+  // of only the changed lanes costs mask-register round trips through integer registers).
+  void put(__m512* v, int r, int r1, __m512 x) const {
+    v[r] = _mm512_mask_permutexvar_ps(v[r], window, back0, x);
+    if (r1 != r) v[r1] = _mm512_mask_permutexvar_ps(v[r1], window, back1, x);
+  }
+  // Pixel-centre dy per lane (rows r and r + 1), rounded as the one-row path rounds its
+  // scalar dy. (A lone last row's upper half gets row r + 1's, which its masks leave out.)
+  static __m512 dy(const TileGeom& t, const PairRec<float>& p, int r) {
+    return _mm512_mask_blend_ps(0xFF00, X::set1(float(t.py0 + r) + 0.5f - p.my),
+                                X::set1(float(t.py0 + r + 1) + 0.5f - p.my));
+  }
+  // The quadratic term log2(e) cc dy^2 / 2, rounded as the one-row path rounds its scalar.
+  // The empty asm keeps the compiler from fusing its last product into eval_row's
+  // subtraction (a fused multiply-subtract rounds once, not twice).
+  static __m512 quad(float half_cc, __m512 dy) {
+    __m512 q = X::set1(half_cc) * dy * dy;
+    asm("" : "+v"(q));
+    return q;
+  }
+};
+
+// eval_row with a dy and quadratic term per lane.
+inline RowEval<Simd<float>> eval_two_rows(const GaussLanes<Simd<float>, float>& gl, __m512 dy,
+                                          __m512 quad, __mmask16 in_box) {
+  using X = Simd<float>;
+  RowEval<X> e;
+  const __m512 power = dy * gl.p1 + (gl.p0 - quad);
+  e.G = X::exp2(power);
+  e.a_raw = X::set1(gl.op) * e.G;
+  e.alpha = X::min(e.a_raw, X::set1(ALPHA_MAX));
+  e.ok = X::mand(in_box, X::mand(X::le(power, X::zero()), X::ge(e.alpha, X::set1(ALPHA_MIN))));
+  return e;
+}
+
+// The backward of one pair on two rows at a time (see TwoRows): the same per-pixel updates
+// as backward_tile's general path (the colour channels known at compile time, no absgrad).
 template <int NC>
 inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, int list_pos_i,
                                    __m512* Tcur, __m512* Bg, const __m512* gAT, const __m512* gD,
                                    const __m512i* last, const __m512* gC, float* slot) {
   using X = Simd<float>;
-  constexpr float LOG2E = 1.4426950408889634f;
-  const int a = std::min(p.x0, 8);
-  const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-  const __m512i col = _mm512_add_epi32(_mm512_set1_epi32(a), _mm512_and_si512(lane, _mm512_set1_epi32(7)));
-  const __m512i upper = _mm512_srli_epi32(lane, 3);  // 0 for row r, 1 for row r + 1
-  // Lane j reads column col[j] of the first row vector, or of the second (index + 16).
-  const __m512i gather = _mm512_add_epi32(col, _mm512_slli_epi32(upper, 4));
-  const __m512i back0 = _mm512_sub_epi32(lane, _mm512_set1_epi32(a));  // row r's column c <- lane c - a
-  const __m512i back1 = _mm512_add_epi32(back0, _mm512_set1_epi32(8));  // row r + 1's <- lane c - a + 8
-  const __mmask16 window = __mmask16(0xFFu << a);
-  const __mmask16 in_cols = __mmask16(_mm512_cmpge_epi32_mask(col, _mm512_set1_epi32(p.x0)) &
-                                      _mm512_cmplt_epi32_mask(col, _mm512_set1_epi32(p.x1)));
-  const __m512 dx = _mm512_add_ps(_mm512_cvtepi32_ps(col), _mm512_set1_ps(float(t.px0) + 0.5f - p.mx));
-  const __m512 row_off = _mm512_cvtepi32_ps(upper);
-  const __m512 p0 = X::set1(-0.5f * LOG2E * p.ca) * dx * dx;
-  const __m512 p1 = X::set1(-LOG2E * p.cb) * dx;
-  const __m512 half_cc = X::set1(0.5f * LOG2E * p.cc);
+  const TwoRows L(t, p);
+  const GaussLanes<X, float> gl(L.px, p, 0);
+  const __m512& dx = gl.dx;
   const __m512i list_pos = _mm512_set1_epi32(list_pos_i);
   const __m512 gz = X::set1(p.z), one = X::set1(1.0f);
   __m512 m_x = X::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x, a_d = m_x;
   __m512 col_acc[NC];
   for (int ch = 0; ch < NC; ++ch) col_acc[ch] = X::zero();
   for (int r = p.y0; r < p.y1; r += 2) {
-    const bool two = r + 1 < p.y1;
-    const int r1 = two ? r + 1 : r;  // a lone last row reads itself twice; its upper half is off
-    const __mmask16 in_box = __mmask16(in_cols & (two ? 0xFFFFu : 0x00FFu));
-    const __m512i last_rr = _mm512_permutex2var_epi32(last[r], gather, last[r1]);
-    if (!(in_box & _mm512_cmplt_epi32_mask(list_pos, last_rr))) continue;
-    const __m512 dy = X::set1(float(t.py0 + r) + 0.5f - p.my) + row_off;
-    const __m512 power = dy * p1 + (p0 - half_cc * dy * dy);
-    const __m512 G = X::exp2(power);
-    const __m512 a_raw = X::set1(p.op) * G;
-    const __m512 alpha = X::min(a_raw, X::set1(ALPHA_MAX));
-    const __mmask16 use = in_box & X::le(power, X::zero()) & X::ge(alpha, X::set1(ALPHA_MIN)) &
-                          _mm512_cmplt_epi32_mask(list_pos, last_rr);
+    const int r1 = r + 1 < p.y1 ? r + 1 : r;
+    const __mmask16 in_box = L.in_cols & TwoRows::rows(r, r1);
+    const __m512i last_2 = L.get(last, r, r1);
+    // Pixels that stopped before this Gaussian: skip the rows before paying for the exp.
+    if (!(in_box & _mm512_cmplt_epi32_mask(list_pos, last_2))) continue;
+    const __m512 dy = TwoRows::dy(t, p, r);
+    const RowEval<X> e = eval_two_rows(gl, dy, TwoRows::quad(gl.half_cc, dy), in_box);
+    const __mmask16 use = e.ok & _mm512_cmplt_epi32_mask(list_pos, last_2);
     if (!use) continue;
-    const __m512 T = _mm512_permutex2var_ps(Tcur[r], gather, Tcur[r1]);
-    __m512 B = _mm512_permutex2var_ps(Bg[r], gather, Bg[r1]);
-    const __m512 gA = _mm512_permutex2var_ps(gAT[r], gather, gAT[r1]);
-    const __m512 gd = _mm512_permutex2var_ps(gD[r], gather, gD[r1]);
-    const __m512 inv = X::rcp(one - alpha);
-    const __m512 Ti = T * inv;
-    const __m512 w = X::keep(use, alpha * Ti);
+    const __m512 T_2 = L.get(Tcur, r, r1);
+    __m512 B = L.get(Bg, r, r1);
+    const __m512 gd = L.get(gD, r, r1);
+    const __m512 inv = X::rcp(one - e.alpha);
+    const __m512 Ti = T_2 * inv;
+    const __m512 w = X::keep(use, e.alpha * Ti);
     __m512 gcc = gd * gz;
     for (int ch = 0; ch < NC; ++ch) {
-      const __m512 gc = _mm512_permutex2var_ps(gC[ch * TILE + r], gather, gC[ch * TILE + r1]);
+      const __m512 gc = L.get(gC + ch * TILE, r, r1);
       gcc += gc * X::set1(p.col[ch]);
       col_acc[ch] += w * gc;
     }
-    const __m512 dal = inv * (gA - B) + Ti * gcc;
+    const __m512 dal = inv * (L.get(gAT, r, r1) - B) + Ti * gcc;
     B += w * gcc;
     a_d += w * gd;
-    const __m512 T_new = X::select(use, Ti, T);
-    Tcur[r] = _mm512_mask_permutexvar_ps(Tcur[r], window, back0, T_new);
-    Bg[r] = _mm512_mask_permutexvar_ps(Bg[r], window, back0, B);
-    if (two) {
-      Tcur[r1] = _mm512_mask_permutexvar_ps(Tcur[r1], window, back1, T_new);
-      Bg[r1] = _mm512_mask_permutexvar_ps(Bg[r1], window, back1, B);
-    }
-    const __mmask16 live = use & X::lt(a_raw, X::set1(ALPHA_MAX));
-    const __m512 gp = X::keep(live, dal * a_raw);
-    a_op += X::keep(live, dal * G);
+    L.put(Tcur, r, r1, X::select(use, Ti, T_2));
+    L.put(Bg, r, r1, B);
+    const __mmask16 live = use & X::lt(e.a_raw, X::set1(ALPHA_MAX));
+    const __m512 gp = X::keep(live, dal * e.a_raw);
+    a_op += X::keep(live, dal * e.G);
     const __m512 gpdx = gp * dx;
     m_x += gpdx;
     m_y += gp * dy;
     m_xx += gpdx * dx;
     m_xy += gpdx * dy;
-    m_yy += gp * dy * dy;
+    m_yy += gp * (dy * dy);
   }
   const float sx = X::hsum(m_x), sy = X::hsum(m_y);
   slot[MX] = p.ca * sx + p.cb * sy;
