@@ -114,20 +114,19 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
   const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
   auto opts = bbox.options();
   auto offsets = torch::empty({tiles + 1}, opts), id_start = torch::empty({n + 1}, opts);
-  Tensor order, ranks, pair_slot;
+  Tensor order, ranks;
   auto allocate = [&](int64_t n_visible, int64_t pairs) {
     TORCH_CHECK(pairs < (int64_t(1) << 31), "too many tile/Gaussian pairs: ", pairs);
     order = torch::empty({n_visible}, opts);
     ranks = torch::empty({pairs}, opts);
-    pair_slot = torch::empty({pairs}, opts);
     return kgs::BinOutputs{offsets.data_ptr<int32_t>(), order.data_ptr<int32_t>(), ranks.data_ptr<int32_t>(),
-                           id_start.data_ptr<int32_t>(), pair_slot.data_ptr<int32_t>()};
+                           id_start.data_ptr<int32_t>()};
   };
   AT_DISPATCH_FLOATING_TYPES(depths.scalar_type(), "bin_gaussians", [&] {
     kgs::bin_gaussians<scalar_t>(n, bbox.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
                                  depths.data_ptr<scalar_t>(), int(width), int(height), allocate);
   });
-  return {offsets, ranks, order, id_start, pair_slot};
+  return {offsets, ranks, order, id_start};
 }
 
 kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
@@ -139,27 +138,26 @@ kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
 }
 
 kgs::TileLists lists_of(const Tensor& offsets, const Tensor& ranks, const Tensor& order,
-                        const Tensor& id_start, const Tensor& pair_slot, int64_t n, int64_t width,
+                        const Tensor& id_start, int64_t n, int64_t width,
                         int64_t height) {
   check(offsets, "tile_offsets", torch::kInt32);
   check(ranks, "tile_ranks", torch::kInt32);
   check(order, "order", torch::kInt32);
   check(id_start, "id_start", torch::kInt32);
-  check(pair_slot, "pair_slot", torch::kInt32);
   const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
   TORCH_CHECK(offsets.numel() == tiles + 1, "tile_offsets does not match the image size");
   TORCH_CHECK(id_start.numel() == n + 1, "id_start must have one entry per Gaussian, plus one");
   const int64_t n_pairs = offsets.data_ptr<int32_t>()[tiles];
-  TORCH_CHECK(pair_slot.numel() == n_pairs && ranks.numel() == n_pairs,
-              "tile_ranks and pair_slot must have one entry per pair");
+  TORCH_CHECK(ranks.numel() == n_pairs, "tile_ranks must have one entry per pair");
+  TORCH_CHECK(id_start.data_ptr<int32_t>()[n] == n_pairs, "id_start does not number the pairs");
   return {order.numel(), n_pairs, order.data_ptr<int32_t>(), offsets.data_ptr<int32_t>(),
-          ranks.data_ptr<int32_t>(), id_start.data_ptr<int32_t>(), pair_slot.data_ptr<int32_t>()};
+          ranks.data_ptr<int32_t>(), id_start.data_ptr<int32_t>()};
 }
 
 std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, Tensor colors,
                                    Tensor depths, Tensor bbox, Tensor background,
                                    Tensor tile_offsets, Tensor tile_ranks, Tensor order,
-                                   Tensor id_start, Tensor pair_slot, int64_t width,
+                                   Tensor id_start, int64_t width,
                                    int64_t height) {
   const auto dt = means2d.scalar_type();
   for (auto* t : {&means2d, &conics, &opac, &colors, &depths, &background}) check(*t, "raster input", dt);
@@ -168,28 +166,25 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
   TORCH_CHECK(background.numel() == C, "background must have ", C, " channels");
   const auto shape = shape_of(width, height, C);
   const int64_t n = means2d.size(0);
-  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, pair_slot, n, width, height);
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, n, width, height);
   auto opts = means2d.options();
-  Tensor packed;  // work space: one line per Gaussian
-  auto records = torch::empty({lists.n_pairs, kgs::LINE_HEAD + C}, opts);
+  auto records = torch::empty({lists.n_pairs, kgs::RECORD_HEAD + C}, opts);
   auto image = torch::empty({height, width, C}, opts);
   auto alpha = torch::empty({height, width}, opts), depth = torch::empty({height, width}, opts);
   auto t_final = torch::empty({height, width}, opts);
   auto n_contrib = torch::empty({height, width}, opts.dtype(torch::kInt32));
   AT_DISPATCH_FLOATING_TYPES(dt, "raster_forward", [&] {
-    packed = torch::empty({n, kgs::packed_stride<scalar_t>(int(C))}, opts);
     kgs::raster_forward<scalar_t>(
         shape, lists, n, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
         opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(), packed.data_ptr<scalar_t>(),
-        records.data_ptr<scalar_t>(), image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(), records.data_ptr<scalar_t>(), image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>());
   });
   return {image, alpha, depth, t_final, n_contrib, records};
 }
 
 std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor tile_offsets,
-                                    Tensor tile_ranks, Tensor order, Tensor id_start, Tensor pair_slot,
+                                    Tensor tile_ranks, Tensor order, Tensor id_start,
                                     Tensor t_final, Tensor n_contrib, Tensor g_image,
                                     Tensor g_alpha, Tensor g_depth, int64_t n, int64_t width,
                                     int64_t height, bool absgrad) {
@@ -203,8 +198,8 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
   }
   check(n_contrib, "n_contrib", torch::kInt32);
   const int64_t C = background.numel();
-  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, pair_slot, n, width, height);
-  TORCH_CHECK(records.dim() == 2 && records.size(0) == lists.n_pairs && records.size(1) == kgs::LINE_HEAD + C,
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, n, width, height);
+  TORCH_CHECK(records.dim() == 2 && records.size(0) == lists.n_pairs && records.size(1) == kgs::RECORD_HEAD + C,
               "records do not match the tile lists");
   const auto shape = shape_of(width, height, C);
   auto opts = records.options();

@@ -13,13 +13,7 @@
 namespace kgs {
 namespace {
 
-struct TileRect {
-  int x0, y0, x1, y1;  // tile indices, exclusive end
-};
-
-inline TileRect tile_rect(const int32_t* b) {
-  return {b[0] / TILE, b[1] / TILE, (b[2] - 1) / TILE + 1, (b[3] - 1) / TILE + 1};
-}
+inline TileRect tile_rect(const int32_t* b) { return bin_tile_rect(b[0], b[1], b[2], b[3]); }
 
 // Nearly every box at ~30 Gaussians per pixel spans at most 2x2 tiles, with 1 or 2 in
 // each direction at random: loops over those spans mispredicted about every other exit,
@@ -149,7 +143,8 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
     }
   }
   out.tile_offsets[n_tiles] = cur;
-  // Each Gaussian's pairs get a contiguous range in id order: the backward sums them there
+  // Each Gaussian's pairs get a contiguous range of numbers in id order (the forward numbers
+  // a pair by its tile's place in the Gaussian's rectangle): the backward sums them there
   // and writes its outputs in one sequential pass.
   int32_t* id_start = out.id_start;
   std::fill(id_start, id_start + n + 1, 0);
@@ -160,24 +155,16 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
     int32_t* cursor = chunk_count + size_t(c) * stride;
     for (int64_t rank = chunk_begin(c); rank < chunk_begin(c + 1); ++rank) {
       const TileRect& r = rect[rank];
-      int32_t j = id_start[by_rank[rank]];
       if (is_small(r)) {
         const SmallRect q(r, tiles_x, n_tiles);
-        int32_t discard[2];
+        int32_t discard;
         for (int i = 0; i < 4; ++i) {
           const int32_t pos = cursor[q.tile[i]]++;
-          const bool real = q.tile[i] != n_tiles;
-          *(real ? out.tile_ranks + pos : discard) = int32_t(rank);
-          *(real ? out.pair_slot + pos : discard + 1) = j;
-          j += real;
+          *(q.tile[i] != n_tiles ? out.tile_ranks + pos : &discard) = int32_t(rank);
         }
       } else {
         for (int ty = r.y0; ty < r.y1; ++ty)
-          for (int tx = r.x0; tx < r.x1; ++tx) {
-            const int32_t pos = cursor[ty * tiles_x + tx]++;
-            out.tile_ranks[pos] = int32_t(rank);
-            out.pair_slot[pos] = j++;
-          }
+          for (int tx = r.x0; tx < r.x1; ++tx) out.tile_ranks[cursor[ty * tiles_x + tx]++] = int32_t(rank);
       }
     }
   }

@@ -53,17 +53,16 @@ struct BinOutputs {
   int32_t* order;         // (n_visible,)
   int32_t* tile_ranks;    // (n_pairs,)
   int32_t* id_start;      // (n + 1,)
-  int32_t* pair_slot;     // (n_pairs,)
 };
 
 // Depth-sorted tile lists of the visible Gaussians (radii > 0). Once it knows their sizes,
 // it calls allocate(n_visible, n_pairs) for the output arrays, then writes `tile_offsets`
 // (each tile's range in the pair lists), `order` (visible ids, front to back: rank -> id),
-// `tile_ranks` (per tile, ranks in increasing depth: the pair lists) and an id-major
-// numbering of the same pairs: Gaussian g's pairs are numbered id_start[g] .. id_start[g + 1]
-// - 1 (an invisible Gaussian's range is empty) and pair_slot[k] is the number of the k-th
-// pair of the lists. The backward writes each pair's gradients to its slot and sums every
-// Gaussian's contiguous slots in one sequential pass.
+// `tile_ranks` (per tile, ranks in increasing depth: the pair lists) and `id_start`, an
+// id-major numbering of the same pairs: Gaussian g's pairs are numbered id_start[g] ..
+// id_start[g + 1] - 1 (an invisible Gaussian's range is empty), in the row-major order of
+// the tiles of its rectangle (bin_tile_rect). The backward writes each pair's gradients to
+// the slot of its number and sums every Gaussian's contiguous slots in one sequential pass.
 template <typename S>
 void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S* depths,
                    int width, int height, const std::function<BinOutputs(int64_t, int64_t)>& allocate);
@@ -80,26 +79,36 @@ struct TileLists {
   const int32_t* tile_offsets; // (n_tiles + 1,)
   const int32_t* tile_ranks;   // (n_pairs,)
   const int32_t* id_start;     // (n + 1,)
-  const int32_t* pair_slot;    // (n_pairs,)
 };
 
+// The tiles [x0, x1) x [y0, y1) that a Gaussian's pixel box [b0, b2) x [b1, b3) touches.
+struct TileRect {
+  int16_t x0, y0, x1, y1;  // exclusive ends (boxes lie inside the image)
+};
+inline TileRect bin_tile_rect(int b0, int b1, int b2, int b3) {
+  return {int16_t(b0 / TILE), int16_t(b1 / TILE), int16_t((b2 - 1) / TILE + 1),
+          int16_t((b3 - 1) / TILE + 1)};
+}
+
 // The kernels read each Gaussian's inputs from one packed line (see raster.cpp): LINE_HEAD
-// scalars, then the colour channels, padded to whole 64-byte cache lines.
-constexpr int LINE_HEAD = 9;
+// scalars, then the colour channels, padded to whole 64-byte cache lines. The forward
+// writes per pair a record for the backward: RECORD_HEAD scalars, then the colour channels.
+constexpr int LINE_HEAD = 10;
+constexpr int RECORD_HEAD = 9;
 template <typename S>
 constexpr int packed_stride(int channels) {
   constexpr int PER_LINE = 64 / sizeof(S);
   return (LINE_HEAD + channels + PER_LINE - 1) / PER_LINE * PER_LINE;
 }
 
-// The forward packs the inputs into `packed` (n * packed_stride(channels) scalars, work
-// space) and writes `records` (n_pairs * (LINE_HEAD + channels) scalars: each pair's
+// The forward packs the inputs into lines of packed_stride(channels) scalars (work space)
+// and writes `records` (n_pairs * (LINE_HEAD + channels) scalars: each pair's
 // parameters, colour, box cut to where it drew and gradient slot, in list order), which the
 // backward reads instead of the per-Gaussian inputs.
 template <typename S>
 void raster_forward(const RasterShape& shape, const TileLists& lists, int64_t n, const S* means2d,
                     const S* conics, const S* opac, const S* colors, const S* depths,
-                    const int32_t* bbox, const S* background, S* packed, S* records,
+                    const int32_t* bbox, const S* background, S* records,
                     S* image, S* alpha, S* depth_acc, S* t_final, int32_t* n_contrib);
 
 template <typename S>

@@ -24,6 +24,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <new>
 #include <type_traits>
 #include <vector>
 
@@ -33,14 +34,28 @@
 namespace kgs {
 namespace {
 
+// Cache-line aligned storage for the packed per-Gaussian lines.
+template <typename T>
+struct AlignedAllocator {
+  using value_type = T;
+  AlignedAllocator() = default;
+  template <typename U>
+  AlignedAllocator(const AlignedAllocator<U>&) {}
+  T* allocate(size_t n) { return static_cast<T*>(::operator new(n * sizeof(T), std::align_val_t(64))); }
+  void deallocate(T* p, size_t) { ::operator delete(p, std::align_val_t(64)); }
+  bool operator==(const AlignedAllocator&) const { return true; }
+  bool operator!=(const AlignedAllocator&) const { return false; }
+};
+
 static_assert(TILE == LANES, "one tile row is one 16-lane vector");
-static_assert(LINE_HEAD == 9, "read_pair and pack_gaussians spell out the line head");
+static_assert(LINE_HEAD == 10 && RECORD_HEAD == 9, "read_pair, pack_gaussians and write_record spell out the heads");
 
 // One (tile, Gaussian) pair as the kernels see it. The forward reads it from the Gaussian's
 // packed line (mx, my, ca, cb, cc, opacity, depth, its box in pixels as four int16 (x0, y0 |
-// x1, y1), then the colour channels) and the box on this tile; it then writes the pair's
-// record for the backward, the same head with the box cut to where the pair drew and the
-// pair's gradient slot in place of the pixel box (write_record).
+// x1, y1), the number of its first pair (id_start) as an int32, then the colour channels)
+// and the box on this tile; it then writes the pair's record for the backward: the same
+// seven parameters, the box cut to where the pair drew, the pair's gradient slot, the
+// colour channels (write_record).
 template <typename S>
 struct PairRec {
   S mx, my, ca, cb, cc, op, z;
@@ -54,13 +69,14 @@ inline uint32_t pack_box(int x0, int x1, int y0, int y1) {
   return uint32_t(x0) | uint32_t(x1) << 8 | uint32_t(y0) << 16 | uint32_t(y1) << 24;
 }
 
+// From a line (head = LINE_HEAD) or a record (head = RECORD_HEAD) and the pair's box.
 template <typename S>
-inline PairRec<S> read_pair(const S* line, uint32_t box) {
+inline PairRec<S> read_pair(const S* src, uint32_t box, int head) {
   PairRec<S> p;
-  p.mx = line[0]; p.my = line[1]; p.ca = line[2]; p.cb = line[3]; p.cc = line[4];
-  p.op = line[5]; p.z = line[6];
+  p.mx = src[0]; p.my = src[1]; p.ca = src[2]; p.cb = src[3]; p.cc = src[4];
+  p.op = src[5]; p.z = src[6];
   p.x0 = box & 0xff; p.x1 = box >> 8 & 0xff; p.y0 = box >> 16 & 0xff; p.y1 = box >> 24;
-  p.col = line + LINE_HEAD;
+  p.col = src + head;
   return p;
 }
 
@@ -84,7 +100,8 @@ inline TileGeom tile_geom(const RasterShape& s, const int32_t* tile_offsets, int
 // Packs each Gaussian's inputs into one line of packed_stride(C) scalars, in id order.
 template <typename S>
 void pack_gaussians(int64_t n, int C, const S* means2d, const S* conics, const S* opac,
-                    const S* colors, const S* depths, const int32_t* bbox, S* packed) {
+                    const S* colors, const S* depths, const int32_t* bbox,
+                    const int32_t* id_start, S* packed) {
   const int P = packed_stride<S>(C);
 #pragma omp parallel for schedule(static)
   for (int64_t g = 0; g < n; ++g) {
@@ -96,6 +113,7 @@ void pack_gaussians(int64_t n, int C, const S* means2d, const S* conics, const S
     for (int q = 0; q < 4; ++q) box[q] = int16_t(std::min(bbox[4 * g + q], 32767));
     std::memcpy(d + 7, box, 4);      // x0, y0
     std::memcpy(d + 8, box + 2, 4);  // x1, y1
+    std::memcpy(d + 9, id_start + g, 4);
     for (int ch = 0; ch < C; ++ch) d[LINE_HEAD + ch] = colors[size_t(g) * C + ch];
     for (int q = LINE_HEAD + C; q < P; ++q) d[q] = S(0);
   }
@@ -209,16 +227,29 @@ inline uint32_t used_box(unsigned rows, unsigned lanes) {
                   32 - __builtin_clz(rows));
 }
 
-// A pair's record for the backward: the line's parameters and colour, with its used box and
-// gradient slot in the two box scalars. Written by the forward while the line is in L1, so
-// the backward streams the records instead of missing the cache on a line per pair (reading
-// the lines there cost the backward ~9 %).
+// The gradient slot of a Gaussian's pair on a tile: the number of its first pair plus the
+// tile's row-major place in the Gaussian's tile rectangle (the order binning numbers them in).
+template <typename S>
+inline int32_t pair_slot(const S* line, const TileGeom& t) {
+  int16_t box[4];
+  int32_t first;
+  std::memcpy(box, line + 7, 4);
+  std::memcpy(box + 2, line + 8, 4);
+  std::memcpy(&first, line + 9, 4);
+  const TileRect r = bin_tile_rect(box[0], box[1], box[2], box[3]);
+  return first + (t.py0 / TILE - r.y0) * (r.x1 - r.x0) + (t.px0 / TILE - r.x0);
+}
+
+// A pair's record for the backward: the line's parameters and colour, its used box and its
+// gradient slot. Written by the forward while the line is in L1, so the backward streams
+// the records instead of missing the cache on a line per pair (reading the lines there
+// cost the backward ~9 %).
 template <typename S>
 inline void write_record(S* rec, const S* line, uint32_t box, int32_t slot, int C) {
   for (int q = 0; q < 7; ++q) rec[q] = line[q];
   std::memcpy(rec + 7, &box, 4);
   std::memcpy(rec + 8, &slot, 4);
-  for (int ch = 0; ch < C; ++ch) rec[LINE_HEAD + ch] = line[LINE_HEAD + ch];
+  for (int ch = 0; ch < C; ++ch) rec[RECORD_HEAD + ch] = line[LINE_HEAD + ch];
 }
 
 // A pixel's expected depth: its alpha-weighted depth sum over its alpha, 0 where alpha <= 1e-6
@@ -239,7 +270,7 @@ inline typename Simd<S>::V expected_depth(typename Simd<S>::V depth_sum, typenam
 // did not contribute adds exact zeros in the backward, so the gradients are unchanged.
 template <typename S, int NC>
 void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& lines,
-                  const int32_t* pair_slot, S* records, const S* background, S* image, S* alpha_out, S* depth_out,
+                  S* records, const S* background, S* image, S* alpha_out, S* depth_out,
                   S* t_final, int32_t* n_contrib, std::vector<typename Simd<S>::V>& acc) {
   using X = Simd<S>;
   using V = typename X::V;
@@ -264,7 +295,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& l
   for (; k < t.end && n_done < TILE_PIXELS; ++k) {
     if (k + lines.AHEAD < t.end) lines.prefetch(k + lines.AHEAD);
     const S* line = lines.line(k);
-    const PairRec<S> p = read_pair(line, box_on_tile(line, t));
+    const PairRec<S> p = read_pair(line, box_on_tile(line, t), LINE_HEAD);
     const S* col = p.col;
     unsigned used_rows = 0, used_lanes = 0;  // bit r: row r, bit i: lane i
     // Whether a pixel stopped (its transmittance fell below T_MIN) at this pair.
@@ -298,18 +329,20 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& l
       used_lanes = Y::bits(any_use) << lane0;
       return Y::any(any_term);
     });
-    write_record(records + size_t(k) * (LINE_HEAD + C), line, used_box(used_rows, used_lanes),
-                 pair_slot[k], C);
+    write_record(records + size_t(k) * (RECORD_HEAD + C), line, used_box(used_rows, used_lanes),
+                 pair_slot(line, t), C);
     if (stopped) {
       n_done = 0;
       for (int r = 0; r < TILE; ++r) n_done += X::count(done[r]);
     }
   }
   for (; k < t.end; ++k) {  // behind a finished tile: an empty box and the slot to zero
-    S* rec = records + size_t(k) * (LINE_HEAD + C);
+    if (k + lines.AHEAD < t.end) lines.prefetch(k + lines.AHEAD);
+    S* rec = records + size_t(k) * (RECORD_HEAD + C);
     const uint32_t empty = 0;
+    const int32_t slot = pair_slot(lines.line(k), t);
     std::memcpy(rec + 7, &empty, 4);
-    std::memcpy(rec + 8, pair_slot + k, 4);
+    std::memcpy(rec + 8, &slot, 4);
   }
   S Tl[TILE], dl[TILE], cl[TILE];
   int32_t ll[TILE];
@@ -553,7 +586,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
     }
   }
   for (int k = t.end - 1; k >= t.begin; --k) {
-    const S* rec = records + size_t(k) * (LINE_HEAD + C);
+    const S* rec = records + size_t(k) * (RECORD_HEAD + C);
     uint32_t box;
     int32_t slot_index;
     std::memcpy(&box, rec + 7, 4);
@@ -563,7 +596,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
       std::fill(slot, slot + COLOR0 + C, S(0));
       continue;
     }
-    const PairRec<S> p = read_pair(rec, box);
+    const PairRec<S> p = read_pair(rec, box, RECORD_HEAD);
     const S* col = p.col;
 #if defined(__AVX512F__)
     if constexpr (std::is_same_v<S, float> && NC > 0 && !ABS) {
@@ -663,10 +696,15 @@ std::vector<T>& reusable_slots() {
 template <typename S>
 void raster_forward(const RasterShape& s, const TileLists& L, int64_t n, const S* means2d,
                     const S* conics, const S* opac, const S* colors, const S* depths, const int32_t* bbox,
-                    const S* background, S* packed, S* records, S* image, S* alpha,
+                    const S* background, S* records, S* image, S* alpha,
                     S* depth_acc, S* t_final, int32_t* n_contrib) {
   const int n_tiles = s.tiles_x * s.tiles_y;
-  pack_gaussians(n, s.channels, means2d, conics, opac, colors, depths, bbox, packed);
+  // The packed lines are work space, kept across calls (per calling thread): a fresh
+  // buffer per call cost thousands of first-touch page faults at 200k Gaussians.
+  thread_local std::vector<S, AlignedAllocator<S>> packed_buf;
+  packed_buf.resize(size_t(n) * packed_stride<S>(s.channels));
+  S* packed = packed_buf.data();
+  pack_gaussians(n, s.channels, means2d, conics, opac, colors, depths, bbox, L.id_start, packed);
   const PairLines<S> lines{packed, packed_stride<S>(s.channels), L.order, L.tile_ranks};
 #pragma omp parallel
   {
@@ -675,9 +713,9 @@ void raster_forward(const RasterShape& s, const TileLists& L, int64_t n, const S
     for (int tile = 0; tile < n_tiles; ++tile) {
       const TileGeom t = tile_geom(s, L.tile_offsets, tile);
       if (s.channels == 3)
-        forward_tile<S, 3>(s, t, lines, L.pair_slot, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
+        forward_tile<S, 3>(s, t, lines, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
       else
-        forward_tile<S, 0>(s, t, lines, L.pair_slot, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
+        forward_tile<S, 0>(s, t, lines, records, background, image, alpha, depth_acc, t_final, n_contrib, acc);
     }
   }
 }
@@ -748,7 +786,7 @@ void raster_backward(const RasterShape& s, const TileLists& L, int64_t n, const 
   template void raster_forward<S>(const RasterShape&, const TileLists&, int64_t, const S*,     \
                                   const S*,                                                    \
                                   const S*, const S*, const S*, const int32_t*, const S*, S*,  \
-                                  S*, S*, S*, S*, S*, int32_t*);                               \
+                                  S*, S*, S*, S*, int32_t*);                                   \
   template void raster_backward<S>(const RasterShape&, const TileLists&, int64_t, const S*,    \
                                    const S*, const S*, const int32_t*, const S*, const S*,     \
                                    const S*, S*, S*, S*, S*, S*, S*, bool);
