@@ -75,6 +75,7 @@ class HeadlessImgui:
         self.imgui = imgui
         self.ctx = imgui.create_context()
         io = imgui.get_io()
+        io.set_ini_filename(None)  # no imgui.ini left in the working directory
         io.display_size = imgui.ImVec2(900, 700)
         io.delta_time = 1 / 60
         io.backend_flags |= imgui.BackendFlags_.renderer_has_textures.value

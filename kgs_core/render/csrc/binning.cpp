@@ -94,8 +94,10 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
     if (radii[i] > 0) sorted.push_back(int32_t(i));
   sort_by_depth(depths, sorted);
   const int64_t n_vis = int64_t(sorted.size());
-  // Tile rectangles in depth order, gathered once (many cache misses in flight) and read
-  // sequentially by the fill; the same loop counts each chunk's pairs per tile.
+  // Tile rectangles in depth order, gathered once by a loop of their own and read
+  // sequentially by the counting and the fill. (Gathering inside the counting loop, whose
+  // increments go through memory, left few misses in flight: binning +25 % at 50k / 256²,
+  // +50 % at 200k / 512² in the rendering pipeline, where the boxes are no longer cached.)
   thread_local std::vector<TileRect> rects;
   thread_local std::vector<int32_t> per_rank, chunk_tiles;
   rects.resize(size_t(n_vis));
@@ -110,19 +112,23 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
   int32_t* pairs_of = per_rank.data();
   int32_t* chunk_count = chunk_tiles.data();
   const int32_t* by_rank = sorted.data();
-#pragma omp parallel for schedule(static)
-  for (int c = 0; c < CHUNKS; ++c) {
-    int32_t* cnt = chunk_count + size_t(c) * stride;
-    for (int64_t rank = chunk_begin(c); rank < chunk_begin(c + 1); ++rank) {
-      const TileRect r = tile_rect(bbox + 4 * by_rank[rank]);
-      rect[rank] = r;
-      pairs_of[rank] = (r.y1 - r.y0) * (r.x1 - r.x0);
-      if (is_small(r)) {
-        const SmallRect q(r, tiles_x, n_tiles);
-        for (int i = 0; i < 4; ++i) ++cnt[q.tile[i]];
-      } else {
-        for (int ty = r.y0; ty < r.y1; ++ty)
-          for (int tx = r.x0; tx < r.x1; ++tx) ++cnt[ty * tiles_x + tx];
+#pragma omp parallel
+  {
+#pragma omp for schedule(static)
+    for (int64_t rank = 0; rank < n_vis; ++rank) rect[rank] = tile_rect(bbox + 4 * by_rank[rank]);
+#pragma omp for schedule(static)
+    for (int c = 0; c < CHUNKS; ++c) {
+      int32_t* cnt = chunk_count + size_t(c) * stride;
+      for (int64_t rank = chunk_begin(c); rank < chunk_begin(c + 1); ++rank) {
+        const TileRect& r = rect[rank];
+        pairs_of[rank] = (r.y1 - r.y0) * (r.x1 - r.x0);
+        if (is_small(r)) {
+          const SmallRect q(r, tiles_x, n_tiles);
+          for (int i = 0; i < 4; ++i) ++cnt[q.tile[i]];
+        } else {
+          for (int ty = r.y0; ty < r.y1; ++ty)
+            for (int tx = r.x0; tx < r.x1; ++tx) ++cnt[ty * tiles_x + tx];
+        }
       }
     }
   }
