@@ -378,6 +378,44 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& l
 enum Slot { MX = 0, MY, CA, CB, CC, OP, DEPTH, ABS_MX, ABS_MY, COLOR0 };
 inline int slot_stride(int channels) { return (COLOR0 + channels + LANES - 1) / LANES * LANES; }
 
+// A pair's gradient sums over its pixels, per lane: the moments of gp = dL/dpower (sum gp
+// dx, gp dy, gp dx^2, gp dx dy, gp dy^2), the opacity and depth terms, and (absgrad) the
+// |dL/dmean2d| sums; both backward paths add to them and write them to the pair's slot.
+template <typename Y, typename S>
+struct PairSums {
+  using V = typename Y::V;
+  V m_x, m_y, m_xx, m_xy, m_yy, a_op, a_d, a_amx, a_amy;
+  PairSums() { m_x = m_y = m_xx = m_xy = m_yy = a_op = a_d = a_amx = a_amy = Y::zero(); }
+  // Through alpha = min(ALPHA_MAX, o * exp(power)) to the 2D Gaussian at the lanes `use`
+  // (dy2 = dy^2, rounded as the caller forms it). Masked products: lanes that do not take
+  // part contribute exact zeros, whatever their (unused) values are. Returns gp.
+  V add(const RowEval<Y>& e, typename Y::M use, V dal, V dx, V dy, V dy2) {
+    const auto live = Y::mand(use, Y::lt(e.a_raw, Y::set1(S(ALPHA_MAX))));
+    const V gp = Y::keep(live, dal * e.a_raw);
+    a_op += Y::keep(live, dal * e.G);
+    const V gpdx = gp * dx;
+    m_x += gpdx;
+    m_y += gp * dy;
+    m_xx += gpdx * dx;
+    m_xy += gpdx * dy;
+    m_yy += gp * dy2;
+    return gp;
+  }
+  // Everything but the colour channels, which the caller sums.
+  void write(S* slot, const PairRec<S>& p, bool abs) const {
+    const S sx = Y::hsum(m_x), sy = Y::hsum(m_y);
+    slot[MX] = p.ca * sx + p.cb * sy;
+    slot[MY] = p.cb * sx + p.cc * sy;
+    slot[CA] = S(-0.5) * Y::hsum(m_xx);
+    slot[CB] = -Y::hsum(m_xy);
+    slot[CC] = S(-0.5) * Y::hsum(m_yy);
+    slot[OP] = Y::hsum(a_op);
+    slot[DEPTH] = Y::hsum(a_d);
+    slot[ABS_MX] = abs ? Y::hsum(a_amx) : S(0);
+    slot[ABS_MY] = abs ? Y::hsum(a_amy) : S(0);
+  }
+};
+
 #if defined(__AVX512F__)
 // Two rows per 16-lane vector in the backward, for a pair whose used lanes span at most 8
 // (at ~30 Gaussians per pixel a footprint draws ~4 of a row's 16 lanes): lanes 0-7 hold
@@ -461,7 +499,7 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
   const __m512& dx = gl.dx;
   const __m512i list_pos = _mm512_set1_epi32(list_pos_i);
   const __m512 gz = X::set1(p.z), one = X::set1(1.0f);
-  __m512 m_x = X::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x, a_d = m_x;
+  PairSums<X, float> sums;
   __m512 col_acc[NC];
   for (int ch = 0; ch < NC; ++ch) col_acc[ch] = X::zero();
   for (int r = p.y0; r < p.y1; r += 2) {
@@ -488,28 +526,12 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
     }
     const __m512 dal = inv * (L.get(gAT, r, r1) - B) + Ti * gcc;
     B += w * gcc;
-    a_d += w * gd;
+    sums.a_d += w * gd;
     L.put(Tcur, r, r1, X::select(use, Ti, T_2));
     L.put(Bg, r, r1, B);
-    const __mmask16 live = use & X::lt(e.a_raw, X::set1(ALPHA_MAX));
-    const __m512 gp = X::keep(live, dal * e.a_raw);
-    a_op += X::keep(live, dal * e.G);
-    const __m512 gpdx = gp * dx;
-    m_x += gpdx;
-    m_y += gp * dy;
-    m_xx += gpdx * dx;
-    m_xy += gpdx * dy;
-    m_yy += gp * (dy * dy);
+    sums.add(e, use, dal, dx, dy, dy * dy);
   }
-  const float sx = X::hsum(m_x), sy = X::hsum(m_y);
-  slot[MX] = p.ca * sx + p.cb * sy;
-  slot[MY] = p.cb * sx + p.cc * sy;
-  slot[CA] = -0.5f * X::hsum(m_xx);
-  slot[CB] = -X::hsum(m_xy);
-  slot[CC] = -0.5f * X::hsum(m_yy);
-  slot[OP] = X::hsum(a_op);
-  slot[DEPTH] = X::hsum(a_d);
-  slot[ABS_MX] = slot[ABS_MY] = 0.0f;
+  sums.write(slot, p, false);
   for (int ch = 0; ch < NC; ++ch) slot[COLOR0 + ch] = X::hsum(col_acc[ch]);
 }
 #endif
@@ -611,9 +633,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
       using YM = typename Y::M;
       using YV = typename Y::V;
       const auto list_pos = Y::iset1(k - t.begin);  // contributes where list_pos < last
-      // Moments of gp = dL/dpower over the pixels: sum gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2.
-      YV m_x = Y::zero(), m_y = m_x, m_xx = m_x, m_xy = m_x, m_yy = m_x, a_op = m_x;
-      YV a_d = m_x, a_amx = m_x, a_amy = m_x;
+      PairSums<Y, S> sums;
       // The pair's colour gradient per lane: locals when NC is known, else the scratch.
       YV col_local[NC > 0 ? NC : 1];
       auto col_acc = [&](int ch) -> YV& {
@@ -647,35 +667,15 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
         }
         const YV dal = inv * (part(gAT[r]) - Bg_r) + Ti * gcc;
         Bg_r += w * gcc;
-        a_d += w * gD_r;
+        sums.a_d += w * gD_r;
         Tcur_r = Y::select(use, Ti, Tcur_r);
-        // Through alpha = min(ALPHA_MAX, o * exp(power)) to the 2D Gaussian.
-        // Masked products: lanes that do not take part contribute exact zeros, whatever
-        // their (unused) values are.
-        const YM live = Y::mand(use, Y::lt(e.a_raw, Y::set1(S(ALPHA_MAX))));
-        const YV gp = Y::keep(live, dal * e.a_raw);
-        a_op += Y::keep(live, dal * e.G);
-        const YV gpdx = gp * dx;
-        m_x += gpdx;
-        m_y += gp * dy;
-        m_xx += gpdx * dx;
-        m_xy += gpdx * dy;
-        m_yy += gp * Y::set1(dy_s * dy_s);
+        const YV gp = sums.add(e, use, dal, dx, dy, Y::set1(dy_s * dy_s));
         if constexpr (ABS) {
-          a_amx += Y::abs(gp * (ca * dx + cb * dy));
-          a_amy += Y::abs(gp * (cb * dx + cc * dy));
+          sums.a_amx += Y::abs(gp * (ca * dx + cb * dy));
+          sums.a_amy += Y::abs(gp * (cb * dx + cc * dy));
         }
       }
-      const S sx = Y::hsum(m_x), sy = Y::hsum(m_y);
-      slot[MX] = p.ca * sx + p.cb * sy;
-      slot[MY] = p.cb * sx + p.cc * sy;
-      slot[CA] = S(-0.5) * Y::hsum(m_xx);
-      slot[CB] = -Y::hsum(m_xy);
-      slot[CC] = S(-0.5) * Y::hsum(m_yy);
-      slot[OP] = Y::hsum(a_op);
-      slot[DEPTH] = Y::hsum(a_d);
-      slot[ABS_MX] = ABS ? Y::hsum(a_amx) : S(0);
-      slot[ABS_MY] = ABS ? Y::hsum(a_amy) : S(0);
+      sums.write(slot, p, ABS);
       for (int ch = 0; ch < C; ++ch) slot[COLOR0 + ch] = Y::hsum(col_acc(ch));
     });
   }
