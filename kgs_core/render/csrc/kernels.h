@@ -102,7 +102,7 @@ constexpr int packed_stride(int channels) {
 }
 
 // The forward packs the inputs into lines of packed_stride(channels) scalars (work space)
-// and writes `records` (n_pairs * (LINE_HEAD + channels) scalars: each pair's
+// and writes `records` (n_pairs * (RECORD_HEAD + channels) scalars: each pair's
 // parameters, colour, box cut to where it drew and gradient slot, in list order), which the
 // backward reads instead of the per-Gaussian inputs.
 template <typename S>
