@@ -320,12 +320,11 @@ def test_per_gaussian_loops_stay_vectorised(source, tmp_path):
     their bodies stay branch-free and their reads unmasked (docs/rasterizer.md); one `if`
     and GCC falls back to scalar code without a word, 3-6x slower. Every loop marked
     `#pragma GCC ivdep` must be reported vectorised with the extension's own flags."""
+    import platform
     import shutil
     import subprocess
 
     from kgs_core.render import _ext
-
-    import platform
 
     cxx = shutil.which("g++")
     if cxx is None:

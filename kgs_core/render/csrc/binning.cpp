@@ -16,23 +16,28 @@ namespace {
 inline TileRect tile_rect(const int32_t* b) { return bin_tile_rect(b[0], b[1], b[2], b[3]); }
 
 // Nearly every box at ~30 Gaussians per pixel spans at most 2x2 tiles, with 1 or 2 in
-// each direction at random: loops over those spans mispredicted about every other exit,
-// which made counting and filling ~60 cycles per Gaussian. A small box instead visits its
-// four candidate tiles in row-major order without branches; the ones outside the box are
-// redirected to a discard counter at index n_tiles.
+// each direction at random, so loops over those spans mispredict their exits. A small box
+// instead visits its four candidate tiles in row-major order without branches; the ones
+// outside the box go to a discard counter at index n_tiles. (Counting 50k gathered boxes,
+// alone in a loop: 0.49 -> 0.33 ms; inside the rendering pipeline the gain is in the noise.)
 inline bool is_small(const TileRect& r) { return r.x1 - r.x0 <= 2 && r.y1 - r.y0 <= 2; }
 
-struct SmallRect {
-  int tile[4];
-  SmallRect(const TileRect& r, int tiles_x, int discard) {
+// Calls visit(tile) for each tile of r in row-major order; for a small box, for its four
+// candidate tiles, those outside the box as `discard`.
+template <typename Visit>
+inline void for_each_tile(const TileRect& r, int tiles_x, int discard, Visit&& visit) {
+  if (is_small(r)) {
     const bool wide = r.x1 - r.x0 == 2, tall = r.y1 - r.y0 == 2;
     const int t = r.y0 * tiles_x + r.x0;
-    tile[0] = t;
-    tile[1] = wide ? t + 1 : discard;
-    tile[2] = tall ? t + tiles_x : discard;
-    tile[3] = wide && tall ? t + tiles_x + 1 : discard;
+    visit(t);
+    visit(wide ? t + 1 : discard);
+    visit(tall ? t + tiles_x : discard);
+    visit(wide && tall ? t + tiles_x + 1 : discard);
+  } else {
+    for (int ty = r.y0; ty < r.y1; ++ty)
+      for (int tx = r.x0; tx < r.x1; ++tx) visit(ty * tiles_x + tx);
   }
-};
+}
 
 template <typename T>
 std::vector<T>& scratch(int which) {
@@ -122,13 +127,7 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
       for (int64_t rank = chunk_begin(c); rank < chunk_begin(c + 1); ++rank) {
         const TileRect& r = rect[rank];
         pairs_of[rank] = (r.y1 - r.y0) * (r.x1 - r.x0);
-        if (is_small(r)) {
-          const SmallRect q(r, tiles_x, n_tiles);
-          for (int i = 0; i < 4; ++i) ++cnt[q.tile[i]];
-        } else {
-          for (int ty = r.y0; ty < r.y1; ++ty)
-            for (int tx = r.x0; tx < r.x1; ++tx) ++cnt[ty * tiles_x + tx];
-        }
+        for_each_tile(r, tiles_x, n_tiles, [cnt](int tile) { ++cnt[tile]; });
       }
     }
   }
@@ -160,18 +159,11 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
   for (int c = 0; c < CHUNKS; ++c) {
     int32_t* cursor = chunk_count + size_t(c) * stride;
     for (int64_t rank = chunk_begin(c); rank < chunk_begin(c + 1); ++rank) {
-      const TileRect& r = rect[rank];
-      if (is_small(r)) {
-        const SmallRect q(r, tiles_x, n_tiles);
-        int32_t discard;
-        for (int i = 0; i < 4; ++i) {
-          const int32_t pos = cursor[q.tile[i]]++;
-          *(q.tile[i] != n_tiles ? out.tile_ranks + pos : &discard) = int32_t(rank);
-        }
-      } else {
-        for (int ty = r.y0; ty < r.y1; ++ty)
-          for (int tx = r.x0; tx < r.x1; ++tx) out.tile_ranks[cursor[ty * tiles_x + tx]++] = int32_t(rank);
-      }
+      int32_t discarded;
+      for_each_tile(rect[rank], tiles_x, n_tiles, [&](int tile) {
+        const int32_t pos = cursor[tile]++;
+        *(tile != n_tiles ? out.tile_ranks + pos : &discarded) = int32_t(rank);
+      });
     }
   }
 }

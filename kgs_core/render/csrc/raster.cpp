@@ -22,6 +22,7 @@
 // per pair, id-major, so each Gaussian's slots are contiguous and summed in a fixed
 // order: results do not depend on the thread count.
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <new>
@@ -132,12 +133,19 @@ struct PairLines {
   void prefetch(int k) const { __builtin_prefetch(line(k)); }
 };
 
-// A Gaussian's pixel box (from its packed line) clipped to a tile.
+// A Gaussian's pixel box x0, y0, x1, y1 from its packed line.
+template <typename S>
+inline std::array<int16_t, 4> line_box(const S* line) {
+  std::array<int16_t, 4> box;
+  std::memcpy(box.data(), line + 7, 4);
+  std::memcpy(box.data() + 2, line + 8, 4);
+  return box;
+}
+
+// A Gaussian's pixel box clipped to a tile.
 template <typename S>
 inline uint32_t box_on_tile(const S* line, const TileGeom& t) {
-  int16_t box[4];
-  std::memcpy(box, line + 7, 4);
-  std::memcpy(box + 2, line + 8, 4);
+  const auto box = line_box(line);
   return pack_box(std::clamp(box[0] - t.px0, 0, TILE), std::clamp(box[2] - t.px0, 0, TILE),
                   std::clamp(box[1] - t.py0, 0, TILE), std::clamp(box[3] - t.py0, 0, TILE));
 }
@@ -231,10 +239,8 @@ inline uint32_t used_box(unsigned rows, unsigned lanes) {
 // tile's row-major place in the Gaussian's tile rectangle (the order binning numbers them in).
 template <typename S>
 inline int32_t pair_slot(const S* line, const TileGeom& t) {
-  int16_t box[4];
+  const auto box = line_box(line);
   int32_t first;
-  std::memcpy(box, line + 7, 4);
-  std::memcpy(box + 2, line + 8, 4);
   std::memcpy(&first, line + 9, 4);
   const TileRect r = bin_tile_rect(box[0], box[1], box[2], box[3]);
   return first + (t.py0 / TILE - r.y0) * (r.x1 - r.x0) + (t.px0 / TILE - r.x0);
@@ -244,12 +250,25 @@ inline int32_t pair_slot(const S* line, const TileGeom& t) {
 // gradient slot. Written by the forward while the line is in L1, so the backward streams
 // the records instead of missing the cache on a line per pair (reading the lines there
 // cost the backward ~9 %).
+// (A pair behind a finished tile gets only the head: an empty box and the slot to zero.)
+template <typename S>
+inline void write_record_head(S* rec, uint32_t box, int32_t slot) {
+  std::memcpy(rec + 7, &box, 4);
+  std::memcpy(rec + 8, &slot, 4);
+}
+
 template <typename S>
 inline void write_record(S* rec, const S* line, uint32_t box, int32_t slot, int C) {
   for (int q = 0; q < 7; ++q) rec[q] = line[q];
-  std::memcpy(rec + 7, &box, 4);
-  std::memcpy(rec + 8, &slot, 4);
+  write_record_head(rec, box, slot);
   for (int ch = 0; ch < C; ++ch) rec[RECORD_HEAD + ch] = line[LINE_HEAD + ch];
+}
+
+// The record's box and slot, as write_record_head left them.
+template <typename S>
+inline void read_record_head(const S* rec, uint32_t& box, int32_t& slot) {
+  std::memcpy(&box, rec + 7, 4);
+  std::memcpy(&slot, rec + 8, 4);
 }
 
 // A pixel's expected depth: its alpha-weighted depth sum over its alpha, 0 where alpha <= 1e-6
@@ -338,11 +357,7 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& l
   }
   for (; k < t.end; ++k) {  // behind a finished tile: an empty box and the slot to zero
     if (k + lines.AHEAD < t.end) lines.prefetch(k + lines.AHEAD);
-    S* rec = records + size_t(k) * (RECORD_HEAD + C);
-    const uint32_t empty = 0;
-    const int32_t slot = pair_slot(lines.line(k), t);
-    std::memcpy(rec + 7, &empty, 4);
-    std::memcpy(rec + 8, &slot, 4);
+    write_record_head(records + size_t(k) * (RECORD_HEAD + C), 0u, pair_slot(lines.line(k), t));
   }
   S Tl[TILE], dl[TILE], cl[TILE];
   int32_t ll[TILE];
@@ -611,8 +626,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
     const S* rec = records + size_t(k) * (RECORD_HEAD + C);
     uint32_t box;
     int32_t slot_index;
-    std::memcpy(&box, rec + 7, 4);
-    std::memcpy(&slot_index, rec + 8, 4);
+    read_record_head(rec, box, slot_index);
     S* slot = slots + size_t(slot_index) * stride;  // id-major: summed sequentially
     if ((box >> 16 & 0xff) >= box >> 24) {  // contributed to no pixel in the forward
       std::fill(slot, slot + COLOR0 + C, S(0));
