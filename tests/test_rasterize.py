@@ -252,6 +252,21 @@ def test_bad_arguments_name_the_field(bad, match):
         rasterize(**kw)
 
 
+def test_binning_names_mismatched_inputs():
+    """The extension's binning call checks its own inputs (the kernels index with them)."""
+    from kgs_core.render import _ext
+
+    ext = _ext.load()
+    bbox, radii, depths = torch.zeros(4, 4, dtype=torch.int32), torch.ones(4, dtype=torch.int32), torch.ones(4)
+    assert len(ext.bin_gaussians(bbox, radii, depths, 16, 16)) == 4
+    with pytest.raises(RuntimeError, match="bbox must be"):
+        ext.bin_gaussians(bbox[:3], radii, depths, 16, 16)
+    with pytest.raises(RuntimeError, match="depths"):
+        ext.bin_gaussians(bbox, radii, depths[:2], 16, 16)
+    with pytest.raises(RuntimeError, match="image size"):
+        ext.bin_gaussians(bbox, radii, depths, 0, 16)
+
+
 def test_unknown_backend_rejected():
     s = random_scene(3, 8, 8)
     with pytest.raises(ValueError, match="backend"):

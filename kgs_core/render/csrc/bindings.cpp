@@ -103,9 +103,19 @@ std::vector<Tensor> project_backward(Tensor means, Tensor covars, Tensor opaciti
   return {g_means, g_covars, g_opac};
 }
 
-// Returns (tile_offsets, tile_ranks, order): see kernels.h.
+kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
+  // The per-Gaussian lines of raster.cpp store bounding boxes as int16.
+  TORCH_CHECK(width >= 1 && height >= 1 && width <= 32767 && height <= 32767,
+              "image size must be 1..32767 pixels per side, got ", width, "x", height);
+  return {int(width), int(height), int(channels), int((width + kgs::TILE - 1) / kgs::TILE),
+          int((height + kgs::TILE - 1) / kgs::TILE)};
+}
+
+// Returns (tile_offsets, tile_ranks, order, id_start): see kernels.h. The boxes are the
+// projection's, clipped to the image; they are not checked again here.
 std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int64_t width,
                                   int64_t height) {
+  shape_of(width, height, 1);  // the size checks
   check(bbox, "bbox", torch::kInt32);
   check(radii, "radii", torch::kInt32);
   check(depths, "depths", depths.scalar_type());
@@ -127,14 +137,6 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
                                  depths.data_ptr<scalar_t>(), int(width), int(height), allocate);
   });
   return {offsets, ranks, order, id_start};
-}
-
-kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
-  // The per-Gaussian lines of raster.cpp store bounding boxes as int16.
-  TORCH_CHECK(width >= 1 && height >= 1 && width <= 32767 && height <= 32767,
-              "image size must be 1..32767 pixels per side, got ", width, "x", height);
-  return {int(width), int(height), int(channels), int((width + kgs::TILE - 1) / kgs::TILE),
-          int((height + kgs::TILE - 1) / kgs::TILE)};
 }
 
 kgs::TileLists lists_of(const Tensor& offsets, const Tensor& ranks, const Tensor& order,
