@@ -181,11 +181,52 @@ struct RowEval {
   typename X::M ok;
 };
 
+// What a Gaussian's rows differ by: dy (pixel-centre y minus the mean's) and the quadratic
+// term log2(e) cc dy^2 / 2, for tile row r, broadcast over the lane set Y. The kernels are
+// bound by the latency of each row's chain (dy -> power -> exp2 -> alpha -> the pixel
+// update), not by its operation count: with these terms formed per row in scalar code the
+// chain began ~15 cycles later. The AVX-512 version below forms them for all 16 rows at once
+// per pair and picks row r with one permute (forward -6 %, session 12); both round exactly
+// as the scalar forms do.
+template <typename Y, typename S>
+struct GaussRows {
+  int py0;
+  S my, half_cc;
+  GaussRows(const TileGeom& t, const PairRec<S>& p, S half_cc_) : py0(t.py0), my(p.my), half_cc(half_cc_) {}
+  S dy_s(int r) const { return S(py0 + r) + S(0.5) - my; }
+  typename Y::V dy(int r) const { return Y::set1(dy_s(r)); }
+  typename Y::V dy2(int r) const { const S d = dy_s(r); return Y::set1(d * d); }
+  typename Y::V quad(int r) const { const S d = dy_s(r); return Y::set1(half_cc * d * d); }
+};
+
+#if defined(__AVX512F__)
+template <>
+struct GaussRows<Simd<float>, float> {
+  __m512 dy_v, quad_v;  // lane r: row r's dy / quadratic term
+  GaussRows(const TileGeom& t, const PairRec<float>& p, float half_cc) {
+    const __m512i row = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    dy_v = _mm512_cvtepi32_ps(_mm512_add_epi32(row, _mm512_set1_epi32(t.py0))) + _mm512_set1_ps(0.5f) -
+           _mm512_set1_ps(p.my);
+    quad_v = _mm512_set1_ps(half_cc) * dy_v * dy_v;
+  }
+  static __m512 pick(__m512 v, int r) { return _mm512_permutexvar_ps(_mm512_set1_epi32(r), v); }
+  __m512 dy(int r) const { return pick(dy_v, r); }
+  __m512 dy2(int r) const { const __m512 d = dy(r); return d * d; }
+  __m512 quad(int r) const { return pick(quad_v, r); }
+  // Rows r and r + 1 in lanes 0-7 and 8-15 (TwoRows; index 16 wraps to row 0, in lanes
+  // that a lone last row's masks leave out).
+  static __m512 pick2(__m512 v, int r) {
+    return _mm512_permutexvar_ps(_mm512_mask_set1_epi32(_mm512_set1_epi32(r), 0xFF00, r + 1), v);
+  }
+};
+#endif
+
+// The Gaussian on tile row r.
 template <typename X, typename S>
-inline RowEval<X> eval_row(const GaussLanes<X, S>& gl, S dy) {
+inline RowEval<X> eval_row(const GaussLanes<X, S>& gl, const GaussRows<X, S>& rows, int r) {
   RowEval<X> e;
   // (The product and the difference are independent: two steps deep, not three.)
-  const auto power = X::set1(dy) * gl.p1 + (gl.p0 - X::set1(gl.half_cc * dy * dy));
+  const auto power = rows.dy(r) * gl.p1 + (gl.p0 - rows.quad(r));
   e.G = X::exp2(power);
   e.a_raw = X::set1(gl.op) * e.G;
   e.alpha = X::min(e.a_raw, X::set1(S(ALPHA_MAX)));
@@ -324,13 +365,14 @@ void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& l
       using YV = typename Y::V;
       const auto list_pos = Y::iset1(k - t.begin + 1);
       const GaussLanes<Y, S> gl(part(px), p, lane0);
+      const GaussRows<Y, S> rows(t, p, gl.half_cc);
       const YV gz = Y::set1(p.z);
       YM any_term = Y::none(), any_use = Y::none();
       for (int r = p.y0; r < p.y1; ++r) {
         YM& done_r = part(done[r]);
         YV& T_r = part(T[r]);
         if (!Y::any(Y::mandnot(gl.in_box, done_r))) continue;  // row finished: skip the exp
-        const RowEval<Y> e = eval_row(gl, S(t.py0 + r) + S(0.5) - p.my);
+        const RowEval<Y> e = eval_row(gl, rows, r);
         const YM in = Y::mandnot(e.ok, done_r);
         const YV test_t = T_r * (Y::set1(S(1)) - e.alpha);
         const YM term = Y::mand(in, Y::lt(test_t, Y::set1(S(T_MIN))));
@@ -473,20 +515,6 @@ struct TwoRows {
     v[r] = _mm512_mask_permutexvar_ps(v[r], window, back0, x);
     if (r1 != r) v[r1] = _mm512_mask_permutexvar_ps(v[r1], window, back1, x);
   }
-  // Pixel-centre dy per lane (rows r and r + 1), rounded as the one-row path rounds its
-  // scalar dy. (A lone last row's upper half gets row r + 1's, which its masks leave out.)
-  static __m512 dy(const TileGeom& t, const PairRec<float>& p, int r) {
-    return _mm512_mask_blend_ps(0xFF00, X::set1(float(t.py0 + r) + 0.5f - p.my),
-                                X::set1(float(t.py0 + r + 1) + 0.5f - p.my));
-  }
-  // The quadratic term log2(e) cc dy^2 / 2, rounded as the one-row path rounds its scalar.
-  // The empty asm keeps the compiler from fusing its last product into eval_row's
-  // subtraction (a fused multiply-subtract rounds once, not twice).
-  static __m512 quad(float half_cc, __m512 dy) {
-    __m512 q = X::set1(half_cc) * dy * dy;
-    asm("" : "+v"(q));
-    return q;
-  }
 };
 
 // eval_row with a dy and quadratic term per lane.
@@ -511,6 +539,7 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
   using X = Simd<float>;
   const TwoRows L(t, p);
   const GaussLanes<X, float> gl(L.px, p, 0);
+  const GaussRows<X, float> rows(t, p, gl.half_cc);
   const __m512& dx = gl.dx;
   const __m512i list_pos = _mm512_set1_epi32(list_pos_i);
   const __m512 gz = X::set1(p.z), one = X::set1(1.0f);
@@ -523,8 +552,8 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
     const __m512i last_2 = L.get(last, r, r1);
     // Pixels that stopped before this Gaussian: skip the rows before paying for the exp.
     if (!(in_box & _mm512_cmplt_epi32_mask(list_pos, last_2))) continue;
-    const __m512 dy = TwoRows::dy(t, p, r);
-    const RowEval<X> e = eval_two_rows(gl, dy, TwoRows::quad(gl.half_cc, dy), in_box);
+    const __m512 dy = GaussRows<X, float>::pick2(rows.dy_v, r);
+    const RowEval<X> e = eval_two_rows(gl, dy, GaussRows<X, float>::pick2(rows.quad_v, r), in_box);
     const __mmask16 use = e.ok & _mm512_cmplt_epi32_mask(list_pos, last_2);
     if (!use) continue;
     const __m512 T_2 = L.get(Tcur, r, r1);
@@ -656,20 +685,20 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
       };
       for (int ch = 0; ch < C; ++ch) col_acc(ch) = Y::zero();
       const GaussLanes<Y, S> gl(part(px), p, lane0);
+      const GaussRows<Y, S> rows(t, p, gl.half_cc);
       const YV& dx = gl.dx;
       const YV gz = Y::set1(p.z), ca = Y::set1(p.ca), cb = Y::set1(p.cb), cc = Y::set1(p.cc);
       for (int r = p.y0; r < p.y1; ++r) {
         const auto& last_r = part(last[r]);
         // Pixels that stopped before this Gaussian: skip the row before paying for the exp.
         if (!Y::any(Y::mand(gl.in_box, Y::ilt(list_pos, last_r)))) continue;
-        const S dy_s = S(t.py0 + r) + S(0.5) - p.my;
-        const RowEval<Y> e = eval_row(gl, dy_s);
+        const RowEval<Y> e = eval_row(gl, rows, r);
         const YM use = Y::mand(e.ok, Y::ilt(list_pos, last_r));
         if (!Y::any(use)) continue;
         YV& Tcur_r = part(Tcur[r]);
         YV& Bg_r = part(Bg[r]);
         const YV gD_r = part(gD[r]);
-        const YV dy = Y::set1(dy_s);
+        const YV dy = rows.dy(r);
         const YV inv = Y::rcp(Y::set1(S(1)) - e.alpha);
         const YV Ti = Tcur_r * inv;  // transmittance in front of this Gaussian
         const YV w = Y::keep(use, e.alpha * Ti);
@@ -683,7 +712,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
         Bg_r += w * gcc;
         sums.a_d += w * gD_r;
         Tcur_r = Y::select(use, Ti, Tcur_r);
-        const YV gp = sums.add(e, use, dal, dx, dy, Y::set1(dy_s * dy_s));
+        const YV gp = sums.add(e, use, dal, dx, dy, rows.dy2(r));
         if constexpr (ABS) {
           sums.a_amx += Y::abs(gp * (ca * dx + cb * dy));
           sums.a_amy += Y::abs(gp * (cb * dx + cc * dy));

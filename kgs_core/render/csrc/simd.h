@@ -116,7 +116,10 @@ struct SimdGeneric {
 // multiply-adds deep where Horner's is six: the tile kernels are bound by the latency of
 // this chain, not by its operation count (docs/performance.md, session 10). Inputs are
 // clamped to [-60, 120]: 2^-60 ~ 9e-19 is far below any alpha threshold, and lanes outside a
-// Gaussian's footprint stay out of denormal numbers, which cost ~100 cycles each.
+// Gaussian's footprint stay out of denormal numbers, which cost ~100 cycles each. AVX-512
+// clamps only from below (one step off the chain, session 12): vscalefps is defined for any
+// k (2^k overflows to inf), and the kernels' power <= 0 test leaves such lanes out; the
+// other paths assemble 2^k from exponent bits, which needs k <= 127.
 constexpr float EXP2_LO = -60.0f, EXP2_HI = 120.0f;
 constexpr float EXP2_C[7] = {1.0f, 6.931472028550421e-1f, 2.402264791363012e-1f, 5.550332471162809e-2f,
                              9.618437357674640e-3f, 1.339887440266574e-3f, 1.535336188319500e-4f};
@@ -158,7 +161,11 @@ inline __m256 times_pow2(__m256 y, __m256 k) {
 template <typename V>
 inline V exp2_x86(V x) {
   const auto c = [](float f) { return V{} + f; };  // broadcast
+#if defined(__AVX512F__)
+  x = vmax(x, c(EXP2_LO));
+#else
   x = vmin(vmax(x, c(EXP2_LO)), c(EXP2_HI));
+#endif
   const V k = round_nearest(x);
   return times_pow2(exp2_poly(x - k, [](V a, V b, V d) { return fmadd(a, b, d); }), k);
 }
