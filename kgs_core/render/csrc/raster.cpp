@@ -585,6 +585,8 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
 // of the row loop), which halves that part of the loop.
 // NC: the channel count when known at compile time (3, the training render), 0 otherwise:
 // with it the per-channel loops unroll and the pair's colour gradients stay in registers.
+constexpr int SLOT_AHEAD = 4;  // 2 to 12 measured; 4 was best by a little
+
 template <typename S, bool ABS, int NC>
 void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, const S* background, const S* t_final,
                    const int32_t* n_contrib, const S* g_image, const S* g_alpha,
@@ -655,6 +657,13 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
     const S* rec = records + size_t(k) * (RECORD_HEAD + C);
     uint32_t box;
     int32_t slot_index;
+    // Slots are numbered id-major, so each pair writes its slot to a cache line nobody has
+    // touched in this call: asking for ownership of that line a few pairs ahead hides the miss
+    // (it stalled the store queue: backward -25 to -38 %, session 12).
+    if (k - SLOT_AHEAD >= t.begin) {
+      read_record_head(records + size_t(k - SLOT_AHEAD) * (RECORD_HEAD + C), box, slot_index);
+      __builtin_prefetch(slots + size_t(slot_index) * stride, 1);
+    }
     read_record_head(rec, box, slot_index);
     S* slot = slots + size_t(slot_index) * stride;  // id-major: summed sequentially
     if ((box >> 16 & 0xff) >= box >> 24) {  // contributed to no pixel in the forward
