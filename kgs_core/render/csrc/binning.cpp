@@ -119,8 +119,15 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
   const int32_t* by_rank = sorted.data();
 #pragma omp parallel
   {
+    // Boxes read in depth order are random reads of memory the projection wrote long
+    // before; fetching them GATHER_AHEAD ranks ahead keeps enough misses in flight (the
+    // gather alone 0.55 -> 0.2-0.3 ms at 50k, session 12).
+    constexpr int64_t GATHER_AHEAD = 32;
 #pragma omp for schedule(static)
-    for (int64_t rank = 0; rank < n_vis; ++rank) rect[rank] = tile_rect(bbox + 4 * by_rank[rank]);
+    for (int64_t rank = 0; rank < n_vis; ++rank) {
+      if (rank + GATHER_AHEAD < n_vis) __builtin_prefetch(bbox + 4 * by_rank[rank + GATHER_AHEAD]);
+      rect[rank] = tile_rect(bbox + 4 * by_rank[rank]);
+    }
 #pragma omp for schedule(static)
     for (int c = 0; c < CHUNKS; ++c) {
       int32_t* cnt = chunk_count + size_t(c) * stride;
