@@ -244,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n", type=int, nargs="+", default=[10_000, 50_000, 200_000])
     ap.add_argument("--res", type=int, nargs="+", default=[128, 256, 512])
     ap.add_argument("--backends", nargs="+", default=["cpu", "torch"], choices=["cpu", "torch"])
-    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocess")
     ap.add_argument("--stages", action="store_true",
                     help="also time each C++ stage inside the cpu forward + backward, per N and size, "
