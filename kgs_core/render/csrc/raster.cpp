@@ -323,13 +323,16 @@ inline typename Simd<S>::V expected_depth(typename Simd<S>::V depth_sum, typenam
 
 
 // NC: the channel count when known at compile time (3, as in training), 0 otherwise.
+// The tile and the pair lists come by value: through references the compiler reloaded
+// their fields for every pair, since the record and pixel stores might alias them (the
+// per-tile part of GaussRows then stays out of the pair loop: forward -3 %, session 12).
 // Besides the pixels, the forward writes each pair's box cut to the rows and lanes where it
 // contributed (used_box; pairs behind a finished tile: empty): the backward then
 // skips the rows where every lane failed the alpha test (23 % of the box's rows on the
 // benchmark scene: python -m kgs_app.bench.occupancy) without evaluating them. A lane that
 // did not contribute adds exact zeros in the backward, so the gradients are unchanged.
 template <typename S, int NC>
-void forward_tile(const RasterShape& s, const TileGeom& t, const PairLines<S>& lines,
+void forward_tile(const RasterShape& s, const TileGeom t, const PairLines<S> lines,
                   S* records, const S* background, S* image, S* alpha_out, S* depth_out,
                   S* t_final, int32_t* n_contrib, std::vector<typename Simd<S>::V>& acc_heap) {
   using X = Simd<S>;
