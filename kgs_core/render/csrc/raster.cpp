@@ -182,12 +182,12 @@ struct RowEval {
 };
 
 // What a Gaussian's rows differ by: dy (pixel-centre y minus the mean's) and the quadratic
-// term log2(e) cc dy^2 / 2, for tile row r, broadcast over the lane set Y. The kernels are
-// bound by the latency of each row's chain (dy -> power -> exp2 -> alpha -> the pixel
-// update), not by its operation count: with these terms formed per row in scalar code the
-// chain began ~15 cycles later. The AVX-512 version below forms them for all 16 rows at once
-// per pair and picks row r with one permute (forward -6 %, session 12); both round exactly
-// as the scalar forms do.
+// term log2(e) cc dy^2 / 2, for tile row r, broadcast over the lane set Y. Formed per row in
+// scalar code they put ~15 cycles of scalar steps at the head of every row's chain (dy ->
+// power -> exp2 -> alpha -> the pixel update). The AVX-512 version below forms them for all
+// 16 rows at once per pair and picks row r with one permute: forward -4 to -7 % (session 12;
+// shortening the chain's tail, e.g. T - alpha T as one multiply-add, measured level). Both
+// round exactly as the scalar forms do.
 template <typename Y, typename S>
 struct GaussRows {
   int py0;
