@@ -16,6 +16,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <type_traits>
 #include <vector>
 
 namespace kgs {
@@ -50,13 +51,22 @@ inline void sample(const float* g, const Tap& q, int64_t F, float* out) {
   for (int64_t f = 0; f < F; ++f) out[f] = w00 * g[q.i00 + f] + w10 * g[q.i10 + f] + w01 * g[q.i01 + f] + w11 * g[q.i11 + f];
 }
 
-}  // namespace
-
 constexpr int64_t kMaxChannels = 256;  // per-row buffers live on the stack
 
-// FC: the channel count when known at compile time (16: the fast preset, 32: the paper
-// preset), 0 otherwise. With it every per-channel loop is a fixed run of vector operations;
-// with a runtime count GCC kept them as loops with remainders (backward ~2x slower).
+// Calls run(std::integral_constant<int, FC>) with FC the channel count F when it is one the
+// presets use (16: fast, 32: paper), 0 for any other F. With FC known every per-channel loop
+// is a fixed run of vector operations; with a runtime count GCC kept them as loops with
+// remainders (backward ~2x slower at the fast preset's size, session 12).
+template <typename Run>
+void with_channel_count(int64_t F, Run&& run) {
+  switch (F) {
+    case 16: run(std::integral_constant<int, 16>{}); break;
+    case 32: run(std::integral_constant<int, 32>{}); break;
+    default: run(std::integral_constant<int, 0>{});
+  }
+}
+
+// FC: the channel count when known at compile time, 0 otherwise (with_channel_count).
 template <int FC>
 void forward_rows(int64_t N, int64_t rows, const float* x, const float* t, const KPlanes& p, float* out,
                   int64_t out_stride) {
@@ -74,15 +84,6 @@ void forward_rows(int64_t N, int64_t rows, const float* x, const float* t, const
     float* o = out + j * out_stride;
 #pragma omp simd
     for (int64_t f = 0; f < F; ++f) o[f] = acc[f];
-  }
-}
-
-void kplanes_forward(int64_t N, int64_t rows, const float* x, const float* t, const KPlanes& p, float* out,
-                     int64_t out_stride) {
-  switch (p.F) {
-    case 16: forward_rows<16>(N, rows, x, t, p, out, out_stride); break;
-    case 32: forward_rows<32>(N, rows, x, t, p, out, out_stride); break;
-    default: forward_rows<0>(N, rows, x, t, p, out, out_stride);
   }
 }
 
@@ -138,6 +139,13 @@ void backward_rows(int64_t j0, int64_t j1, int64_t N, const float* x, const floa
   }
 }
 
+}  // namespace
+
+void kplanes_forward(int64_t N, int64_t rows, const float* x, const float* t, const KPlanes& p, float* out,
+                     int64_t out_stride) {
+  with_channel_count(p.F, [&](auto fc) { forward_rows<decltype(fc)::value>(N, rows, x, t, p, out, out_stride); });
+}
+
 // One pass over the rows, split between the threads. Thread 0 accumulates the plane gradients
 // in place, the others into private planes (kept across calls: no page faults) that are added
 // in at the end; splitting channels instead puts two threads on one cache line (F = 16 is one
@@ -164,11 +172,9 @@ void kplanes_backward(int64_t N, int64_t rows, const float* x, const float* t, c
       for (int k = 0; k < 6; ++k) acc[k] = own.data() + offset[k];
     }
     const int64_t j0 = rows * tid / nt, j1 = rows * (tid + 1) / nt;
-    switch (F) {
-      case 16: backward_rows<16>(j0, j1, N, x, t, p, g_out, g_stride, acc, gr); break;
-      case 32: backward_rows<32>(j0, j1, N, x, t, p, g_out, g_stride, acc, gr); break;
-      default: backward_rows<0>(j0, j1, N, x, t, p, g_out, g_stride, acc, gr);
-    }
+    with_channel_count(F, [&](auto fc) {
+      backward_rows<decltype(fc)::value>(j0, j1, N, x, t, p, g_out, g_stride, acc, gr);
+    });
 #pragma omp barrier
     // The private copies into the planes, entries split between the threads.
     for (int k = 0; k < 6; ++k) {
