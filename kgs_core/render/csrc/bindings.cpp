@@ -115,13 +115,13 @@ kgs::RasterShape shape_of(int64_t width, int64_t height, int64_t channels) {
 // projection's, clipped to the image; they are not checked again here.
 std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int64_t width,
                                   int64_t height) {
-  shape_of(width, height, 1);  // the size checks
+  const auto shape = shape_of(width, height, 1);  // with the size checks
   check(bbox, "bbox", torch::kInt32);
   check(radii, "radii", torch::kInt32);
   check(depths, "depths", depths.scalar_type());
   const int64_t n = radii.size(0);
   TORCH_CHECK(bbox.numel() == 4 * n && depths.numel() == n, "bbox must be (N, 4) and depths (N,)");
-  const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
+  const int64_t tiles = int64_t(shape.tiles_x) * shape.tiles_y;
   auto opts = bbox.options();
   auto offsets = torch::empty({tiles + 1}, opts), id_start = torch::empty({n + 1}, opts);
   Tensor order, ranks;
@@ -140,13 +140,12 @@ std::vector<Tensor> bin_gaussians(Tensor bbox, Tensor radii, Tensor depths, int6
 }
 
 kgs::TileLists lists_of(const Tensor& offsets, const Tensor& ranks, const Tensor& order,
-                        const Tensor& id_start, int64_t n, int64_t width,
-                        int64_t height) {
+                        const Tensor& id_start, int64_t n, const kgs::RasterShape& shape) {
   check(offsets, "tile_offsets", torch::kInt32);
   check(ranks, "tile_ranks", torch::kInt32);
   check(order, "order", torch::kInt32);
   check(id_start, "id_start", torch::kInt32);
-  const int64_t tiles = ((width + kgs::TILE - 1) / kgs::TILE) * ((height + kgs::TILE - 1) / kgs::TILE);
+  const int64_t tiles = int64_t(shape.tiles_x) * shape.tiles_y;
   TORCH_CHECK(offsets.numel() == tiles + 1, "tile_offsets does not match the image size");
   TORCH_CHECK(id_start.numel() == n + 1, "id_start must have one entry per Gaussian, plus one");
   const int64_t n_pairs = offsets.data_ptr<int32_t>()[tiles];
@@ -168,7 +167,7 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
   TORCH_CHECK(background.numel() == C, "background must have ", C, " channels");
   const auto shape = shape_of(width, height, C);
   const int64_t n = means2d.size(0);
-  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, n, width, height);
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, n, shape);
   auto opts = means2d.options();
   auto records = torch::empty({lists.n_pairs, kgs::RECORD_HEAD + C}, opts);
   auto image = torch::empty({height, width, C}, opts);
@@ -179,7 +178,8 @@ std::vector<Tensor> raster_forward(Tensor means2d, Tensor conics, Tensor opac, T
     kgs::raster_forward<scalar_t>(
         shape, lists, n, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
         opac.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(), records.data_ptr<scalar_t>(), image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+        bbox.data_ptr<int32_t>(), background.data_ptr<scalar_t>(), records.data_ptr<scalar_t>(),
+        image.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
         t_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>());
   });
   return {image, alpha, depth, t_final, n_contrib, records};
@@ -200,10 +200,10 @@ std::vector<Tensor> raster_backward(Tensor records, Tensor background, Tensor ti
   }
   check(n_contrib, "n_contrib", torch::kInt32);
   const int64_t C = background.numel();
-  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, n, width, height);
+  const auto shape = shape_of(width, height, C);
+  const auto lists = lists_of(tile_offsets, tile_ranks, order, id_start, n, shape);
   TORCH_CHECK(records.dim() == 2 && records.size(0) == lists.n_pairs && records.size(1) == kgs::RECORD_HEAD + C,
               "records do not match the tile lists");
-  const auto shape = shape_of(width, height, C);
   auto opts = records.options();
   auto g_means2d = torch::empty({n, 2}, opts), g_conics = torch::empty({n, 3}, opts);
   auto g_opac = torch::empty({n}, opts), g_colors = torch::empty({n, C}, opts);
