@@ -221,17 +221,25 @@ struct GaussRows<Simd<float>, float> {
 };
 #endif
 
-// The Gaussian on tile row r.
+// The Gaussian at the lanes in_box, given each lane's dy and quadratic term (eval_row's
+// broadcast row, or TwoRows' two rows).
 template <typename X, typename S>
-inline RowEval<X> eval_row(const GaussLanes<X, S>& gl, const GaussRows<X, S>& rows, int r) {
+inline RowEval<X> eval_lanes(const GaussLanes<X, S>& gl, typename X::V dy, typename X::V quad,
+                             typename X::M in_box) {
   RowEval<X> e;
   // (The product and the difference are independent: two steps deep, not three.)
-  const auto power = rows.dy(r) * gl.p1 + (gl.p0 - rows.quad(r));
+  const auto power = dy * gl.p1 + (gl.p0 - quad);
   e.G = X::exp2(power);
   e.a_raw = X::set1(gl.op) * e.G;
   e.alpha = X::min(e.a_raw, X::set1(S(ALPHA_MAX)));
-  e.ok = X::mand(gl.in_box, X::mand(X::le(power, X::zero()), X::ge(e.alpha, X::set1(S(ALPHA_MIN)))));
+  e.ok = X::mand(in_box, X::mand(X::le(power, X::zero()), X::ge(e.alpha, X::set1(S(ALPHA_MIN)))));
   return e;
+}
+
+// The Gaussian on tile row r.
+template <typename X, typename S>
+inline RowEval<X> eval_row(const GaussLanes<X, S>& gl, const GaussRows<X, S>& rows, int r) {
+  return eval_lanes(gl, rows.dy(r), rows.quad(r), gl.in_box);
 }
 
 // Pixel-centre x of each lane of a tile.
@@ -529,19 +537,6 @@ struct TwoRows {
   }
 };
 
-// eval_row with a dy and quadratic term per lane.
-inline RowEval<Simd<float>> eval_two_rows(const GaussLanes<Simd<float>, float>& gl, __m512 dy,
-                                          __m512 quad, __mmask16 in_box) {
-  using X = Simd<float>;
-  RowEval<X> e;
-  const __m512 power = dy * gl.p1 + (gl.p0 - quad);
-  e.G = X::exp2(power);
-  e.a_raw = X::set1(gl.op) * e.G;
-  e.alpha = X::min(e.a_raw, X::set1(ALPHA_MAX));
-  e.ok = X::mand(in_box, X::mand(X::le(power, X::zero()), X::ge(e.alpha, X::set1(ALPHA_MIN))));
-  return e;
-}
-
 // The backward of one pair on two rows at a time (see TwoRows): the same per-pixel updates
 // as backward_tile's general path (the colour channels known at compile time, no absgrad).
 template <int NC>
@@ -565,7 +560,7 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
     // Pixels that stopped before this Gaussian: skip the rows before paying for the exp.
     if (!(in_box & _mm512_cmplt_epi32_mask(list_pos, last_2))) continue;
     const __m512 dy = GaussRows<X, float>::pick2(rows.dy_v, r);
-    const RowEval<X> e = eval_two_rows(gl, dy, GaussRows<X, float>::pick2(rows.quad_v, r), in_box);
+    const RowEval<X> e = eval_lanes(gl, dy, GaussRows<X, float>::pick2(rows.quad_v, r), in_box);
     const __mmask16 use = e.ok & _mm512_cmplt_epi32_mask(list_pos, last_2);
     if (!use) continue;
     const __m512 T_2 = L.get(Tcur, r, r1);
