@@ -587,13 +587,15 @@ inline void backward_pair_two_rows(const TileGeom& t, const PairRec<float>& p, i
 }
 #endif
 
+// How many pairs ahead the backward prefetches a pair's gradient slot (2 to 12 measured; 4
+// was best by a little).
+constexpr int SLOT_AHEAD = 4;
+
 // ABS: also accumulate |dL/dmean2d| per pixel (AbsGS densification); without it the mean
 // and conic gradients come from five moments of gp (per-Gaussian constants factored out
 // of the row loop), which halves that part of the loop.
 // NC: the channel count when known at compile time (3, the training render), 0 otherwise:
 // with it the per-channel loops unroll and the pair's colour gradients stay in registers.
-constexpr int SLOT_AHEAD = 4;  // 2 to 12 measured; 4 was best by a little
-
 template <typename S, bool ABS, int NC>
 void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, const S* background, const S* t_final,
                    const int32_t* n_contrib, const S* g_image, const S* g_alpha,
