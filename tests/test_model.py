@@ -137,6 +137,12 @@ def test_sharp_render_skips_the_velocity_only_where_nothing_depends_on_it(kr_for
         assert torch.allclose(lean.covars6, full.covars6, rtol=1e-4, atol=1e-9)
         if exposure > 0 and kr_form == "convolve":  # the velocity does shape the blurred covariance
             assert not torch.allclose(m.at(0.4, exposure=0.0, dt=0.05).covars6, full.covars6, rtol=1e-4, atol=1e-9)
+            # ... and the sweep handed to the renderer (for the splats' mass) is the one it used
+            idx, sweep = full.sweep
+            assert torch.equal(idx, torch.arange(len(m)))
+            assert torch.allclose(sweep.detach(), full.velocity * 0.05 * exposure, rtol=1e-6, atol=1e-9)
+        else:
+            assert full.sweep is None and lean.sweep is None
         # The server's dynamic-only path makes the same choice.
         _, lean_dyn = m.at_dynamic(0.4, exposure, 0.05, velocity=False)
         assert times_seen[-1] == (1 if skipped else 3) and (lean_dyn.velocity is None) == skipped
@@ -169,3 +175,42 @@ def test_packed_covariances_through_the_model_match_the_full_matrices():
     assert torch.allclose(cov6.grad, pack_covariance(cov33.grad) * torch.tensor([1, 2, 2, 1, 2, 1]), rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match=r"\(N, 3, 3\) or packed \(N, 6\)"):
         rasterize(g.means, g.opacities, viewmat, K, 40, 32, covars=cov6[:, :5], colors=colors)
+
+
+def test_blurred_splat_keeps_the_mass_of_the_sharp_one_swept_over_the_exposure():
+    """A Gaussian blurred by the convolve form (`Σ + s sᵀ/12`, opacity scaled by
+    `blur_opacity_scale`) covers the image like the sharp Gaussian averaged over its path,
+    in total (its mass) and in shape; with the opacity left alone it would cover ~1.9x more."""
+    from kgs_core.render.blur import blur_opacity_scale
+
+    viewmat = look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0])
+    W = H = 64
+    K = intrinsics(W, H, 50.0)
+    mean = torch.tensor([[0.05, -0.02, 0.1]])
+    sigma = covariance_from_quat_scale(torch.tensor([[0.9, 0.1, 0.3, 0.2]]), torch.tensor([[0.05, 0.03, 0.01]]))
+    sweep = torch.tensor([[0.25, 0.1, 0.05]])  # ~6 px on screen, the splat ~1 px wide
+    opacity = torch.tensor([0.3])
+    white = torch.ones(1, 1)
+    blurred = pack_covariance(sigma + sweep[:, :, None] * sweep[:, None, :] / 12)
+    scale = blur_opacity_scale(mean, blurred, sweep, viewmat, K, W, H)
+    one = lambda m, cov, o: rasterize(m, o, viewmat, K, W, H, covars=cov, colors=white).alpha[..., 0]  # noqa: E731
+    offsets = (torch.arange(256) + 0.5) / 256 - 0.5
+    swept = torch.stack([one(mean + o * sweep, pack_covariance(sigma), opacity) for o in offsets]).mean(0)
+    compensated = one(mean, blurred, opacity * scale)
+    plain = one(mean, blurred, opacity)
+    assert 0.45 < float(scale) < 0.6
+    assert float(compensated.sum()) == pytest.approx(float(swept.sum()), rel=0.02)
+    assert float(plain.sum()) > 1.7 * float(swept.sum())
+    # the blurred splat is the swept one's second-moment match: the shapes differ by a seventh
+    # of the mass (a Gaussian against a box-filtered one), the plain one by almost all of it
+    assert float((compensated - swept).abs().sum()) < 0.16 * float(swept.sum())
+    assert float((plain - swept).abs().sum()) > 0.8 * float(swept.sum())
+
+    # The factor is sqrt(det Σ2_sharp / det Σ2_blur) of the rasteriser's own 2D covariances.
+    from kgs_core.render.torch_backend import project
+
+    def det2d(cov6):
+        c = project(mean, cov6, opacity, viewmat, K, W, H, 0.01, 1e10, 0.3, False).conics[0]
+        return 1.0 / float(c[0] * c[2] - c[1] * c[1])
+
+    assert float(scale) == pytest.approx((det2d(pack_covariance(sigma)) / det2d(blurred)) ** 0.5, rel=1e-4)

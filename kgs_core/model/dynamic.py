@@ -82,6 +82,10 @@ class GaussiansAt:
     dynamic: Tensor  # (N,) bool
     velocity: Tensor | None = None  # (N, 3), zeros for static Gaussians
     offsets_dx: Tensor | None = None  # (N, 3), for L_reg
+    # The Gaussians blurred by the convolve form and their displacement over the exposure:
+    # `(idx (B,), sweep (B, 3))` (differentiable), or None when nothing is blurred. The
+    # renderer scales their opacities so that each splat keeps its 2D mass (`blur_opacity_scale`).
+    sweep: tuple[Tensor, Tensor] | None = None
     extras: dict = field(default_factory=dict)
 
     @property
@@ -225,23 +229,28 @@ class KinematicsGS(nn.Module):
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         blur_camera = camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
+        sweeps = []
         if blur_camera:
             A, b = camera_motion
             still = torch.ones(n, dtype=torch.bool)
             still[idx] = False
             if still.any():  # static Gaussians: blurred by the camera's motion alone
+                sweep = (means[still].detach() @ A.T + b) * (dt * exposure)
                 cov6 = cov6.index_put((still,), pack_covariance(motion_blur_covariance(
-                    unpack_covariance(cov6[still]), means[still].detach() @ A.T + b, dt * exposure)))
+                    unpack_covariance(cov6[still]), sweep, 1.0)))
+                sweeps.append((torch.nonzero(still).squeeze(1), sweep))
         if len(idx):
-            x_t, cov_dyn, v, dx = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6[idx],
-                                               camera_motion if blur_camera else None, velocity)
+            x_t, cov_dyn, v, dx, sweep = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6[idx],
+                                                      camera_motion if blur_camera else None, velocity)
             means = means.index_put((idx,), x_t)
             cov6 = cov6.index_put((idx,), cov_dyn)
             velocities = None if v is None else velocities.index_put((idx,), v.detach())
             dx_all = dx_all.index_put((idx,), dx)
+            if sweep is not None:
+                sweeps.append((idx, sweep))
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
-                           velocity=velocities, offsets_dx=dx_all)
+                           velocity=velocities, offsets_dx=dx_all, sweep=join_sweeps(sweeps))
 
     def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0,
                    velocity: bool = True) -> tuple[Tensor, GaussiansAt]:
@@ -252,18 +261,21 @@ class KinematicsGS(nn.Module):
         idx = torch.arange(len(p)) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         scales = self.scales()[idx]
         cov6 = packed_covariance(p.quats[idx], scales)
+        sweep = None
         if len(idx):
-            x_t, cov6, v, dx = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
+            x_t, cov6, v, dx, sweep = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
         else:
             x_t, v, dx = p.means[idx], torch.zeros(0, 3), torch.zeros(0, 3)
         return idx, GaussiansAt(means=x_t, covars6=cov6, opacities=p.opacities[idx], sh=p.sh()[idx],
                                 dynamic=torch.ones(len(idx), dtype=torch.bool),
-                                velocity=None if v is None else v.detach(), offsets_dx=dx)
+                                velocity=None if v is None else v.detach(), offsets_dx=dx,
+                                sweep=None if sweep is None else (torch.arange(len(idx)), sweep))
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
-                velocity: bool = True) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
-        """Deformed positions, packed covariances `(D, 6)`, velocities and offsets `dx` of the
+                velocity: bool = True) -> tuple[Tensor, Tensor, Tensor | None, Tensor, Tensor | None]:
+        """Deformed positions, packed covariances `(D, 6)`, velocities, offsets `dx` and the
+        convolve form's sweeps over the exposure `(D, 3)` (None when it blurs nothing) of the
         Gaussians `idx`; `cov6_pred` is their packed canonical covariance. `velocity=False`
         (the caller will not read it): under the convolve form at exposure 0 the covariance
         gets `(0^2 / 12) v v^T`, so the velocity's two extra field samples are skipped, the
@@ -279,10 +291,13 @@ class KinematicsGS(nn.Module):
         x_t = p.means[idx] + off.dx
         if kinematic:
             v = velocity_from_offsets(offs, h, dt)
+        sweep = None
         if kinematic and cfg.kr_form == "convolve":
             v_rel = v if camera_motion is None else v + x_t.detach() @ camera_motion[0].T + camera_motion[1]
             cov = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), v_rel,
                                          dt * exposure)
+            if exposure > 0:
+                sweep = v_rel * (dt * exposure)
         elif kinematic:
             speed = safe_norm(v)
             R = quat_to_rotmat(p.quats[idx])
@@ -294,7 +309,7 @@ class KinematicsGS(nn.Module):
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
             v = None if skip_velocity else torch.zeros_like(x_t)
             cov = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
-        return x_t, pack_covariance(cov), v, off.dx
+        return x_t, pack_covariance(cov), v, off.dx, sweep
 
     def at_static(self) -> GaussiansAt:
         """The canonical Gaussians, no deformation (the static 3DGS baseline)."""
@@ -383,6 +398,13 @@ class _SparseRowMean(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g: Tensor):
         return ctx.wt @ g.contiguous(), None, None
+
+
+def join_sweeps(parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor] | None:
+    """`GaussiansAt.sweep` from the blurred groups' `(idx, sweep)` pairs."""
+    if not parts:
+        return None
+    return torch.cat([i for i, _ in parts]), torch.cat([s for _, s in parts])
 
 
 def velocity_from_offsets(offs: list[Offsets], h: float, dt: float) -> Tensor:

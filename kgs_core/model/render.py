@@ -7,6 +7,7 @@ import torch
 
 from ..data.scene import Camera
 from ..render import rasterize
+from ..render.blur import blur_opacity_scale
 from ..render.types import Rendered
 from .dynamic import GaussiansAt, KinematicsGS
 
@@ -21,15 +22,21 @@ def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0
     """Renders `model` at time `t` from `cam`. `exposure` 0 renders sharp; `colors (N, C)`
     replaces the SH colours (e.g. a dynamic-flag channel); `static` skips the deformation
     (the static 3DGS baseline); `camera_motion` blurs along the camera's own motion as well
-    (`KinematicsGS.at`); `velocity=False` when the caller does not read `g.velocity` (lets a
+    (`KinematicsGS.at`); Gaussians the convolve form blurs (`exposure` > 0) have their
+    opacities scaled to keep each splat's 2D mass (`blur_opacity_scale`); `velocity=False` when the caller does not read `g.velocity` (lets a
     sharp render skip the physical velocity's extra field samples)."""
     g = model.at_static() if static else model.at(t, exposure=exposure, dt=dt, noise=noise, camera_motion=camera_motion,
                                                   velocity=velocity)
     viewmat, K = camera_tensors(cam)
+    opacities = g.opacities
+    if g.sweep is not None:  # blurred splats keep their 2D mass (render/blur.py)
+        idx, sweep = g.sweep
+        scale = blur_opacity_scale(g.means[idx], g.covars6[idx], sweep, viewmat, K, cam.width, cam.height)
+        opacities = opacities.index_put((idx,), opacities[idx] * scale)
     if colors is not None:
         kw = dict(colors=colors)
     else:
         kw = dict(sh_coeffs=g.sh, sh_degree=model.config.sh_degree,
                   background=background if background is not None else torch.zeros(3))
-    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars6, **kw)
+    out = rasterize(g.means, opacities, viewmat, K, cam.width, cam.height, covars=g.covars6, **kw)
     return out, g

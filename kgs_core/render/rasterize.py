@@ -11,7 +11,7 @@ from torch import Tensor
 from . import _ext, cpu_backend, torch_backend
 from .covariance import pack_covariance
 from .sh import eval_sh
-from .types import Rendered
+from .types import EPS2D, Rendered
 
 Backend = Literal["auto", "cpu", "torch"]
 _warned_fallback = False
@@ -59,7 +59,7 @@ def rasterize(
     background: Tensor | None = None,
     near: float = 0.01,
     far: float = 1e10,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
     antialiased: bool = False,
     absgrad: bool = False,
     backend: Backend = "auto",

@@ -29,6 +29,29 @@ def packed_covariance(quats: Tensor, scales: Tensor) -> Tensor:
     return pack_covariance(covariance_from_quat_scale(quats, scales))
 
 
+def camera_jacobian(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, near: float, far: float
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera-space positions `(N, 3)`, the in-depth-range mask `(N,)` and the perspective
+    projection's Jacobian `(N, 2, 3)` with respect to camera-space position (3DGS's EWA rule,
+    the ray direction clamped to 1.3x the field of view)."""
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    p = means @ R.T + t
+    x, y, z = p.unbind(-1)
+    in_depth = (z >= near) & (z <= far)
+    # Invalid entries get harmless stand-ins so that masked-out values never produce NaN
+    # gradients through torch.where.
+    z = torch.where(in_depth, z, torch.ones_like(z))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    txz = torch.minimum(torch.maximum(x / z, -(cx / fx + 0.3 * tan_fovx)), (width - cx) / fx + 0.3 * tan_fovx)
+    tyz = torch.minimum(torch.maximum(y / z, -(cy / fy + 0.3 * tan_fovy)), (height - cy) / fy + 0.3 * tan_fovy)
+    zeros = torch.zeros_like(z)
+    J = torch.stack(
+        [fx / z, zeros, -fx * txz / z, zeros, fy / z, -fy * tyz / z], dim=-1
+    ).reshape(-1, 2, 3)
+    return p, in_depth, J
+
+
 def project(
     means: Tensor,
     covars6: Tensor,
@@ -45,21 +68,11 @@ def project(
     dtype = means.dtype
     viewmat = viewmat.to(dtype)
     K = K.to(dtype)
-    R, t = viewmat[:3, :3], viewmat[:3, 3]
-    p = means @ R.T + t
+    R = viewmat[:3, :3]
+    p, in_depth, J = camera_jacobian(means, viewmat, K, width, height, near, far)
     x, y, z = p.unbind(-1)
-    in_depth = (z >= near) & (z <= far)
-    # Invalid entries get harmless stand-ins so that masked-out values never produce NaN
-    # gradients through torch.where.
     z = torch.where(in_depth, z, torch.ones_like(z))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-    txz = torch.minimum(torch.maximum(x / z, -(cx / fx + 0.3 * tan_fovx)), (width - cx) / fx + 0.3 * tan_fovx)
-    tyz = torch.minimum(torch.maximum(y / z, -(cy / fy + 0.3 * tan_fovy)), (height - cy) / fy + 0.3 * tan_fovy)
-    zeros = torch.zeros_like(z)
-    J = torch.stack(
-        [fx / z, zeros, -fx * txz / z, zeros, fy / z, -fy * tyz / z], dim=-1
-    ).reshape(-1, 2, 3)
     cov_cam = R @ unpack_covariance(covars6) @ R.T
     cov2d = J @ cov_cam @ J.transpose(-1, -2)
     a0, q, c0 = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]

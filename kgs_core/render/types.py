@@ -10,6 +10,7 @@ TILE = 16
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+EPS2D = 0.3  # default screen-space low-pass added to each 2D covariance's diagonal (pixels^2)
 
 
 @dataclass
