@@ -51,6 +51,29 @@ class _Project(torch.autograd.Function):
         return g_means, g_cov, g_op, *([None] * 8)
 
 
+class _BlurScale(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, covars6, sweep, viewmat, K, width, height, near, far, eps2d):
+        ctx.save_for_backward(means, covars6, sweep, viewmat, K)
+        ctx.args = (width, height, near, far, eps2d)
+        return _ext.load().blur_scale_forward(means, covars6, sweep, viewmat, K, width, height, near, far, eps2d)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_scale):
+        means, covars6, sweep, viewmat, K = ctx.saved_tensors
+        g_cov, g_sweep = _ext.load().blur_scale_backward(means, covars6, sweep, viewmat, K, *ctx.args,
+                                                         g_scale.contiguous())
+        return None, g_cov, g_sweep, *([None] * 7)
+
+
+def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: Tensor, K: Tensor, width: int,
+                       height: int, eps2d: float, near: float, far: float) -> Tensor:
+    """Motion-blur footprint factor (`render/blur.py`), C++ forward and backward."""
+    return _BlurScale.apply(means.detach().contiguous(), covars6.contiguous(), sweep.contiguous(), viewmat, K,
+                            int(width), int(height), float(near), float(far), float(eps2d))
+
+
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, lists, width, height, info, absgrad):

@@ -121,6 +121,22 @@ def project(
     )
 
 
+def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: Tensor, K: Tensor, width: int,
+                       height: int, eps2d: float, near: float, far: float) -> Tensor:
+    """Motion-blur footprint factor (`render/blur.py`), as a plain autograd expression."""
+    with torch.no_grad():
+        viewmat, K = viewmat.to(means.dtype), K.to(means.dtype)
+        _, _, J = camera_jacobian(means, viewmat, K, width, height, near, far)
+        M = J @ viewmat[:3, :3]  # world -> screen, (B, 2, 3), held constant
+    cov2d = M @ unpack_covariance(covars6) @ M.transpose(1, 2)
+    a, b, c = cov2d[:, 0, 0] + eps2d, cov2d[:, 0, 1], cov2d[:, 1, 1] + eps2d
+    u, v = (M @ sweep[:, :, None]).squeeze(-1).unbind(-1)
+    det = (a * c - b * b).clamp_min(1e-20)
+    q = (c * u * u - 2 * b * u * v + a * v * v) / det  # s2ᵀ Σ2_blur⁻¹ s2
+    # q / 12 < 1 exactly (Σ2_blur - s2 s2ᵀ/12 is positive definite); the clamp absorbs rounding.
+    return (1 - q / 12).clamp_min(1e-6).sqrt()
+
+
 def rasterize_to_pixels(
     proj: Projection, colors: Tensor, background: Tensor, width: int, height: int
 ) -> tuple[Tensor, Tensor, Tensor, dict]:

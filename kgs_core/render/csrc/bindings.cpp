@@ -80,6 +80,46 @@ std::vector<Tensor> project_forward(Tensor means, Tensor covars, Tensor opacitie
   return {means2d, conics, depths, opac_eff, radii, bbox};
 }
 
+// Motion-blur footprint factor: means (B, 3), packed blurred covariances (B, 6), sweeps (B, 3).
+void check_blur(const Tensor& means, const Tensor& covars, const Tensor& sweeps) {
+  const auto dt = means.scalar_type();
+  check(means, "blur means", dt); check(covars, "blur covariances", dt); check(sweeps, "blur sweeps", dt);
+  const int64_t n = means.size(0);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "blur: means must be (B, 3)");
+  TORCH_CHECK(covars.dim() == 2 && covars.size(0) == n && covars.size(1) == 6, "blur: covariances must be (B, 6)");
+  TORCH_CHECK(sweeps.dim() == 2 && sweeps.size(0) == n && sweeps.size(1) == 3, "blur: sweeps must be (B, 3)");
+}
+
+Tensor blur_scale_forward(Tensor means, Tensor covars, Tensor sweeps, Tensor viewmat, Tensor K, int64_t width,
+                          int64_t height, double near_plane, double far_plane, double eps2d) {
+  check_blur(means, covars, sweeps);
+  const auto cam = make_camera(viewmat, K, width, height, near_plane, far_plane);
+  auto scale = torch::empty({means.size(0)}, means.options());
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "blur_scale_forward", [&] {
+    kgs::blur_scale_forward<scalar_t>(means.size(0), means.data_ptr<scalar_t>(), covars.data_ptr<scalar_t>(),
+                                      sweeps.data_ptr<scalar_t>(), cam, scalar_t(eps2d), scale.data_ptr<scalar_t>());
+  });
+  return scale;
+}
+
+// -> [g_covars (B, 6), g_sweeps (B, 3)]
+std::vector<Tensor> blur_scale_backward(Tensor means, Tensor covars, Tensor sweeps, Tensor viewmat, Tensor K,
+                                        int64_t width, int64_t height, double near_plane, double far_plane,
+                                        double eps2d, Tensor g_scale) {
+  check_blur(means, covars, sweeps);
+  check(g_scale, "blur gradient", means.scalar_type());
+  TORCH_CHECK(g_scale.dim() == 1 && g_scale.size(0) == means.size(0), "blur: gradient must be (B,)");
+  const auto cam = make_camera(viewmat, K, width, height, near_plane, far_plane);
+  auto g_cov = torch::empty_like(covars), g_sweep = torch::empty_like(sweeps);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "blur_scale_backward", [&] {
+    kgs::blur_scale_backward<scalar_t>(means.size(0), means.data_ptr<scalar_t>(), covars.data_ptr<scalar_t>(),
+                                       sweeps.data_ptr<scalar_t>(), cam, scalar_t(eps2d),
+                                       g_scale.data_ptr<scalar_t>(), g_cov.data_ptr<scalar_t>(),
+                                       g_sweep.data_ptr<scalar_t>());
+  });
+  return {g_cov, g_sweep};
+}
+
 std::vector<Tensor> project_backward(Tensor means, Tensor covars, Tensor opacities,
                                      Tensor viewmat, Tensor K, int64_t width, int64_t height,
                                      double near_plane, double far_plane, double eps2d,
@@ -360,6 +400,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("covar_backward", &covar_backward);
   m.def("project_forward", &project_forward);
   m.def("project_backward", &project_backward);
+  m.def("blur_scale_forward", &blur_scale_forward);
+  m.def("blur_scale_backward", &blur_scale_backward);
   m.def("bin_gaussians", &bin_gaussians);
   m.def("raster_forward", &raster_forward);
   m.def("raster_backward", &raster_backward);

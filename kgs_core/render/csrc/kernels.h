@@ -35,6 +35,15 @@ template <typename S>
 void covar_backward(int64_t n, const S* quats, const S* scales, const S* g_cov6, S* g_quats,
                     S* g_scales);
 
+// Opacity factor that keeps a motion-blurred splat's 2D mass, and its gradients with respect
+// to the packed blurred covariances and the sweeps (project.cpp; render/blur.py).
+template <typename S>
+void blur_scale_forward(int64_t n, const S* means, const S* covars, const S* sweeps, const Camera& c,
+                        S eps2d, S* scale);
+template <typename S>
+void blur_scale_backward(int64_t n, const S* means, const S* covars, const S* sweeps, const Camera& c,
+                         S eps2d, const S* g_scale, S* g_covars, S* g_sweeps);
+
 template <typename S>
 void project_forward(int64_t n, const S* means, const S* covars, const S* opacities,
                      const Camera& cam, S eps2d, bool antialiased,

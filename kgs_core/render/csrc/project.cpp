@@ -322,7 +322,105 @@ void project_backward(int64_t n, const S* means, const S* covars, const S* opaci
   });
 }
 
+// ---------------------------------------------------------------- motion-blur footprint
+// The opacity factor that keeps a blurred splat's 2D mass (render/blur.py, whose PyTorch
+// expression is the reference): sqrt(1 - s2^T Sigma2^-1 s2 / 12) with Sigma2 the screen-space
+// blurred covariance (+ eps2d) and s2 the projected sweep, both through M = J R at the clamped
+// direction, as in project_math. The factor hardly depends on the mean (s2 and Sigma2 scale
+// together with depth), so M is held constant: gradients go to the covariance and the sweep.
+
+namespace {
+
+template <typename S>
+struct BlurTerms {
+  S m0[3], m1[3];     // rows of M
+  S a, b, c, u, v;    // Sigma2 (with eps2d) and s2
+  S det, q, inside;   // det Sigma2, s2^T Sigma2^-1 s2, 1 - q / 12
+};
+
+template <typename S>
+inline void blur_terms(const CamS<S>& cam, const S* mean, const S* cov, const S* sweep, S eps2d,
+                       BlurTerms<S>& B) {
+  const auto& R = cam.R;
+  S p[3];
+  for (int r = 0; r < 3; ++r)
+    p[r] = R(r, 0) * mean[0] + R(r, 1) * mean[1] + R(r, 2) * mean[2] + cam.t[r];
+  const bool in_depth = (p[2] >= cam.near_plane) & (p[2] <= cam.far_plane);
+  const S z = in_depth ? p[2] : S(1);
+  const S txz = std::min(cam.lim_x_pos, std::max(-cam.lim_x_neg, p[0] / z));
+  const S tyz = std::min(cam.lim_y_pos, std::max(-cam.lim_y_neg, p[1] / z));
+  const S iz = S(1) / z;
+  for (int k = 0; k < 3; ++k) {
+    B.m0[k] = cam.fx * iz * (R(0, k) - txz * R(2, k));
+    B.m1[k] = cam.fy * iz * (R(1, k) - tyz * R(2, k));
+  }
+  S sw[9];
+  unpack_cov(cov, sw);
+  S s0[3], s1[3];  // Sigma m0, Sigma m1
+  for (int r = 0; r < 3; ++r) {
+    s0[r] = sw[3 * r] * B.m0[0] + sw[3 * r + 1] * B.m0[1] + sw[3 * r + 2] * B.m0[2];
+    s1[r] = sw[3 * r] * B.m1[0] + sw[3 * r + 1] * B.m1[1] + sw[3 * r + 2] * B.m1[2];
+  }
+  B.a = B.m0[0] * s0[0] + B.m0[1] * s0[1] + B.m0[2] * s0[2] + eps2d;
+  B.b = B.m0[0] * s1[0] + B.m0[1] * s1[1] + B.m0[2] * s1[2];
+  B.c = B.m1[0] * s1[0] + B.m1[1] * s1[1] + B.m1[2] * s1[2] + eps2d;
+  B.u = B.m0[0] * sweep[0] + B.m0[1] * sweep[1] + B.m0[2] * sweep[2];
+  B.v = B.m1[0] * sweep[0] + B.m1[1] * sweep[1] + B.m1[2] * sweep[2];
+  B.det = std::max(B.a * B.c - B.b * B.b, S(1e-20));
+  B.q = (B.c * B.u * B.u - S(2) * B.b * B.u * B.v + B.a * B.v * B.v) / B.det;
+  B.inside = S(1) - B.q / S(12);
+}
+
+constexpr double BLUR_INSIDE_MIN = 1e-6;  // q / 12 < 1 exactly; this absorbs rounding
+
+}  // namespace
+
+template <typename S>
+void blur_scale_forward(int64_t n, const S* means, const S* covars, const S* sweeps, const Camera& c,
+                        S eps2d, S* scale) {
+  const CamS<S> cam(c);
+  per_thread_share(n, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      BlurTerms<S> B;
+      blur_terms(cam, means + 3 * i, covars + 6 * i, sweeps + 3 * i, eps2d, B);
+      scale[i] = std::sqrt(std::max(B.inside, S(BLUR_INSIDE_MIN)));
+    }
+  });
+}
+
+template <typename S>
+void blur_scale_backward(int64_t n, const S* means, const S* covars, const S* sweeps, const Camera& c,
+                         S eps2d, const S* g_scale, S* g_covars, S* g_sweeps) {
+  const CamS<S> cam(c);
+  // Packed entries xx, xy, xz, yy, yz, zz as (row, column).
+  constexpr int I[6] = {0, 0, 0, 1, 1, 2}, J[6] = {0, 1, 2, 1, 2, 2};
+  per_thread_share(n, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      BlurTerms<S> B;
+      blur_terms(cam, means + 3 * i, covars + 6 * i, sweeps + 3 * i, eps2d, B);
+      const bool live = B.inside > S(BLUR_INSIDE_MIN);
+      const S scale = std::sqrt(std::max(B.inside, S(BLUR_INSIDE_MIN)));
+      const S gd = live ? -g_scale[i] / (S(24) * scale * B.det) : S(0);  // dL/dq / det
+      const S ga = (B.v * B.v - B.q * B.c) * gd, gc = (B.u * B.u - B.q * B.a) * gd;
+      const S gb = S(2) * (B.q * B.b - B.u * B.v) * gd;
+      const S gu = S(2) * (B.c * B.u - B.b * B.v) * gd, gv = S(2) * (B.a * B.v - B.b * B.u) * gd;
+      for (int k = 0; k < 6; ++k) {
+        const int r = I[k], q = J[k];
+        // x^T Sigma y over a packed entry: (x_r y_q + x_q y_r), halved on the diagonal.
+        const S w = r == q ? S(0.5) : S(1);
+        g_covars[6 * i + k] = w * (ga * S(2) * B.m0[r] * B.m0[q] + gc * S(2) * B.m1[r] * B.m1[q] +
+                                   gb * (B.m0[r] * B.m1[q] + B.m0[q] * B.m1[r]));
+      }
+      for (int k = 0; k < 3; ++k) g_sweeps[3 * i + k] = gu * B.m0[k] + gv * B.m1[k];
+    }
+  });
+}
+
 #define KGS_INSTANTIATE(S)                                                                  \
+  template void blur_scale_forward<S>(int64_t, const S*, const S*, const S*, const Camera&,  \
+                                      S, S*);                                                \
+  template void blur_scale_backward<S>(int64_t, const S*, const S*, const S*, const Camera&, \
+                                       S, const S*, S*, S*);                                 \
   template void project_forward<S>(int64_t, const S*, const S*, const S*, const Camera&, S, \
                                    bool, S*, S*, S*, S*, int32_t*, int32_t*);               \
   template void project_backward<S>(int64_t, const S*, const S*, const S*, const Camera&,   \
