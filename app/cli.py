@@ -78,7 +78,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from kgs_core.train.trainer import train
 
     overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite,
-                               kr_form=args.kr_form)
+                               kr_form=args.kr_form, camera_blur=args.camera_blur)
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
     cfg = make_config(args.preset, ablate=ablate, **overrides)
     scene = load_scene(args.scene)
@@ -261,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)
 
-    from kgs_core.train.config import ABLATIONS, PRESETS
+    from kgs_core.train.config import ABLATIONS, CAMERA_BLUR, PRESETS
 
     p = sub.add_parser("train", help="train Kinematics-GS on a scene folder")
     p.add_argument("scene", help="dataset folder (Nerfies, D-NeRF or COLMAP layout)")
@@ -275,6 +275,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kr-form", choices=["paper", "convolve"],
                    help="kinematic refinement: the paper's projection onto the velocity frame, or the predicted "
                         "covariance convolved with the motion during the exposure (docs/method.md)")
+    p.add_argument("--camera-blur", choices=list(CAMERA_BLUR),
+                   help="also blur every Gaussian along the camera's own motion during the exposure (hand-held shake): "
+                        "from the poses' differences, or learned per frame from there (default off; docs/quality.md)")
     p.add_argument("--on-nonfinite", choices=["error", "restore"],
                    help="NaN/Inf in training: stop with an error naming the tensor (default), or restore the last "
                         "good checkpoint and continue with a lower learning rate")

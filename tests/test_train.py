@@ -336,3 +336,30 @@ def test_iteration_override_scales_the_preset_schedule(preset):
     assert make_config(preset, iterations=base.iterations * 2, decompose_at=7).decompose_at == 7
     tiny = make_config(preset, iterations=3)
     assert tiny.decompose_at >= 1 and tiny.eval_every >= 1 and tiny.checkpoint_every >= 1
+
+
+def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_path):
+    """`camera_blur="learned"`: the per-frame camera motion starts from the poses' differences,
+    moves during training (after the split, when the blur applies), is saved in checkpoints
+    and comes back on resume; `"poses"` keeps it fixed."""
+    from kgs_core.train.camera_motion import CameraMotion
+
+    start = CameraMotion(scene.train_frames, learned=False).motion.detach()
+    finals = {}
+    for mode in ("poses", "learned"):
+        cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur=mode, **{"model.tau": 1e-9})
+        train(scene, tmp_path / mode, cfg, progress=False)
+        finals[mode] = torch.load(tmp_path / mode / "checkpoints" / "ckpt_000080.pt", weights_only=False)["camera_motion"]["motion"]
+    assert torch.equal(finals["poses"], start)
+    assert (finals["learned"] - start).abs().max() > 1e-3
+    cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur="learned", **{"model.tau": 1e-9})
+    stop = {"n": 0}
+    part = Trainer(scene, tmp_path / "part", cfg, progress=False,
+                   should_stop=lambda: stop.__setitem__("n", stop["n"] + 1) or stop["n"] > 65).run()
+    assert part["iteration"] == 65
+    train(scene, tmp_path / "part", cfg, resume=True, progress=False)
+    resumed = torch.load(tmp_path / "part" / "checkpoints" / "ckpt_000080.pt", weights_only=False)["camera_motion"]["motion"]
+    moved = (finals["learned"] - start).abs().max()
+    assert (resumed - finals["learned"]).abs().max() < 0.05 * moved  # float rounding of the field only
+    with pytest.raises(ValueError, match="camera_blur must be one of"):
+        tiny_config(camera_blur="yes")

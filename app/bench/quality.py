@@ -39,7 +39,8 @@ CONFIGS = {
     "velocity = paper": {"model.velocity": "paper"},
     "basis = principal": {"model.basis": "principal", "model.kr_form": "paper"},
     "kr_form = paper": {"model.kr_form": "paper"},
-    "camera blur": {"camera_blur": True},
+    "camera blur = poses": {"camera_blur": "poses"},
+    "camera blur = learned": {"camera_blur": "learned"},
 }
 
 

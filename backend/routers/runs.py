@@ -30,6 +30,7 @@ class TrainRequest(BaseModel):
     velocity: Literal["paper", "physical"] | None = None
     basis: Literal["paper", "duff", "principal"] | None = None
     kr_form: Literal["paper", "convolve"] | None = None
+    camera_blur: Literal["off", "poses", "learned"] | None = None
     ablate: list[str] = []
     seed: int | None = None
 
@@ -84,7 +85,8 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     bad = [a for a in req.ablate if a not in ABLATIONS]
     if bad:
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
-    overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form)
+    overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form,
+                               camera_blur=req.camera_blur)
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",

@@ -23,6 +23,9 @@ from .gaussians import GaussianParams
 from .kinematics import motion_blur_covariance, refine_covariance, safe_norm, so3_exp
 
 Velocity = Literal["paper", "physical"]
+# Rows and columns of the packed covariance entries xx, xy, xz, yy, yz, zz.
+_PACK_I = torch.tensor([0, 0, 0, 1, 1, 2])
+_PACK_J = torch.tensor([0, 1, 2, 1, 2, 2])
 
 
 @dataclass
@@ -83,9 +86,10 @@ class GaussiansAt:
     velocity: Tensor | None = None  # (N, 3), zeros for static Gaussians
     offsets_dx: Tensor | None = None  # (N, 3), for L_reg
     # The Gaussians blurred by the convolve form and their displacement over the exposure:
-    # `(idx (B,), sweep (B, 3))` (differentiable), or None when nothing is blurred. The
-    # renderer scales their opacities so that each splat keeps its 2D mass (`blur_opacity_scale`).
-    sweep: tuple[Tensor, Tensor] | None = None
+    # `(idx (B,), sweep (B, 3))` (differentiable; idx None: all N), or None when nothing is
+    # blurred. The renderer scales their opacities so that each splat keeps its 2D mass
+    # (`blur_opacity_scale`).
+    sweep: tuple[Tensor | None, Tensor] | None = None
     extras: dict = field(default_factory=dict)
 
     @property
@@ -228,29 +232,33 @@ class KinematicsGS(nn.Module):
         velocities = torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
-        blur_camera = camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
-        sweeps = []
+        # (Before the split every Gaussian deforms without K.R., so nothing is blurred then.)
+        blur_camera = (camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
+                       and self.decomposed)
+        cov6_canonical, sweep_all = cov6, None
         if blur_camera:
+            # Every Gaussian blurred by the camera's motion (the dynamic rows are replaced below):
+            # dense and packed, since most of N is static and gathers or (N, 3, 3) round trips
+            # over it cost milliseconds a step.
             A, b = camera_motion
-            still = torch.ones(n, dtype=torch.bool)
-            still[idx] = False
-            if still.any():  # static Gaussians: blurred by the camera's motion alone
-                sweep = (means[still].detach() @ A.T + b) * (dt * exposure)
-                cov6 = cov6.index_put((still,), pack_covariance(motion_blur_covariance(
-                    unpack_covariance(cov6[still]), sweep, 1.0)))
-                sweeps.append((torch.nonzero(still).squeeze(1), sweep))
+            sweep_all = (means.detach() @ A.T + b) * (dt * exposure)
+            cov6 = cov6 + sweep_all[:, _PACK_I] * sweep_all[:, _PACK_J] / 12.0
+        sweep = None if sweep_all is None else (None, sweep_all)
         if len(idx):
-            x_t, cov_dyn, v, dx, sweep = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6[idx],
-                                                      camera_motion if blur_camera else None, velocity)
+            x_t, cov_dyn, v, dx, sweep_dyn = self._deform(idx, t, exposure, dt, noise, scales[idx],
+                                                          cov6_canonical[idx], camera_motion if blur_camera else None,
+                                                          velocity)
             means = means.index_put((idx,), x_t)
             cov6 = cov6.index_put((idx,), cov_dyn)
             velocities = None if v is None else velocities.index_put((idx,), v.detach())
             dx_all = dx_all.index_put((idx,), dx)
-            if sweep is not None:
-                sweeps.append((idx, sweep))
+            if sweep_all is not None:  # (without K.R. the dynamic Gaussians are not blurred)
+                sweep = (None, sweep_all.index_put((idx,), sweep_dyn if sweep_dyn is not None else torch.zeros_like(x_t)))
+            elif sweep_dyn is not None:
+                sweep = (idx, sweep_dyn)
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
-                           velocity=velocities, offsets_dx=dx_all, sweep=join_sweeps(sweeps))
+                           velocity=velocities, offsets_dx=dx_all, sweep=sweep)
 
     def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0,
                    velocity: bool = True) -> tuple[Tensor, GaussiansAt]:
@@ -398,13 +406,6 @@ class _SparseRowMean(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g: Tensor):
         return ctx.wt @ g.contiguous(), None, None
-
-
-def join_sweeps(parts: list[tuple[Tensor, Tensor]]) -> tuple[Tensor, Tensor] | None:
-    """`GaussiansAt.sweep` from the blurred groups' `(idx, sweep)` pairs."""
-    if not parts:
-        return None
-    return torch.cat([i for i, _ in parts]), torch.cat([s for _, s in parts])
 
 
 def velocity_from_offsets(offs: list[Offsets], h: float, dt: float) -> Tensor:

@@ -31,8 +31,11 @@ def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0
     opacities = g.opacities
     if g.sweep is not None:  # blurred splats keep their 2D mass (render/blur.py)
         idx, sweep = g.sweep
-        scale = blur_opacity_scale(g.means[idx], g.covars6[idx], sweep, viewmat, K, cam.width, cam.height)
-        opacities = opacities.index_put((idx,), opacities[idx] * scale)
+        if idx is None:
+            opacities = opacities * blur_opacity_scale(g.means, g.covars6, sweep, viewmat, K, cam.width, cam.height)
+        else:
+            scale = blur_opacity_scale(g.means[idx], g.covars6[idx], sweep, viewmat, K, cam.width, cam.height)
+            opacities = opacities.index_put((idx,), opacities[idx] * scale)
     if colors is not None:
         kw = dict(colors=colors)
     else:

@@ -6,6 +6,8 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 from ..model.dynamic import ModelConfig
 
+CAMERA_BLUR = ("off", "poses", "learned")
+
 ABLATIONS = {
     "cf": "no coarse-to-fine (dynamic Gaussians use the field's own offsets)",
     "kr": "no kinematic covariance refinement",
@@ -77,9 +79,11 @@ class TrainConfig:
     nonfinite_max_restores: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
     ablate: tuple = ()
-    # Blur along the camera's motion during the exposure too (poses' central differences; K.R.
-    # convolve form only). Experimental: docs/quality.md.
-    camera_blur: bool = False
+    # Blur every Gaussian along the camera's own motion during the exposure too (K.R. convolve
+    # form only; train/camera_motion.py): "off", "poses" (central differences of the poses) or
+    # "learned" (per-frame motion fitted from there, at lr_camera_motion). docs/quality.md.
+    camera_blur: str = "off"
+    lr_camera_motion: float = 3e-3
     init_from: str = ""  # a run directory: start from its final model (fine-tuning), not from points
 
     def to_dict(self) -> dict:
@@ -95,6 +99,8 @@ class TrainConfig:
         m = d.pop("model")
         for k in ("opacity_reset_at", "lod_fractions", "ablate"):
             d[k] = tuple(d[k])
+        if isinstance(d.get("camera_blur"), bool):  # runs saved when it was an on/off switch
+            d["camera_blur"] = "poses" if d["camera_blur"] else "off"
         known = {f.name for f in fields(cls)}
         return cls(model=ModelConfig.from_dict(m), **{k: v for k, v in d.items() if k in known})
 
@@ -133,10 +139,10 @@ PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 def overrides_from(iterations: int | None = None, tau: float | None = None, velocity: str | None = None,
                    basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None,
-                   kr_form: str | None = None) -> dict:
+                   kr_form: str | None = None, camera_blur: str | None = None) -> dict:
     """`make_config` overrides from the options the CLI and the server share (None = preset's)."""
     named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis, "model.kr_form": kr_form,
-             "seed": seed, "on_nonfinite": on_nonfinite}
+             "seed": seed, "on_nonfinite": on_nonfinite, "camera_blur": camera_blur}
     return {k: v for k, v in named.items() if v is not None}
 
 
@@ -156,6 +162,8 @@ def finetune_config(parent: dict, iterations: int, tau: float | None = None) -> 
 def make_config(preset: str = "fast", ablate: tuple = (), **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+    if overrides.get("camera_blur", "off") not in CAMERA_BLUR:
+        raise ValueError(f"camera_blur must be one of {', '.join(CAMERA_BLUR)}, got {overrides['camera_blur']!r}")
     bad = [a for a in ablate if a not in ABLATIONS]
     if bad:
         raise ValueError(f"unknown ablation {bad[0]!r}; choose from {', '.join(ABLATIONS)}")

@@ -18,11 +18,12 @@ from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
 from ..losses import photometric_loss, psnr
 from ..model.deformation import TimeNoise
-from ..model.dynamic import KinematicsGS, camera_motion_from_poses, split_counts
+from ..model.dynamic import KinematicsGS, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
 from ..model.render import render_model
 from ..render.types import Rendered
 from ..run import save_decomposition, save_torch, write_run_json
+from .camera_motion import CameraMotion
 from .config import TrainConfig
 from .densify import DensifyStrategy
 
@@ -79,22 +80,6 @@ def check_finite(it: int, **tensors) -> None:
 
 
 
-def camera_motions(frames) -> dict:
-    """Per frame id, the camera's motion during its exposure (`camera_motion_from_poses`) from
-    its neighbours in time on the same physical camera (one-sided at the ends)."""
-    out = {}
-    by_camera: dict[int, list] = {}
-    for f in frames:
-        by_camera.setdefault(f.camera_id, []).append(f)
-    for seq in by_camera.values():
-        seq.sort(key=lambda f: f.time)
-        if len(seq) < 2:
-            continue
-        for i, f in enumerate(seq):
-            a, b = seq[max(i - 1, 0)], seq[min(i + 1, len(seq) - 1)]
-            out[f.id] = camera_motion_from_poses(a.camera.viewmat, f.camera.viewmat, b.camera.viewmat, a.time, b.time)
-    return out
-
 class Trainer:
     def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
                  on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
@@ -120,7 +105,8 @@ class Trainer:
                                int(cfg.noise_until * cfg.iterations), int(cfg.noise_delay * cfg.iterations), cfg.noise_w_delay)
         self.static_only = "deform" in cfg.ablate
         self.no_split = "split" in cfg.ablate
-        self.camera_motion = camera_motions(scene.train_frames) if cfg.camera_blur else {}
+        self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
+                              if cfg.camera_blur != "off" else None)
 
     # ------------------------------------------------------------ setup
 
@@ -179,7 +165,8 @@ class Trainer:
             {"params": nets["grid"], "lr": c.lr_grid, "name": "grid"},
             {"params": nets["deform_mlp"] + nets["fine_mlp"], "lr": c.lr_deform, "name": "mlp"},
             {"params": nets["kappa"], "lr": c.lr_kappa, "name": "kappa"},
-        ], eps=1e-15, fused=True)
+        ] + ([{"params": [self.camera_motion.motion], "lr": c.lr_camera_motion, "name": "camera_motion"}]
+             if c.camera_blur == "learned" else []), eps=1e-15, fused=True)
 
     def set_learning_rates(self, it: int) -> None:
         """Schedules (exponential decay) times `lr_scale` (lowered by each NaN recovery)."""
@@ -200,7 +187,7 @@ class Trainer:
         c, scene, model = self.cfg, self.scene, self.model
         noise = 0.0 if self.static_only else self.noise.sigma(it)
         out, g = render_model(model, frame.camera, frame.time, scene.exposure, scene.dt, self.background,
-                              noise=noise, static=self.static_only, camera_motion=self.camera_motion.get(frame.id),
+                              noise=noise, static=self.static_only, camera_motion=self.camera_motion.get(frame.id) if self.camera_motion else None,
                               velocity=False)
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
@@ -352,12 +339,15 @@ class Trainer:
             "opt": self.opt.state_dict(), "net_opt": self.net_opt.state_dict(), "levels": self.levels,
             "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
             "strategy": {"grad_sum": self.strategy.grad_sum, "count": self.strategy.count},
+            "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
         })
         return path
 
     def restore(self, path: Path) -> None:
         state = torch.load(path, map_location="cpu", weights_only=False)
         self.model = KinematicsGS.from_state(state["model"])
+        if self.camera_motion is not None and state.get("camera_motion") is not None:
+            self.camera_motion.load_state_dict(state["camera_motion"])
         self.make_optimizers()
         self.opt.load_state_dict(state["opt"])
         self.net_opt.load_state_dict(state["net_opt"])
