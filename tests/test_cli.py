@@ -112,9 +112,9 @@ def test_bench_quality_runs_end_to_end(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     rows = [line for line in r.stdout.splitlines() if line.startswith("| full |") or line.startswith("| no split")]
     assert rows[0].startswith("| full |") and rows[1].startswith("| no split, D3DGS-like (split) |"), r.stdout
-    assert all(line.split("|")[8].strip() == "60" for line in rows[:2])  # the first round: equal iterations
+    assert all(line.split("|")[9].strip() == "60" for line in rows[:2])  # the first round: equal iterations
     for line in rows[2:]:  # an equal-time re-run: another count, its time derived from the measured rate
-        assert "same time" in line and line.split("|")[8].strip() != "60" and "≈" in line.split("|")[9]
+        assert "same time" in line and line.split("|")[9].strip() != "60" and "≈" in line.split("|")[10]
     assert r.stdout.count("| 2e-05 |") == 1 and r.stdout.count("| 1e-03 |") == 1
     assert (tmp_path / "plot.png").stat().st_size > 1000
     import json
