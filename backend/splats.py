@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from kgs_core.edits import EditLayer, load_edits, save_edits
-from kgs_core.export.bake import Baked
+from kgs_core.export.bake import Baked, baked_from
 from kgs_core.model.dynamic import split_counts, variance_histogram
 from kgs_core.render.sh import C0
 from kgs_core.run import LoadedRun, load_run
@@ -288,10 +288,7 @@ class RunView:
             g = m.at_static() if self.run.static_only else m.at(float(t), exposure=exposure, dt=self.dt)
         dyn = self._dynamic_mask(m)
         sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
-        s = torch.from_numpy(sel)
-        velocity = g.velocity[s].numpy() if g.velocity is not None else np.zeros((int(sel.sum()), 3))
-        return Baked(means=g.means[s].numpy(), covars=g.covars[s].double().numpy(), opacities=g.opacities[s].numpy(),
-                     sh=g.sh[s].numpy(), dynamic=dyn[sel], velocity=velocity, index=np.nonzero(sel)[0]), lod
+        return baked_from(g, sel, dynamic=dyn), lod
 
     # ------------------------------------------------------------ live decomposition and edits
 

@@ -16,7 +16,9 @@ import numpy as np
 import torch
 
 from ..edits import EditLayer, load_edits
-from ..model.dynamic import KinematicsGS
+from ..model.dynamic import GaussiansAt, KinematicsGS
+from ..render.blur import blur_opacity_scale
+from ..render.covariance import pack_covariance
 from ..render.sh import C0
 from ..run import LoadedRun, load_run
 
@@ -32,6 +34,11 @@ class Baked:
     dynamic: np.ndarray  # (N,) bool
     velocity: np.ndarray  # (N, 3) float32, scene units per unit time; zeros for static
     index: np.ndarray  # (N,) int64: index into the level's Gaussians
+    # (N, 3) float32: each Gaussian's sweep over the exposure when it was baked with one (the
+    # convolve form's blur; zeros otherwise). `render_baked` scales the swept ones' opacities
+    # to keep each splat's 2D mass (render/blur.py); camera-independent files cannot, and
+    # store the plain opacities.
+    sweep: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.means)
@@ -80,16 +87,26 @@ def bake(source: ExportSource, t: float, exposure: float = 0.0) -> Baked:
     shutter (as captured), 0 the sharp state."""
     m = source.model
     g = m.at_static() if source.static_only else m.at(float(t), exposure=exposure, dt=source.dt)
-    keep = torch.from_numpy(source.keep)
+    return baked_from(g, source.keep)
+
+
+def baked_from(g: GaussiansAt, sel: np.ndarray, dynamic: np.ndarray | None = None) -> Baked:
+    """The Gaussians `sel (N,) bool` of `g` as numpy; `dynamic (N,)` replaces `g.dynamic`."""
+    s = torch.from_numpy(sel)
     velocity = g.velocity if g.velocity is not None else torch.zeros_like(g.means)
+    sweep = torch.zeros_like(g.means)
+    if g.sweep is not None:
+        idx, swept = g.sweep
+        sweep = swept if idx is None else sweep.index_put((idx,), swept)
     return Baked(
-        means=g.means[keep].numpy().astype(np.float32),
-        covars=g.covars[keep].double().numpy(),
-        opacities=g.opacities[keep].numpy().astype(np.float32),
-        sh=g.sh[keep].numpy().astype(np.float32),
-        dynamic=g.dynamic[keep].numpy().astype(bool),
-        velocity=velocity[keep].numpy().astype(np.float32),
-        index=np.nonzero(source.keep)[0].astype(np.int64),
+        means=g.means[s].numpy().astype(np.float32),
+        covars=g.covars[s].double().numpy(),
+        opacities=g.opacities[s].numpy().astype(np.float32),
+        sh=g.sh[s].numpy().astype(np.float32),
+        dynamic=(g.dynamic.numpy() if dynamic is None else dynamic)[sel].astype(bool),
+        velocity=velocity[s].numpy().astype(np.float32),
+        index=np.nonzero(sel)[0].astype(np.int64),
+        sweep=sweep[s].numpy().astype(np.float32),
     )
 
 
@@ -191,7 +208,13 @@ def render_baked(g: Baked, camera, sh_degree: int, background: np.ndarray | None
         kw["sh_coeffs"] = torch.from_numpy(g.sh)
         kw["sh_degree"] = sh_degree
     bg = np.zeros(kw["colors"].shape[1] if colors is not None else 3) if background is None else background
+    means, covars = torch.from_numpy(g.means), pack_covariance(torch.from_numpy(g.covars.astype(np.float32)))
+    opacities = torch.from_numpy(g.opacities)
     with torch.no_grad():
-        return rasterize(torch.from_numpy(g.means), torch.from_numpy(g.opacities), viewmat, K, camera.width,
-                         camera.height, covars=torch.from_numpy(g.covars.astype(np.float32)),
+        if g.sweep is not None and g.sweep.any():  # as render_model: blurred splats keep their mass
+            rows = torch.from_numpy(np.nonzero(g.sweep.any(1))[0])
+            scale = blur_opacity_scale(means[rows], covars[rows], torch.from_numpy(g.sweep)[rows], viewmat, K,
+                                       camera.width, camera.height)
+            opacities = opacities.index_put((rows,), opacities[rows] * scale)
+        return rasterize(means, opacities, viewmat, K, camera.width, camera.height, covars=covars,
                          background=torch.as_tensor(bg, dtype=torch.float32), **kw)
