@@ -106,14 +106,27 @@ def test_neighbour_mean_is_the_gathered_mean_forward_and_backward():
     assert torch.allclose(m.neighbour_mean(x), x[knn[:, 0]], atol=1e-7)
 
 
-def test_physical_velocity_is_the_central_difference_of_the_deformed_position():
-    m = moving_model(velocity="physical")
+@pytest.mark.parametrize("coarse_to_fine", [True, False])
+def test_physical_velocity_is_the_central_difference_of_the_coarse_deformed_position(coarse_to_fine):
+    """The velocity K.R. uses: the central difference of the deformed position over the
+    exposure, without the per-Gaussian fine residual's change (C.F. evaluates it at t only);
+    the position itself keeps the fine residual."""
+    m = moving_model(velocity="physical", coarse_to_fine=coarse_to_fine)
     idx = torch.arange(len(m))
     t, dt, exposure = 0.4, 0.05, 0.8
     g = m.at(t, exposure=exposure, dt=dt)
     h = 0.5 * dt * exposure
-    expected = (m.positions(idx, t + h)[0] - m.positions(idx, t - h)[0]) / (2 * h)
+
+    def fine(at):
+        if not coarse_to_fine:
+            return 0.0
+        return m.fine(m.params.features[idx], torch.full((len(m),), at)).dx
+
+    full = (m.positions(idx, t + h)[0] - m.positions(idx, t - h)[0]) / (2 * h)
+    expected = full - (fine(t + h) - fine(t - h)) / (2 * h)
     assert torch.allclose(g.velocity, expected.detach(), rtol=1e-4, atol=1e-5)
+    if coarse_to_fine:  # the fine residual does move with time: leaving it out is a choice
+        assert not torch.allclose(g.velocity, full.detach(), rtol=1e-3, atol=1e-4)
     assert torch.allclose(g.means, m.positions(idx, t)[0], rtol=1e-6, atol=1e-7)
 
 

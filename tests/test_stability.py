@@ -338,12 +338,18 @@ def test_convolve_form_is_sharp_at_zero_exposure_and_elongates_along_the_motion(
     ref.load_state_dict(m.state_dict())
     ref.decomposed, ref.dynamic = True, m.dynamic.clone()
     assert torch.allclose(sharp.covars, ref.at(0.4, exposure=0.0, dt=0.05).covars, rtol=1e-6, atol=1e-9)
-    blurred = m.at(0.4, exposure=0.8, dt=0.05)
+    # A long frame interval, so that the sweep is not lost in the covariance's float32 round-off
+    # (the sharp covariance does not depend on it).
+    blurred = m.at(0.4, exposure=0.8, dt=0.5)
     v = blurred.velocity
     assert (v.norm(dim=-1) > 0).all()
     u = v / v.norm(dim=-1, keepdim=True)
     gain = torch.einsum("ni,nij,nj->n", u, blurred.covars - sharp.covars, u)
-    assert torch.allclose(gain, (v.norm(dim=-1) * 0.05 * 0.8) ** 2 / 12, rtol=1e-4, atol=1e-10)
+    # (float32 round-off of the covariance along u bounds how well a small gain is resolved)
+    along = torch.einsum("ni,nij,nj->n", u, sharp.covars, u)
+    expected = (v.norm(dim=-1) * 0.5 * 0.8) ** 2 / 12
+    assert ((gain - expected).abs() <= 1e-4 * expected + 1e-6 * along).all()
+    assert (expected > 1e-4 * along).any()  # some gains are 100x above that round-off bound
     w = torch.linalg.cross(u, torch.randn(64, 3, generator=g))  # any direction across the motion
     across = torch.einsum("ni,nij,nj->n", w, blurred.covars - sharp.covars, w)
     assert (across.abs() <= 1e-6 * torch.einsum("ni,nij,nj->n", w, sharp.covars, w)).all()  # float32 round-off

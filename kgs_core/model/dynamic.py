@@ -194,10 +194,17 @@ class KinematicsGS(nn.Module):
         """Offsets of the Gaussians `idx` (all of them, or the dynamic set) at time `t`."""
         return self.offsets_at(idx, [t], noise)[0]
 
-    def offsets_at(self, idx: Tensor, times: list[float], noise: float = 0.0) -> list[Offsets]:
+    def offsets_at(self, idx: Tensor, times: list[float], noise: float = 0.0, shared_fine: bool = False
+                   ) -> list[Offsets]:
         """Offsets of the Gaussians `idx` at each of `times`, in one batched evaluation of the
         field (and of the fine residual). `noise` (training's time jitter) moves the first
-        time only: the others are the physical velocity's samples around it."""
+        time only: the others are the physical velocity's samples around it.
+
+        `shared_fine`: the fine residual is evaluated at the first time only and added at every
+        time, so that differences between the times are the coarse motion's. The physical
+        velocity uses this (docs/method.md, session 13): the per-Gaussian residual made the
+        velocities noisier (error 0.26 against 0.07 px/frame on the sheet), and evaluating it
+        at three times cost a sixth of a training step."""
         x = self.params.means[idx]
         n = len(x)
         tt = [torch.full((n,), float(t)) for t in times]
@@ -206,9 +213,12 @@ class KinematicsGS(nn.Module):
         raws = self.deform.at_times(x, tt)
         if not (self.decomposed and self.config.coarse_to_fine):
             return raws
-        fine = self.fine(self.params.features[idx].repeat(len(times), 1), torch.cat(tt)).cat().split(n)
         # One sparse product for all times: (D, 9 M) offsets side by side.
         coarse = self.neighbour_mean(torch.cat([raw.cat() for raw in raws], 1)).split(9, 1)
+        if shared_fine:
+            fine = self.fine(self.params.features[idx], tt[0]).cat()
+            return [Offsets.split(c + fine) for c in coarse]
+        fine = self.fine(self.params.features[idx].repeat(len(times), 1), torch.cat(tt)).cat().split(n)
         return [Offsets.split(c + f) for c, f in zip(coarse, fine)]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
@@ -294,7 +304,7 @@ class KinematicsGS(nn.Module):
         # The physical velocity's two samples around t share one batched field evaluation with t.
         h = 0.5 * dt * max(exposure, 0.5)
         physical = kinematic and cfg.velocity == "physical"
-        offs = self.offsets_at(idx, [t, t + h, t - h] if physical else [t], noise)
+        offs = self.offsets_at(idx, [t, t + h, t - h] if physical else [t], noise, shared_fine=True)
         off = offs[0]
         x_t = p.means[idx] + off.dx
         if kinematic:
