@@ -248,6 +248,8 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     scene_id = client.get(f"/api/runs/{client.run_id}").json()["scene_id"]
     assert client.post("/api/runs", json={"scene_id": scene_id, "preset": "nope"}).status_code == 422
     assert client.post("/api/runs", json={"scene_id": scene_id, "ablate": ["everything"]}).status_code == 422
+    bad_blur = client.post("/api/runs", json={"scene_id": scene_id, "camera_blur": "yes"})
+    assert bad_blur.status_code == 422 and "camera_blur" in bad_blur.text
     r = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 40})
     assert r.status_code == 202
     done = wait_status(client, f"/api/runs/{r.json()['id']}")
