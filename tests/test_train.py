@@ -13,7 +13,7 @@ import torch
 from kgs_core.data.formats import load_scene
 from kgs_core.data.synth.generate import synthesize
 from kgs_core.run import load_run, read_log
-from kgs_core.train.config import make_config
+from kgs_core.train.config import TrainConfig, make_config
 from kgs_core.train.trainer import Trainer, train
 
 warnings.filterwarnings("ignore", category=UserWarning)
@@ -353,9 +353,8 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
     assert torch.equal(finals["poses"], start)
     assert (finals["learned"] - start).abs().max() > 1e-3
     cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur="learned", **{"model.tau": 1e-9})
-    stop = {"n": 0}
-    part = Trainer(scene, tmp_path / "part", cfg, progress=False,
-                   should_stop=lambda: stop.__setitem__("n", stop["n"] + 1) or stop["n"] > 65).run()
+    calls = iter(range(10**6))
+    part = Trainer(scene, tmp_path / "part", cfg, progress=False, should_stop=lambda: next(calls) >= 65).run()
     assert part["iteration"] == 65
     train(scene, tmp_path / "part", cfg, resume=True, progress=False)
     resumed = torch.load(tmp_path / "part" / "checkpoints" / "ckpt_000080.pt", weights_only=False)["camera_motion"]["motion"]
@@ -363,3 +362,7 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
     assert (resumed - finals["learned"]).abs().max() < 0.05 * moved  # float rounding of the field only
     with pytest.raises(ValueError, match="camera_blur must be one of"):
         tiny_config(camera_blur="yes")
+    # runs saved when camera_blur was an on/off switch load as "poses" / "off"
+    for old, new in ((True, "poses"), (False, "off")):
+        saved = {**cfg.to_dict(), "camera_blur": old}
+        assert TrainConfig.from_dict(saved).camera_blur == new

@@ -17,7 +17,7 @@ import torch
 
 from ..edits import EditLayer, load_edits
 from ..model.dynamic import GaussiansAt, KinematicsGS
-from ..render.blur import blur_opacity_scale
+from ..render.blur import blurred_opacities
 from ..render.covariance import pack_covariance
 from ..render.sh import C0
 from ..run import LoadedRun, load_run
@@ -213,8 +213,7 @@ def render_baked(g: Baked, camera, sh_degree: int, background: np.ndarray | None
     with torch.no_grad():
         if g.sweep is not None and g.sweep.any():  # as render_model: blurred splats keep their mass
             rows = torch.from_numpy(np.nonzero(g.sweep.any(1))[0])
-            scale = blur_opacity_scale(means[rows], covars[rows], torch.from_numpy(g.sweep)[rows], viewmat, K,
-                                       camera.width, camera.height)
-            opacities = opacities.index_put((rows,), opacities[rows] * scale)
+            sweep = (rows, torch.from_numpy(g.sweep)[rows])
+            opacities = blurred_opacities(opacities, means, covars, sweep, viewmat, K, camera.width, camera.height)
         return rasterize(means, opacities, viewmat, K, camera.width, camera.height, covars=covars,
                          background=torch.as_tensor(bg, dtype=torch.float32), **kw)

@@ -20,12 +20,10 @@ from ..render import packed_covariance
 from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
 from .deformation import DeformationField, FineResidual, Offsets
 from .gaussians import GaussianParams
-from .kinematics import motion_blur_covariance, refine_covariance, safe_norm, so3_exp
+from .kinematics import (motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm,
+                         so3_exp)
 
 Velocity = Literal["paper", "physical"]
-# Rows and columns of the packed covariance entries xx, xy, xz, yy, yz, zz.
-_PACK_I = torch.tensor([0, 0, 0, 1, 1, 2])
-_PACK_J = torch.tensor([0, 1, 2, 1, 2, 2])
 
 
 @dataclass
@@ -248,11 +246,10 @@ class KinematicsGS(nn.Module):
         cov6_canonical, sweep_all = cov6, None
         if blur_camera:
             # Every Gaussian blurred by the camera's motion (the dynamic rows are replaced below):
-            # dense and packed, since most of N is static and gathers or (N, 3, 3) round trips
-            # over it cost milliseconds a step.
+            # dense, since most of N is static and gathering the static rows cost milliseconds.
             A, b = camera_motion
             sweep_all = (means.detach() @ A.T + b) * (dt * exposure)
-            cov6 = cov6 + sweep_all[:, _PACK_I] * sweep_all[:, _PACK_J] / 12.0
+            cov6 = motion_blur_covariance_packed(cov6, sweep_all)
         sweep = None if sweep_all is None else (None, sweep_all)
         if len(idx):
             x_t, cov_dyn, v, dx, sweep_dyn = self._deform(idx, t, exposure, dt, noise, scales[idx],
@@ -263,7 +260,8 @@ class KinematicsGS(nn.Module):
             velocities = None if v is None else velocities.index_put((idx,), v.detach())
             dx_all = dx_all.index_put((idx,), dx)
             if sweep_all is not None:  # (without K.R. the dynamic Gaussians are not blurred)
-                sweep = (None, sweep_all.index_put((idx,), sweep_dyn if sweep_dyn is not None else torch.zeros_like(x_t)))
+                rows = sweep_dyn if sweep_dyn is not None else torch.zeros_like(x_t)
+                sweep = (None, sweep_all.index_put((idx,), rows))
             elif sweep_dyn is not None:
                 sweep = (idx, sweep_dyn)
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
@@ -287,7 +285,7 @@ class KinematicsGS(nn.Module):
         return idx, GaussiansAt(means=x_t, covars6=cov6, opacities=p.opacities[idx], sh=p.sh()[idx],
                                 dynamic=torch.ones(len(idx), dtype=torch.bool),
                                 velocity=None if v is None else v.detach(), offsets_dx=dx,
-                                sweep=None if sweep is None else (torch.arange(len(idx)), sweep))
+                                sweep=None if sweep is None else (None, sweep))
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,

@@ -154,3 +154,15 @@ def motion_blur_covariance(sigma: Tensor, v: Tensor, exposure_time: float | Tens
     `sigma` and the form needs no basis: it is smooth at `v = 0` and has no reference-axis switch.
     """
     return sigma + (exposure_time * exposure_time / 12.0) * (v[:, :, None] * v[:, None, :])
+
+
+# Rows and columns of the packed covariance entries xx, xy, xz, yy, yz, zz.
+_PACK_I = torch.tensor([0, 0, 0, 1, 1, 2])
+_PACK_J = torch.tensor([0, 1, 2, 1, 2, 2])
+
+
+def motion_blur_covariance_packed(cov6: Tensor, sweep: Tensor) -> Tensor:
+    """`motion_blur_covariance` on packed `(N, 6)` covariances, for a sweep `s = v exposure_time`
+    `(N, 3)`: `cov6 + pack(s sᵀ) / 12`. For the static Gaussians under camera blur, most of N:
+    unpacking them to `(N, 3, 3)` and back cost milliseconds a step."""
+    return cov6 + sweep[:, _PACK_I] * sweep[:, _PACK_J] / 12.0

@@ -7,7 +7,7 @@ import torch
 
 from ..data.scene import Camera
 from ..render import rasterize
-from ..render.blur import blur_opacity_scale
+from ..render.blur import blurred_opacities
 from ..render.types import Rendered
 from .dynamic import GaussiansAt, KinematicsGS
 
@@ -23,19 +23,15 @@ def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0
     replaces the SH colours (e.g. a dynamic-flag channel); `static` skips the deformation
     (the static 3DGS baseline); `camera_motion` blurs along the camera's own motion as well
     (`KinematicsGS.at`); Gaussians the convolve form blurs (`exposure` > 0) have their
-    opacities scaled to keep each splat's 2D mass (`blur_opacity_scale`); `velocity=False` when the caller does not read `g.velocity` (lets a
-    sharp render skip the physical velocity's extra field samples)."""
+    opacities scaled to keep each splat's 2D mass (`blurred_opacities`); `velocity=False` when
+    the caller does not read `g.velocity` (lets a sharp render skip the physical velocity's
+    extra field samples)."""
     g = model.at_static() if static else model.at(t, exposure=exposure, dt=dt, noise=noise, camera_motion=camera_motion,
                                                   velocity=velocity)
     viewmat, K = camera_tensors(cam)
     opacities = g.opacities
     if g.sweep is not None:  # blurred splats keep their 2D mass (render/blur.py)
-        idx, sweep = g.sweep
-        if idx is None:
-            opacities = opacities * blur_opacity_scale(g.means, g.covars6, sweep, viewmat, K, cam.width, cam.height)
-        else:
-            scale = blur_opacity_scale(g.means[idx], g.covars6[idx], sweep, viewmat, K, cam.width, cam.height)
-            opacities = opacities.index_put((idx,), opacities[idx] * scale)
+        opacities = blurred_opacities(opacities, g.means, g.covars6, g.sweep, viewmat, K, cam.width, cam.height)
     if colors is not None:
         kw = dict(colors=colors)
     else:

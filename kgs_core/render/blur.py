@@ -39,3 +39,14 @@ def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: T
     """
     impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
     return impl.blur_opacity_scale(means, covars6, sweep, viewmat, K, width, height, eps2d, near, far)
+
+
+def blurred_opacities(opacities: Tensor, means: Tensor, covars6: Tensor, sweep: tuple[Tensor | None, Tensor],
+                      viewmat: Tensor, K: Tensor, width: int, height: int) -> Tensor:
+    """`(N,)` opacities with the blurred Gaussians' scaled by `blur_opacity_scale`. `sweep` is
+    `(idx (B,), sweeps (B, 3))`, or `(None, sweeps (N, 3))` for all N (`GaussiansAt.sweep`)."""
+    idx, sweeps = sweep
+    if idx is None:
+        return opacities * blur_opacity_scale(means, covars6, sweeps, viewmat, K, width, height)
+    scale = blur_opacity_scale(means[idx], covars6[idx], sweeps, viewmat, K, width, height)
+    return opacities.index_put((idx,), opacities[idx] * scale)

@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from ..data.scene import Frame
 from ..model.dynamic import camera_motion_from_poses
 
+
 def skew(w: Tensor) -> Tensor:
     """`(3, 3)` matrix of the cross product with `w (3,)`: `skew(w) x = w × x`."""
     zero = torch.zeros((), dtype=w.dtype)
