@@ -58,6 +58,23 @@ def test_bench_quality_configs_take_short_names_and_reject_unknown_ones():
         select_configs("full,bogus")
 
 
+def test_bench_quality_configs_take_overrides_of_training_settings():
+    from kgs_app.bench.quality import config_overrides, select_configs
+    from kgs_core.train.config import make_config
+
+    names = select_configs("split@noise_init_frames=0.1,full@model.tau=1e-4@camera_blur=poses,full")
+    # CONFIGS' order, so the plain `full` still comes first and sets the time budget.
+    assert names == ["full", "full@model.tau=1e-4@camera_blur=poses", "no split, D3DGS-like (split)@noise_init_frames=0.1"]
+    over = config_overrides(names[2])
+    assert over == {"ablate": ("split",), "noise_init_frames": 0.1}
+    over = config_overrides(names[1])
+    cfg = make_config("fast", **over)
+    assert cfg.model.tau == 1e-4 and cfg.camera_blur == "poses"
+    for bad in ("full@bogus=1", "full@noise_init_frames", "full@model.nope=2"):
+        with pytest.raises(SystemExit, match="not KEY=VALUE"):
+            select_configs(bad)
+
+
 def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
     from kgs_app.cli import BENCHMARKS
 

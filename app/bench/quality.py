@@ -22,6 +22,7 @@ import argparse
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -55,16 +56,61 @@ def config_key(name: str) -> str:
     return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
 
 
+def _override(text: str, spec: str) -> tuple[str, object]:
+    """`key=value` of a `--configs` entry: a TrainConfig field or `model.<ModelConfig field>`;
+    the value as JSON when it parses (numbers, true/false, lists), else the plain string."""
+    from dataclasses import fields
+
+    from kgs_core.model.dynamic import ModelConfig
+    from kgs_core.train.config import TrainConfig
+
+    key, eq, raw = text.partition("=")
+    known = {f.name for f in fields(TrainConfig)} - {"model", "ablate"}
+    known |= {"model." + f.name for f in fields(ModelConfig)}
+    if not eq or key not in known:
+        raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {text!r} is not KEY=VALUE with KEY a "
+                         f"training setting (e.g. noise_init_frames, model.tau)")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return key, tuple(value) if isinstance(value, list) else value
+
+
+def config_overrides(name: str) -> dict:
+    """`make_config` keyword arguments of a configuration: one of CONFIGS, optionally followed
+    by `@key=value` overrides (`full@noise_init_frames=0.1`, `split@model.tau=1e-4`): what an
+    experiment varies without a new named configuration."""
+    base, *sets = name.split("@")
+    over = dict(CONFIGS[base])
+    for text in sets:
+        key, value = _override(text, name)
+        over[key] = value
+    return over
+
+
 def select_configs(spec: str | None) -> list[str]:
+    """Configuration names in CONFIGS' order (the first one sets the time budget), each entry a
+    name or short name, with `@key=value` overrides kept after its base name."""
     if not spec:
         return list(CONFIGS)
     wanted = [w.strip() for w in spec.split(",") if w.strip()]
     by_key = {config_key(n): n for n in CONFIGS}
-    unknown = [w for w in wanted if w not in by_key and w not in CONFIGS]
+    resolved, unknown = [], []
+    for w in wanted:
+        base, at, sets = w.partition("@")
+        name = base if base in CONFIGS else by_key.get(base)
+        if name is None:
+            unknown.append(w)
+            continue
+        full_name = name + at + sets
+        config_overrides(full_name)  # a bad override fails here, before anything trains
+        resolved.append(full_name)
     if unknown:
         raise SystemExit(f"kgs-app bench quality: --configs: unknown {', '.join(unknown)} "
-                         f"(choose from {', '.join(by_key)})")
-    return [n for n in CONFIGS if n in wanted or config_key(n) in wanted]
+                         f"(choose from {', '.join(by_key)}, each optionally with @KEY=VALUE overrides)")
+    order = list(CONFIGS)
+    return sorted(dict.fromkeys(resolved), key=lambda n: (order.index(n.split("@")[0]), "@" in n))
 
 
 def main(argv: list[str]) -> int:
@@ -86,7 +132,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--budget", default="time", choices=["time", "iterations"],
                     help="what every configuration gets the same of (default: training time)")
     ap.add_argument("--configs", help="comma-separated short names to run (default: all): "
-                    + ", ".join(config_key(n) for n in CONFIGS))
+                    + ", ".join(config_key(n) for n in CONFIGS)
+                    + "; NAME@KEY=VALUE[@KEY=VALUE] overrides a training setting (full@noise_init_frames=0.1)")
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
     ap.add_argument("--plot", default="docs/quality_psnr_vs_time.png")
     ap.add_argument("--out", help="keep the runs here (default: a temporary folder)")
@@ -105,11 +152,14 @@ def main(argv: list[str]) -> int:
     curves, dashed = {}, set()
 
     def trainer_for(name: str, iterations: int, suffix: str = "") -> Trainer:
-        over = dict(CONFIGS[name])
+        over = config_overrides(name)
         ablate = over.pop("ablate", ())
         cfg = make_config("fast", ablate=ablate, iterations=iterations,
                           eval_every=max(iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
-        run_dir = root / (name.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "") + suffix)
+        base, *sets = name.split("@")
+        slug = base.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "")
+        slug += "".join("@" + re.sub(r"[^A-Za-z0-9._-]", "_", x) for x in sets)
+        run_dir = root / (slug + suffix)
         return Trainer(scene, run_dir, cfg, progress=False)
 
     def report(label: str, tr: Trainer, seconds: str) -> None:
