@@ -62,6 +62,9 @@ class TrainConfig:
     noise_until: float = 0.75  # fraction of the iterations
     noise_delay: float = 0.05
     noise_w_delay: float = 0.1
+    # True: each Gaussian draws its own time jitter; False: one shift of the frame's time for
+    # all of them in a step (D3DGS's annealed smooth training).
+    noise_per_gaussian: bool = True
     # FLoD
     lod_levels: int = 5
     lod_lambda: float = 0.02  # s_min of level 1, normalised scene units

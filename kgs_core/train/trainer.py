@@ -186,8 +186,11 @@ class Trainer:
     def loss_for(self, frame: Frame, it: int) -> tuple[torch.Tensor, Rendered]:
         c, scene, model = self.cfg, self.scene, self.model
         noise = 0.0 if self.static_only else self.noise.sigma(it)
+        t = frame.time
+        if noise > 0 and not c.noise_per_gaussian:  # one shift for every Gaussian
+            t, noise = t + noise * float(torch.randn(())), 0.0
         camera_motion = None if self.camera_motion is None else self.camera_motion.get(frame.id)
-        out, g = render_model(model, frame.camera, frame.time, scene.exposure, scene.dt, self.background,
+        out, g = render_model(model, frame.camera, t, scene.exposure, scene.dt, self.background,
                               noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False)
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
