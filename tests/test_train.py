@@ -366,3 +366,23 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
     for old, new in ((True, "poses"), (False, "off")):
         saved = {**cfg.to_dict(), "camera_blur": old}
         assert TrainConfig.from_dict(saved).camera_blur == new
+
+
+@pytest.mark.parametrize("per_gaussian", [True, False])
+def test_time_noise_jitters_each_gaussian_or_shifts_the_frame_once(scene, tmp_path, per_gaussian):
+    cfg = tiny_config(iterations=10, noise_per_gaussian=per_gaussian)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    tr.init_model()
+    seen = []
+    field_at_times = tr.model.deform.at_times
+    tr.model.deform.at_times = lambda x, times: (seen.append(times[0].clone()), field_at_times(x, times))[1]
+    frame = scene.train_frames[3]
+    sigma = tr.noise.sigma(5)
+    assert sigma > 0
+    tr.loss_for(frame, 5)
+    shift = seen[0] - frame.time
+    assert len(shift) == len(tr.model) > 100
+    if per_gaussian:
+        assert 0.5 * sigma < float(shift.std()) < 2 * sigma
+    else:
+        assert float(shift.std()) == 0.0 and 0 < abs(float(shift[0])) < 6 * sigma
