@@ -80,7 +80,7 @@ def test_generator_is_deterministic(tmp_path):
     assert any(p.read_bytes() != (c / "rgb" / "1x" / p.name).read_bytes() for p in (a / "rgb" / "1x").iterdir())
 
 
-@pytest.mark.parametrize("name", ["die", "top", "sheet", "cross", "swing", "panel", "room"])
+@pytest.mark.parametrize("name", ["die", "top", "sheet", "cross", "swing", "panel", "fastpanel", "room"])
 def test_every_named_scene_renders(name, tmp_path):
     out = synthesize(name, tmp_path / name, blur="mild", size=32, frames=2, subframes=2, progress=False)
     scene = load_scene(out)
@@ -89,6 +89,16 @@ def test_every_named_scene_renders(name, tmp_path):
         assert not any(m.any() for m in masks) and scene.extras["generator"]["dynamic_objects"] == []
     else:
         assert any(m.any() for m in masks)
+
+
+def test_fastpanel_moves_twice_as_far_as_panel(tmp_path):
+    """The blur-magnitude control of the quality benchmark: the same panel, twice the swing."""
+    speeds = {}
+    for name in ("panel", "fastpanel"):
+        scene = load_scene(synthesize(name, tmp_path / name, blur="none", size=32, frames=8, subframes=1, progress=False))
+        frames = [f for f in scene.train_frames if f.mask() is not None and f.mask().any()]
+        speeds[name] = np.mean([np.linalg.norm(f.motion()[f.mask()], axis=-1).mean() for f in frames])
+    assert 1.6 < speeds["fastpanel"] / speeds["panel"] < 2.4, speeds  # (1.88 measured)
 
 
 def test_bounce_reverses_velocity_inside_a_frame():
