@@ -5,8 +5,10 @@ RUN/
   run.json            format version, scene path, config, status, counts, timings
   model.pt            the final model (KinematicsGS.state() + LoD level snapshots)
   checkpoints/        ckpt_XXXXXX.pt: model + optimizer + schedule state, for --resume
-  log.csv             iteration, train_seconds, wall_seconds, loss, psnr_heldout, gaussians, dynamic_share
-  psnr_vs_time.png    held-out PSNR against training time
+  log.csv             iteration, train_seconds, wall_seconds, loss, psnr_heldout, psnr_heldout_dynamic
+                      (inside the ground-truth dynamic masks, when the scene has them), gaussians,
+                      dynamic_share
+  psnr_vs_time.png    held-out PSNR (and inside the dynamic mask) against training time
   decomposition.npy   temporal variance K per Gaussian (final level)
   metrics.json/.md    written by `kgs-app eval`
   error.txt           present when training failed

@@ -162,6 +162,11 @@ def main(argv: list[str]) -> int:
         run_dir = root / (slug + suffix)
         return Trainer(scene, run_dir, cfg, progress=False)
 
+    def curve(run_dir: Path, seconds) -> list[tuple[float, float, float]]:
+        """`(seconds, held-out PSNR, inside the dynamic mask)` per logged evaluation."""
+        return [(seconds(r), r["psnr_heldout"], r.get("psnr_heldout_dynamic", math.nan)) for r in read_log(run_dir)
+                if not math.isnan(r["psnr_heldout"])]
+
     def report(label: str, tr: Trainer, seconds: str) -> None:
         run = load_run(tr.run_dir)
         m = evaluate_model(run.model, scene, static=run.static_only)
@@ -180,7 +185,7 @@ def main(argv: list[str]) -> int:
     rate = {name: tr.train_seconds / args.iterations for name, tr in zip(names, first)}
     for name, tr in zip(names, first):
         report(name, tr, f"{tr.train_seconds:.0f}")
-        curves[name] = [(r["train_seconds"], r["psnr_heldout"]) for r in read_log(tr.run_dir) if not math.isnan(r["psnr_heldout"])]
+        curves[name] = curve(tr.run_dir, lambda r: r["train_seconds"])
     if args.budget == "time":
         # Equal time: each configuration more than 10 % off the first one's time is trained again
         # with its iteration count scaled by the measured cost ratio (the preset's schedule
@@ -195,8 +200,7 @@ def main(argv: list[str]) -> int:
             for (name, n), tr in zip(again, second):
                 label = f"{name}, same time"
                 report(label, tr, f"≈{rate[name] * n:.0f}")
-                curves[label] = [(r["iteration"] * rate[name], r["psnr_heldout"]) for r in read_log(tr.run_dir)
-                                 if not math.isnan(r["psnr_heldout"])]
+                curves[label] = curve(tr.run_dir, lambda r, rate=rate[name]: r["iteration"] * rate)
                 dashed.add(label)
     if "full" in names:
         print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
@@ -215,15 +219,17 @@ def main(argv: list[str]) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
-        for name, pts in curves.items():
-            if pts:
-                ax.plot(*zip(*pts), marker="o", ms=2, label=name, ls="--" if name in dashed else "-")
-        ax.set_xlabel("training time (s)")
-        ax.set_ylabel("held-out PSNR (dB)")
-        ax.set_title(f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
+        for col, (ax, what) in enumerate(zip(axes, ("held-out PSNR (dB)", "held-out PSNR inside the dynamic mask (dB)")), 1):
+            for name, pts in curves.items():
+                pts = [(p[0], p[col]) for p in pts if not math.isnan(p[col])]
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", ms=2, label=name, ls="--" if name in dashed else "-")
+            ax.set_xlabel("training time (s)")
+            ax.set_ylabel(what)
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=7)
+        fig.suptitle(f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
         fig.tight_layout()
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(args.plot)

@@ -38,11 +38,13 @@ class ImageCache:
     def __init__(self):
         self._imgs: dict[tuple[str, str], torch.Tensor] = {}
 
-    def get(self, frame: Frame, kind: str = "image") -> torch.Tensor:
+    def get(self, frame: Frame, kind: str = "image") -> torch.Tensor | None:
+        """`kind`: "image" (what the camera recorded), "sharp" (its ground truth) or "mask" (the
+        ground-truth dynamic pixels; None when the frame has none)."""
         key = (frame.id, kind)
         if key not in self._imgs:
-            arr = frame.image() if kind == "image" else frame.sharp()
-            self._imgs[key] = torch.from_numpy(arr)
+            arr = {"image": frame.image, "sharp": frame.sharp, "mask": frame.mask}[kind]()
+            self._imgs[key] = None if arr is None else torch.from_numpy(arr)
         return self._imgs[key]
 
 
@@ -60,12 +62,19 @@ def evaluation_frames(scene: Scene, count: int) -> list[tuple[Frame, str]]:
 
 
 @torch.no_grad()
-def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background, static: bool = False) -> float:
-    vals = []
+def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background,
+                 static: bool = False) -> tuple[float, float]:
+    """Mean PSNR over the evaluation views, and inside their ground-truth dynamic masks (NaN
+    when none of them has a non-empty mask): the quality target's metric, logged over time."""
+    vals, dyn = [], []
     for frame, kind in frames:
         out, _ = render_model(model, frame.camera, frame.time, 0.0, scene.dt, background, static=static, velocity=False)
-        vals.append(psnr(out.image, cache.get(frame, kind)))
-    return float(np.mean(vals))
+        gt = cache.get(frame, kind)
+        vals.append(psnr(out.image, gt))
+        mask = cache.get(frame, "mask") if frame.mask_path else None
+        if mask is not None and mask.any():
+            dyn.append(psnr(out.image, gt, mask))
+    return float(np.mean(vals)), float(np.mean(dyn)) if dyn else float("nan")
 
 
 def lr_exp(k: int, total: int, lr0: float, lr1: float) -> float:
@@ -295,13 +304,16 @@ class Trainer:
     # ------------------------------------------------------------ logging and checkpoints
 
     def log(self, it: int, loss: float, wall0: float) -> dict:
-        p = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
+        p, p_dyn = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
         counts = split_counts(self.model, self.static_only)
         row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(time.time() - wall0, 3),
-               "loss": loss, "psnr_heldout": p, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}
+               "loss": loss, "psnr_heldout": p, "psnr_heldout_dynamic": p_dyn, "gaussians": counts["gaussians"],
+               "dynamic_share": counts["dynamic_share"]}
         self.log_rows.append(row)
         head = list(row)
-        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r[k]}" for k in head) for r in self.log_rows) + "\n"
+        # (.get: rows read back from a log written before a column existed, on resume)
+        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r.get(k, float('nan'))}" for k in head)
+                                                  for r in self.log_rows) + "\n"
         atomic_write_text(self.run_dir / "log.csv", text)
         if self.on_log:
             self.on_log(row)
@@ -459,6 +471,11 @@ def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str 
     rows = [r for r in rows if not math.isnan(r["psnr_heldout"])]
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=110)
     ax.plot([r["train_seconds"] for r in rows], [r["psnr_heldout"] for r in rows], marker="o", ms=3, label=label)
+    dyn = [r for r in rows if not math.isnan(r.get("psnr_heldout_dynamic", float("nan")))]
+    if dyn:
+        ax.plot([r["train_seconds"] for r in dyn], [r["psnr_heldout_dynamic"] for r in dyn], marker="o", ms=3,
+                label="inside the dynamic mask")
+        ax.legend(fontsize=7)
     ax.set_xlabel("training time (s)")
     ax.set_ylabel("PSNR (dB)")
     ax.set_title(title)
