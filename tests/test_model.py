@@ -130,6 +130,29 @@ def test_physical_velocity_is_the_central_difference_of_the_coarse_deformed_posi
     assert torch.allclose(g.means, m.positions(idx, t)[0], rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("coarse_to_fine", [True, False])
+def test_velocity_without_gradient_is_the_same_velocity_and_trains_the_field_only_through_positions(coarse_to_fine):
+    """`velocity_grad=False`: the same velocities, positions and blurred covariances, but the
+    sweep carries no gradient into the deformation field (its positions still do)."""
+    t, dt, exposure = 0.4, 0.05, 0.8
+    outs = {}
+    for grad in (True, False):
+        m = moving_model(velocity="physical", coarse_to_fine=coarse_to_fine, velocity_grad=grad)
+        g = m.at(t, exposure=exposure, dt=dt)
+        idx, sweep = g.sweep
+        field = list(m.deform.parameters())
+        from_sweep = (torch.autograd.grad(sweep.square().sum(), field, allow_unused=True, retain_graph=True)
+                      if sweep.requires_grad else [])
+        from_means = torch.autograd.grad(g.means.square().sum(), field, allow_unused=True)
+        outs[grad] = (g, from_sweep, from_means)
+    (a, sweep_grads, _), (b, no_sweep_grads, means_grads) = outs[True], outs[False]
+    assert torch.allclose(a.velocity, b.velocity, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(a.means, b.means) and torch.allclose(a.covars6, b.covars6, rtol=1e-5, atol=1e-7)
+    assert any(x is not None and x.abs().sum() > 0 for x in sweep_grads)
+    assert not no_sweep_grads  # the sweep does not depend on the field's parameters
+    assert any(x is not None and x.abs().sum() > 0 for x in means_grads)
+
+
 @pytest.mark.parametrize("kr_form", ["convolve", "paper"])
 def test_sharp_render_skips_the_velocity_only_where_nothing_depends_on_it(kr_form, monkeypatch):
     """`at` / `at_dynamic(..., velocity=False)`: at exposure 0 under the convolve form the Gaussians are the

@@ -36,6 +36,9 @@ class ModelConfig:
     coarse_to_fine: bool = True  # C.F.
     kinematic: bool = True  # K.R.
     velocity: Velocity = "physical"
+    # False: the physical velocity's two extra field samples are taken without gradients, so
+    # the blur's sweep does not train the field (its positions still do); saves their backward.
+    velocity_grad: bool = True
     basis: str = "paper"  # kinematic frame: paper (e_x reference, switch at 0.99), duff, principal
     # K.R. form: "convolve" (sigma + (|v| dt e)^2 / 12 u u^T on the D3DGS-style residual
     # covariance) or "paper" (eqs. 9-14: projection onto the kinematic frame, sigma_z + eta |v| dt e).
@@ -302,8 +305,13 @@ class KinematicsGS(nn.Module):
         # The physical velocity's two samples around t share one batched field evaluation with t.
         h = 0.5 * dt * max(exposure, 0.5)
         physical = kinematic and cfg.velocity == "physical"
-        offs = self.offsets_at(idx, [t, t + h, t - h] if physical else [t], noise, shared_fine=True)
-        off = offs[0]
+        if physical and not cfg.velocity_grad:
+            off = self.offsets_at(idx, [t], noise)[0]
+            with torch.no_grad():
+                offs = [off, *self.offsets_at(idx, [t + h, t - h], shared_fine=True)]
+        else:
+            offs = self.offsets_at(idx, [t, t + h, t - h] if physical else [t], noise, shared_fine=True)
+            off = offs[0]
         x_t = p.means[idx] + off.dx
         if kinematic:
             v = velocity_from_offsets(offs, h, dt)
