@@ -56,6 +56,13 @@ def config_key(name: str) -> str:
     return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
 
 
+def config_slug(name: str) -> str:
+    """A folder name for a configuration's run (`full`, `no_split_D3DGS-like`,
+    `full@model.tau_1e-4`)."""
+    base, *sets = name.split("@")
+    return re.sub(r"[^A-Za-z0-9._@-]+", "_", "@".join([base.split(" (")[0], *sets]))
+
+
 def _override(text: str, spec: str) -> tuple[str, object]:
     """`key=value` of a `--configs` entry: a TrainConfig field or `model.<ModelConfig field>`;
     the value as JSON when it parses (numbers, true/false, lists), else the plain string."""
@@ -156,10 +163,7 @@ def main(argv: list[str]) -> int:
         ablate = over.pop("ablate", ())
         cfg = make_config("fast", ablate=ablate, iterations=iterations,
                           eval_every=max(iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
-        base, *sets = name.split("@")
-        slug = base.split(" (")[0].replace(" ", "_").replace("=", "").replace(",", "")
-        slug += "".join("@" + re.sub(r"[^A-Za-z0-9._-]", "_", x) for x in sets)
-        run_dir = root / (slug + suffix)
+        run_dir = root / (config_slug(name) + suffix)
         return Trainer(scene, run_dir, cfg, progress=False)
 
     def curve(run_dir: Path, seconds) -> list[tuple[float, float, float]]:

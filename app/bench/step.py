@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import os
 import random
-import re
 import tempfile
 import time
 from pathlib import Path
@@ -55,7 +54,7 @@ def time_steps(trainer, steps: int, start: int) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    from kgs_app.bench.quality import config_overrides, select_configs
+    from kgs_app.bench.quality import config_overrides, config_slug, select_configs
     from kgs_core.data.formats import load_scene
     from kgs_core.data.synth.generate import synthesize
     from kgs_core.train.config import make_config
@@ -82,7 +81,7 @@ def main(argv: list[str]) -> int:
         over = config_overrides(name)
         ablate = over.pop("ablate", ())
         cfg = make_config("fast", ablate=ablate, eval_every=10**9, checkpoint_every=10**9, **over)
-        tr = Trainer(scene, root / re.sub(r"[^A-Za-z0-9._@-]", "_", name), cfg, progress=False)
+        tr = Trainer(scene, root / config_slug(name), cfg, progress=False)
         tr.init_model()
         for it in range(args.warmup):
             tr.train_step(it)

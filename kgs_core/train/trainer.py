@@ -71,7 +71,7 @@ def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, b
         out, _ = render_model(model, frame.camera, frame.time, 0.0, scene.dt, background, static=static, velocity=False)
         gt = cache.get(frame, kind)
         vals.append(psnr(out.image, gt))
-        mask = cache.get(frame, "mask") if frame.mask_path else None
+        mask = cache.get(frame, "mask")
         if mask is not None and mask.any():
             dyn.append(psnr(out.image, gt, mask))
     return float(np.mean(vals)), float(np.mean(dyn)) if dyn else float("nan")
