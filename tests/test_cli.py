@@ -91,6 +91,26 @@ def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
         assert step_ms > 0
 
 
+def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averages_them(tmp_path):
+    """`--cuts 2`: the re-timed baseline at two iteration counts around the equal-time one,
+    each reported, then their mean; `--cuts 0` is refused."""
+    r = kgs("bench", "quality", "--scene", "panel", "--size", "24", "--frames", "4", "--iterations", "60",
+            "--configs", "full,split", "--cuts", "2", "--taus", "2e-5", "--plot", "", "--out", str(tmp_path / "q"),
+            timeout=600)
+    assert r.returncode == 0, r.stderr
+    rows = [line.split("|")[1:-1] for line in r.stdout.splitlines() if line.startswith("| no split")]
+    cuts = [row for row in rows if "same time (" in row[0]]
+    counts = [int(row[-2]) for row in cuts]
+    assert len(cuts) == 2 and counts[0] < counts[1], rows
+    mean = [row for row in rows if "mean of 2 cuts" in row[0]]
+    assert len(mean) == 1
+    for col in range(1, 5):  # the mean row is the mean of the two cuts' image metrics
+        expected = sum(float(row[col]) for row in cuts) / 2
+        assert abs(float(mean[0][col]) - expected) <= 0.011, (col, rows)  # (both printed to 0.01)
+    bad = kgs("bench", "quality", "--cuts", "0")
+    assert bad.returncode == 2 and "--cuts must be at least 1" in bad.stderr
+
+
 def test_bench_raster_writes_rows_training_step_and_stage_breakdown(tmp_path):
     """A tiny `bench raster --stages`: a row per backend with the scene's measured overlap,
     the training step, and every C++ stage timed, in the JSON and in the markdown."""

@@ -56,6 +56,16 @@ def config_key(name: str) -> str:
     return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
 
 
+def mean_row(label: str, ms: list[dict]) -> str:
+    """A table row of the image metrics averaged over several runs (`evaluate_model` dicts)."""
+    def avg(group: str, key: str) -> str:
+        vals = [m[group][key] for m in ms if m.get(group) and m[group][key] is not None]
+        return fmt(sum(vals) / len(vals) if vals else None)
+
+    return (f"| {label} | {avg('heldout', 'psnr')} | {avg('heldout', 'psnr_dynamic')} | "
+            f"{avg('train_view_deblur', 'psnr')} | {avg('train_view_deblur', 'psnr_dynamic')} | | | | | |")
+
+
 def config_slug(name: str) -> str:
     """A folder name for a configuration's run (`full`, `no_split_D3DGS-like`,
     `full@model.tau_1e-4`)."""
@@ -141,10 +151,15 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--configs", help="comma-separated short names to run (default: all): "
                     + ", ".join(config_key(n) for n in CONFIGS)
                     + "; NAME@KEY=VALUE[@KEY=VALUE] overrides a training setting (full@noise_init_frames=0.1)")
+    ap.add_argument("--cuts", type=int, default=1,
+                    help="with --budget time: train each re-timed configuration at this many iteration counts "
+                         "spread over ±5%% of the equal-time one, and report their mean too (default 1)")
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
     ap.add_argument("--plot", default="docs/quality_psnr_vs_time.png")
     ap.add_argument("--out", help="keep the runs here (default: a temporary folder)")
     args = ap.parse_args(argv)
+    if args.cuts < 1:
+        ap.error(f"--cuts must be at least 1, got {args.cuts}")
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out or tempfile.mkdtemp(prefix="kgs-bench-quality-"))
@@ -171,7 +186,7 @@ def main(argv: list[str]) -> int:
         return [(seconds(r), r["psnr_heldout"], r.get("psnr_heldout_dynamic", math.nan)) for r in read_log(run_dir)
                 if not math.isnan(r["psnr_heldout"])]
 
-    def report(label: str, tr: Trainer, seconds: str) -> None:
+    def report(label: str, tr: Trainer, seconds: str) -> dict:
         run = load_run(tr.run_dir)
         m = evaluate_model(run.model, scene, static=run.static_only)
         info = tr.info
@@ -181,6 +196,7 @@ def main(argv: list[str]) -> int:
               f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
               f"{'static' if 'deform' in info['config']['ablate'] else format(info['dynamic_share'], '.0%')} | "
               f"{info['iteration']} | {seconds} |", flush=True)
+        return m
 
     # Every configuration at the same iteration count, stepped in turn so that their times
     # are measured under the same machine conditions (`interleave`).
@@ -198,14 +214,23 @@ def main(argv: list[str]) -> int:
         budget = first[0].train_seconds
         again = [(name, max(50, round(budget / rate[name])))
                  for name in names[1:] if abs(rate[name] * args.iterations / budget - 1) > 0.1]
-        if again:
-            second = [trainer_for(name, n, "_equal_time") for name, n in again]
+        # With --cuts K, each is trained at K counts spread over ±5 % of the equal-time one: a
+        # compressed schedule's end state depends on where it is cut (three iterations moved the
+        # fast panel's margin by 0.2 dB), and the mean of the cuts is the steadier estimate.
+        spread = [0.0] if args.cuts == 1 else [-0.05 + 0.1 * k / (args.cuts - 1) for k in range(args.cuts)]
+        runs = [(name, max(50, round(n * (1 + f)))) for name, n in again for f in spread]
+        if runs:
+            second = [trainer_for(name, n, f"_equal_time_{n}") for name, n in runs]
             interleave(second)
-            for (name, n), tr in zip(again, second):
-                label = f"{name}, same time"
-                report(label, tr, f"≈{rate[name] * n:.0f}")
+            metrics: dict[str, list[dict]] = {}
+            for (name, n), tr in zip(runs, second):
+                label = f"{name}, same time" + (f" ({n} it.)" if args.cuts > 1 else "")
+                metrics.setdefault(name, []).append(report(label, tr, f"≈{rate[name] * n:.0f}"))
                 curves[label] = curve(tr.run_dir, lambda r, rate=rate[name]: r["iteration"] * rate)
                 dashed.add(label)
+            for name, ms in metrics.items():
+                if len(ms) > 1:
+                    print(mean_row(f"{name}, same time, mean of {len(ms)} cuts", ms), flush=True)
     if "full" in names:
         print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
         print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
