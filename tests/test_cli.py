@@ -73,6 +73,14 @@ def test_bench_quality_configs_take_overrides_of_training_settings():
     for bad in ("full@bogus=1", "full@noise_init_frames", "full@model.nope=2"):
         with pytest.raises(SystemExit, match="not KEY=VALUE"):
             select_configs(bad)
+    # A value of the wrong type is refused by name before anything trains.
+    for bad, needle in (("full@model.tau=abc", "model.tau takes a number"),
+                        ("full@noise_per_gaussian=1", "noise_per_gaussian takes true or false"),
+                        ("full@iterations=1.5", "iterations takes a whole number"),
+                        ("full@camera_blur=2", "camera_blur takes a word")):
+        with pytest.raises(SystemExit, match=needle):
+            select_configs(bad)
+    assert config_overrides("full@lambda_reg=0")["lambda_reg"] == 0.0  # an integer stands for a float
 
 
 def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
@@ -109,6 +117,8 @@ def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averag
         assert abs(float(mean[0][col]) - expected) <= 0.011, (col, rows)  # (both printed to 0.01)
     bad = kgs("bench", "quality", "--cuts", "0")
     assert bad.returncode == 2 and "--cuts must be at least 1" in bad.stderr
+    bad = kgs("bench", "quality", "--cuts", "3", "--budget", "iterations")
+    assert bad.returncode == 2 and "--cuts applies to --budget time" in bad.stderr
 
 
 def test_bench_raster_writes_rows_training_step_and_stage_breakdown(tmp_path):

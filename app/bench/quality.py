@@ -56,14 +56,20 @@ def config_key(name: str) -> str:
     return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
 
 
+def image_cells(m: dict) -> str:
+    """The four image-metric cells of a table row (held-out, its dynamic mask, deblur, its
+    dynamic mask) from an `evaluate_model` dict."""
+    return " | ".join(fmt(m[group][key]) for group in ("heldout", "train_view_deblur") for key in ("psnr", "psnr_dynamic"))
+
+
 def mean_row(label: str, ms: list[dict]) -> str:
     """A table row of the image metrics averaged over several runs (`evaluate_model` dicts)."""
-    def avg(group: str, key: str) -> str:
-        vals = [m[group][key] for m in ms if m.get(group) and m[group][key] is not None]
-        return fmt(sum(vals) / len(vals) if vals else None)
+    def avg(group: str, key: str) -> float | None:
+        vals = [m[group][key] for m in ms if m[group][key] is not None]
+        return sum(vals) / len(vals) if vals else None
 
-    return (f"| {label} | {avg('heldout', 'psnr')} | {avg('heldout', 'psnr_dynamic')} | "
-            f"{avg('train_view_deblur', 'psnr')} | {avg('train_view_deblur', 'psnr_dynamic')} | | | | | |")
+    mean = {g: {k: avg(g, k) for k in ("psnr", "psnr_dynamic")} for g in ("heldout", "train_view_deblur")}
+    return f"| {label} | {image_cells(mean)} | | | | | |"
 
 
 def config_slug(name: str) -> str:
@@ -82,16 +88,28 @@ def _override(text: str, spec: str) -> tuple[str, object]:
     from kgs_core.train.config import TrainConfig
 
     key, eq, raw = text.partition("=")
-    known = {f.name for f in fields(TrainConfig)} - {"model", "ablate"}
-    known |= {"model." + f.name for f in fields(ModelConfig)}
-    if not eq or key not in known:
+    defaults = {f.name: getattr(TrainConfig(), f.name) for f in fields(TrainConfig) if f.name not in ("model", "ablate")}
+    defaults |= {"model." + f.name: getattr(ModelConfig(), f.name) for f in fields(ModelConfig)}
+    if not eq or key not in defaults:
         raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {text!r} is not KEY=VALUE with KEY a "
                          f"training setting (e.g. noise_init_frames, model.tau)")
     try:
         value = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
-    return key, tuple(value) if isinstance(value, list) else value
+    value = tuple(value) if isinstance(value, list) else value
+    # The default's type, so that a mistyped value fails here and not minutes into training
+    # (an integer stands for a float; true/false only for a switch).
+    want = type(defaults[key])
+    ok = (isinstance(value, bool) if want is bool else
+          isinstance(value, (int, float)) and not isinstance(value, bool) if want is float else
+          isinstance(value, want) and not isinstance(value, bool))
+    if not ok:
+        kind = {bool: "true or false", float: "a number", int: "a whole number", str: "a word",
+                tuple: "a JSON list"}.get(want, want.__name__)
+        raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {key} takes {kind} "
+                         f"(default {defaults[key]!r}), got {raw!r}")
+    return key, float(value) if want is float else value
 
 
 def config_overrides(name: str) -> dict:
@@ -160,6 +178,8 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     if args.cuts < 1:
         ap.error(f"--cuts must be at least 1, got {args.cuts}")
+    if args.cuts > 1 and args.budget != "time":
+        ap.error("--cuts applies to --budget time (it spreads the re-timed runs' iteration counts)")
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out or tempfile.mkdtemp(prefix="kgs-bench-quality-"))
@@ -190,9 +210,7 @@ def main(argv: list[str]) -> int:
         run = load_run(tr.run_dir)
         m = evaluate_model(run.model, scene, static=run.static_only)
         info = tr.info
-        print(f"| {label} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
-              f"{fmt(m['train_view_deblur']['psnr'])} | {fmt(m['train_view_deblur']['psnr_dynamic'])} | "
-              f"{fmt(m['decomposition_iou'])} | "
+        print(f"| {label} | {image_cells(m)} | {fmt(m['decomposition_iou'])} | "
               f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
               f"{'static' if 'deform' in info['config']['ablate'] else format(info['dynamic_share'], '.0%')} | "
               f"{info['iteration']} | {seconds} |", flush=True)
