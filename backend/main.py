@@ -12,12 +12,16 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import Depends, FastAPI
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from .jobs import JobRunner
 from .registry import Workspace
 from .routers import exports, renders, runs, scenes, stream, system
-from .security import require_token
+from .schemas import finite_json
+from .security import BodyLimit, HostOriginGuard, require_token
 from .settings import Settings
 from .splats import RunViews
 
@@ -90,6 +94,11 @@ def create_app(settings: Settings) -> FastAPI:
 
     app = FastAPI(title="Kinematics-GS", summary="Dynamic Gaussians from blurry video: runs, renders, streams.",
                   lifespan=lifespan)
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request, exc: RequestValidationError):
+        # FastAPI's own handler quotes the input back and fails on a NaN it cannot encode.
+        return JSONResponse(status_code=422, content={"detail": finite_json(jsonable_encoder(exc.errors()))})
+
     app.state.settings = settings
     app.state.ws = ws
     app.state.jobs = job_runner
@@ -105,6 +114,9 @@ def create_app(settings: Settings) -> FastAPI:
 
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
                            allow_headers=["*"])
+    # Added last, so it runs first: nothing answers a foreign Host or a cross-site write.
+    app.add_middleware(BodyLimit)
+    app.add_middleware(HostOriginGuard, settings=settings)
     if FRONTEND.is_dir():
         app.mount("/", StaticFiles(directory=FRONTEND, html=True), name="frontend")
     return app

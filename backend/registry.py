@@ -21,8 +21,10 @@ import sqlite3
 import threading
 import time
 import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS scenes (
@@ -56,10 +58,17 @@ class Workspace:
         with self._connect() as db:
             db.executescript(SCHEMA)
 
-    def _connect(self) -> sqlite3.Connection:
+    @contextmanager
+    def _connect(self) -> Iterator[sqlite3.Connection]:
+        """A connection for one transaction, committed (or rolled back) and closed: a
+        connection's own `with` only commits, and the handles of every request piled up."""
         db = sqlite3.connect(self.root / "workspace.db", timeout=30)
         db.row_factory = sqlite3.Row
-        return db
+        try:
+            with db:
+                yield db
+        finally:
+            db.close()
 
     # ------------------------------------------------------------ generic rows
 

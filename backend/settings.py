@@ -15,6 +15,7 @@ class Settings:
     port: int = 8000
     token: str | None = None  # required on every API call and WebSocket when set
     cors_origins: list[str] = field(default_factory=list)  # CORS stays off unless origins are given
+    allowed_hosts: list[str] = field(default_factory=list)  # Host names answered besides the bound one and loopback
     max_upload_mb: int = 512
     register: list[Path] = field(default_factory=list)  # scene folders / run directories to add at start-up
     start_demo: object = None  # callable(app) run once at start-up (`--demo` on an empty workspace)

@@ -35,8 +35,10 @@ def run_train(spec: dict) -> None:
         cfg = TrainConfig.from_dict(spec["config"])
     else:
         overrides = dict(spec.get("overrides") or {})
-        cfg = make_config(spec.get("preset", "fast"), ablate=tuple(spec.get("ablate") or ()), **overrides)
+        cfg = None
     scene = load_scene(spec["scene_dir"])
+    if cfg is None:  # the preset fitted to the scene (frames, resolution, scale), overrides winning
+        cfg = make_config(spec.get("preset", "fast"), ablate=tuple(spec.get("ablate") or ()), scene=scene, **overrides)
     t0 = time.time()
     state = {"last": 0.0, "psnr": None}
 
@@ -68,7 +70,11 @@ def run_synth(spec: dict) -> None:
 def run_ingest(spec: dict) -> None:
     from kgs_core.data.ingest import ingest
 
-    ingest(spec["video"], spec["out"], max_size=int(spec.get("max_size", 960)), overwrite=True)
+    try:
+        ingest(spec["video"], spec["out"], max_size=int(spec.get("max_size", 960)), overwrite=True)
+    finally:
+        if spec.get("delete_video"):  # the uploaded copy: its frames are in the scene now, or it failed
+            Path(spec["video"]).unlink(missing_ok=True)
 
 
 def run_export(spec: dict) -> None:

@@ -278,3 +278,33 @@ def test_output_is_atomic(tmp_path, monkeypatch):
 def test_existing_output_is_not_overwritten(tiny):
     with pytest.raises(FileExistsError):
         synthesize("bounce", tiny, size=16, frames=2, progress=False)
+
+
+@pytest.mark.parametrize("bad", ["/etc/hostname", "../outside", "./rgb/../../outside"])
+@pytest.mark.parametrize("key", ["file_path", "sharp_file_path", "mask_file_path", "motion_file_path"])
+def test_dnerf_paths_stay_inside_the_dataset(copy, bad, key):
+    """A dataset names only its own files: an absolute path or one that climbs out is refused,
+    naming the field (an uploaded zip could otherwise make the server read any file)."""
+    (copy.parent / "outside.png").write_bytes((copy / "rgb" / "1x" / "c0_00000.png").read_bytes())
+    break_json(copy / "transforms_train.json", lambda js: js["frames"][1].update({key: bad}))
+    with pytest.raises(SceneError, match=rf"transforms_train\.json frames\[1\] field '{key}'.*(absolute path|leaves the dataset)"):
+        load_scene(copy, fmt="dnerf")
+
+
+def test_symlink_out_of_the_dataset_is_refused(copy):
+    outside = copy.parent / "secret.png"
+    outside.write_bytes((copy / "rgb" / "1x" / "c0_00000.png").read_bytes())
+    img = copy / "rgb" / "1x" / "c0_00002.png"
+    img.unlink()
+    img.symlink_to(outside)
+    for fmt in ("nerfies", "dnerf"):
+        with pytest.raises(SceneError, match="leaves the dataset folder"):
+            load_scene(copy, fmt=fmt)
+
+
+def test_nerfies_ids_cannot_climb_out(copy):
+    evil = "../../../etc/passwd"
+    break_json(copy / "dataset.json", lambda js: js.update(ids=js["ids"] + [evil]))
+    break_json(copy / "metadata.json", lambda js: js.update({evil: {**js["c0_00000"], "time": 1.0}}))
+    with pytest.raises(SceneError, match=r"dataset\.json id '\.\./\.\./\.\./etc/passwd'.*leaves the dataset folder"):
+        load_scene(copy)

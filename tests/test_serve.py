@@ -21,6 +21,10 @@ from kgs_backend.settings import Settings
 from kgs_backend.splats import unpack_buffer
 
 
+BASE = "http://127.0.0.1:8000"  # what a browser on the default loopback bind sends as Host
+WS = BASE.replace("http", "ws", 1)
+
+
 @pytest.fixture
 def ws_dir(tmp_path):
     return tmp_path / "workspace"
@@ -29,7 +33,7 @@ def ws_dir(tmp_path):
 @pytest.fixture
 def client(ws_dir, copy_run):
     app = create_app(Settings(workspace=ws_dir, register=[copy_run], max_upload_mb=1))
-    with TestClient(app) as c:
+    with TestClient(app, base_url=BASE) as c:
         c.run_id = app.state.registered[0]
         c.app_ = app
         yield c
@@ -102,7 +106,7 @@ def test_render_png_sets_and_bad_parameters(client):
 def test_stream_static_once_then_dynamic_and_coalescing(client):
     rid = client.run_id
     meta = client.get(f"/api/runs/{rid}").json()
-    with client.websocket_connect(f"/api/runs/{rid}/stream") as w:
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
         w.send_json({"type": "subscribe", "velocity": True})
         h, rec, _ = unpack_buffer(recv_bytes(w))
         assert h["kind"] == "static" and h["count"] == meta["split"]["static_kept"]
@@ -139,7 +143,7 @@ def test_stream_static_once_then_dynamic_and_coalescing(client):
 def test_live_tau_pushes_new_sets(client):
     rid = client.run_id
     before = client.get(f"/api/runs/{rid}").json()["split"]
-    with client.websocket_connect(f"/api/runs/{rid}/stream") as w:
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
         w.send_json({"type": "subscribe"})
         recv_bytes(w)
         r = client.post(f"/api/runs/{rid}/tau", json={"tau": before["tau"] * 10})
@@ -159,7 +163,7 @@ def test_live_tau_pushes_new_sets(client):
 
 def test_edits_change_sets_and_are_stored(client, copy_run):
     rid = client.run_id
-    with client.websocket_connect(f"/api/runs/{rid}/stream") as w:
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
         w.send_json({"type": "subscribe"})
         _, rec, _ = unpack_buffer(recv_bytes(w))
         victims = rec["index"][:5].tolist()
@@ -181,14 +185,14 @@ def test_unknown_ids(client):
     assert client.delete("/api/runs/abc").status_code == 404
     assert client.post("/api/runs", json={"scene_id": "abc"}).status_code == 404
     with pytest.raises(WebSocketDisconnect) as exc:
-        with client.websocket_connect("/api/runs/abc/stream") as w:
+        with client.websocket_connect(WS + "/api/runs/abc/stream") as w:
             w.receive()
     assert exc.value.code == 4404
 
 
 def test_token_required_when_set(ws_dir, copy_run):
     app = create_app(Settings(workspace=ws_dir, register=[copy_run], token="s3cret"))
-    with TestClient(app) as c:
+    with TestClient(app, base_url=BASE) as c:
         rid = app.state.registered[0]
         assert c.get("/api/system").status_code == 401
         assert c.get("/api/runs", headers={"Authorization": "Bearer wrong"}).status_code == 401
@@ -197,10 +201,10 @@ def test_token_required_when_set(ws_dir, copy_run):
         assert c.get(f"/api/runs/{rid}/render", headers={"X-KGS-Token": "s3cret"}).status_code == 200
         assert c.get("/").status_code == 200  # the page itself holds no data; the API needs the token
         with pytest.raises(WebSocketDisconnect) as exc:
-            with c.websocket_connect(f"/api/runs/{rid}/stream") as w:
+            with c.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
                 w.receive()
         assert exc.value.code == 4401
-        with c.websocket_connect(f"/api/runs/{rid}/stream?token=s3cret") as w:
+        with c.websocket_connect(WS + f"/api/runs/{rid}/stream?token=s3cret") as w:
             w.send_json({"type": "subscribe"})
             assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
 
@@ -220,24 +224,26 @@ def test_uploads_limits_and_types(client, tiny_run, tmp_path):
     shutil.copytree(scene_dir, small, ignore=shutil.ignore_patterns("sharp", "mask", "motion"))
     blob = _zip_dir(small)
     assert len(blob) < 1024 * 1024, "fixture scene must fit the 1 MB test limit"
-    r = client.post("/api/scenes/upload", params={"name": "up", "kind": "zip"}, content=blob)
+    zip_type = {"content-type": "application/zip"}
+    r = client.post("/api/scenes/upload", params={"name": "up", "kind": "zip"}, content=blob, headers=zip_type)
     assert r.status_code == 201, r.text
     assert r.json()["frames"] >= 8 and r.json()["status"] == "done"
     assert client.get(f"/api/scenes/{r.json()['id']}").json()["train_frames"] >= 8
     big = b"PK\x03\x04" + b"\0" * (1024 * 1024 + 10)
-    assert client.post("/api/scenes/upload", params={"name": "big", "kind": "zip"}, content=big).status_code == 413
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"hello").status_code == 415
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "video"}, content=b"not a video").status_code == 415
-    assert client.post("/api/scenes/upload", params={"name": "../x", "kind": "zip"}, content=blob).status_code == 422
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "exe"}, content=blob).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "big", "kind": "zip"}, content=big, headers=zip_type).status_code == 413
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"hello", headers=zip_type).status_code == 415
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "video"}, content=b"not a video",
+                       headers={"content-type": "video/mp4"}).status_code == 415
+    assert client.post("/api/scenes/upload", params={"name": "../x", "kind": "zip"}, content=blob, headers=zip_type).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "exe"}, content=blob, headers=zip_type).status_code == 422
     evil = io.BytesIO()
     with zipfile.ZipFile(evil, "w") as z:
         z.writestr("../../escape.txt", "x")
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue()).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue(), headers=zip_type).status_code == 422
     junk = io.BytesIO()
     with zipfile.ZipFile(junk, "w") as z:
         z.writestr("readme.txt", "no dataset here")
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue()).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue(), headers=zip_type).status_code == 422
     # Nothing half-written stays behind.
     ws_root = client.app_.state.ws.root
     assert not [p for p in (ws_root / "scenes").iterdir() if p.name.startswith(".upload")]
@@ -258,7 +264,7 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     assert len(client.get(f"/api/runs/{done['id']}/log").json()) >= 2
     # A long run: progress streams, cancel keeps a model.
     long = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 100000}).json()
-    with client.websocket_connect(f"/api/runs/{long['id']}/stream") as w:
+    with client.websocket_connect(WS + f"/api/runs/{long['id']}/stream") as w:
         p = recv_json_until(w, "progress")
         assert p["iteration"] >= 1 and p["iterations"] == 100000 and "loss" in p
         assert client.post(f"/api/runs/{long['id']}/cancel").status_code == 200
@@ -292,7 +298,7 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     assert client.post("/api/runs/nope/finetune", json={}).status_code == 404
     # A restarted server lists the earlier runs and their states.
     app2 = create_app(Settings(workspace=ws_dir))
-    with TestClient(app2) as c2:
+    with TestClient(app2, base_url=BASE) as c2:
         statuses = {r["id"]: r["status"] for r in c2.get("/api/runs").json()}
     assert statuses[done["id"]] == "done" and statuses[long["id"]] == "cancelled" and statuses[failed["id"]] == "failed"
 
@@ -310,3 +316,145 @@ def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
     assert np.array_equal(rec_n["index"], rec_v["index"])
     assert np.allclose(rec_n["position"].astype(np.float64), rec_v["position"].astype(np.float64), atol=1e-3)
     assert np.allclose(rec_n["covariance"].astype(np.float64), rec_v["covariance"].astype(np.float64), atol=1e-3)
+
+
+# ------------------------------------------------------------ hostile clients
+
+
+def test_foreign_host_and_cross_site_writes_are_refused(client):
+    """DNS rebinding (a foreign Host) and cross-site writes (a foreign Origin on a POST, which a
+    web page can send as text/plain without a preflight) on the no-token loopback default."""
+    rid = client.run_id
+    assert client.get("/api/runs", headers={"host": "attacker.example"}).status_code == 400
+    assert client.get("/", headers={"host": "attacker.example:8000"}).status_code == 400
+    assert client.get("/api/runs", headers={"host": "localhost:8000"}).status_code == 200
+    assert client.get("/api/runs", headers={"host": "[::1]:8000"}).status_code == 200
+    evil = {"origin": "http://evil.example", "content-type": "text/plain"}
+    r = client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"PK\x03\x04", headers=evil)
+    assert r.status_code == 403 and "cross-origin" in r.json()["detail"]
+    assert client.post(f"/api/runs/{rid}/tau", json={"tau": 1e-4}, headers={"origin": "http://evil.example"}).status_code == 403
+    assert client.post(f"/api/runs/{rid}/tau", json={"tau": 1e-4}, headers={"origin": "null"}).status_code == 403
+    # The server's own page (same host and port) and non-browser clients (no Origin) may write.
+    assert client.post(f"/api/runs/{rid}/tau", json={"tau": 1e-4}, headers={"origin": BASE}).status_code == 200
+    assert client.post(f"/api/runs/{rid}/tau", json={"tau": 1e-4}).status_code == 200
+    # Reads from a foreign origin get no CORS headers (CORS is off), so the browser hides them.
+    assert "access-control-allow-origin" not in client.get("/api/runs", headers={"origin": "http://evil.example"}).headers
+    # Uploads need their declared content type: text/plain is refused even same-origin.
+    r = client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"PK\x03\x04",
+                    headers={"content-type": "text/plain"})
+    assert r.status_code == 415 and "application/zip" in r.json()["detail"]
+    with pytest.raises(WebSocketDisconnect):
+        with client.websocket_connect(WS + f"/api/runs/{rid}/stream", headers={"origin": "http://evil.example"}) as w:
+            w.receive()
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream", headers={"origin": BASE}) as w:
+        w.send_json({"type": "ping"})
+        recv_json_until(w, "pong")
+
+
+def test_allowed_hosts_and_wildcard_bind(ws_dir, copy_run):
+    from kgs_backend.security import host_allowed
+
+    assert host_allowed("kgs.lab.example:443", "127.0.0.1", ["kgs.lab.example"])
+    assert not host_allowed("other.example", "127.0.0.1", ["kgs.lab.example"])
+    assert host_allowed("anything.example", "0.0.0.0", [])  # every interface: the token guards it
+    assert not host_allowed("anything.example", "0.0.0.0", ["kgs.lab.example"])
+    app = create_app(Settings(workspace=ws_dir, register=[copy_run], allowed_hosts=["kgs.lab.example"]))
+    with TestClient(app, base_url="https://kgs.lab.example") as c:
+        assert c.get("/api/runs").status_code == 200
+
+
+def test_stream_survives_binary_frames_and_bad_lod(client):
+    rid = client.run_id
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
+        w.send_bytes(b"\x00\x01binary")
+        assert "binary" in recv_json_until(w, "error")["message"]
+        for lod in (0, 99):
+            w.send_json({"type": "subscribe", "lod": lod})
+            assert "lod must be in 1..2" in recv_json_until(w, "error")["message"]
+        w.send_json({"type": "subscribe", "lod": 1})
+        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
+
+
+def test_unread_messages_are_bounded():
+    """A client that sends without reading (a ping flood) cannot grow the server: pongs
+    coalesce, anything else past MAX_NOTES disconnects it."""
+    from kgs_backend.routers.stream import MAX_NOTES, Connection
+
+    conn = Connection(ws=None, run_id="r")
+    for _ in range(10_000):
+        conn.notify({"type": "pong"})
+    assert len(conn.notes) == 1 and not conn.overflow
+    for i in range(10_000):
+        conn.notify({"type": "error", "message": str(i)})
+    assert len(conn.notes) == MAX_NOTES and conn.overflow
+
+
+def test_concurrent_first_downloads_of_a_folder_export(tmp_path):
+    """Six threads download a folder export at once: all get the same complete zip, and no
+    temporary file stays behind."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from kgs_backend.routers.exports import zipped
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(40):
+        (folder / f"{i:03d}.ply").write_bytes(np.random.default_rng(i).bytes(20_000))
+    with ThreadPoolExecutor(6) as pool:
+        archives = list(pool.map(lambda _: zipped(folder), range(6)))
+    assert len(set(archives)) == 1
+    with zipfile.ZipFile(archives[0]) as z:
+        assert len(z.namelist()) == 40 and z.testzip() is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "frames.zip"]
+
+
+def test_non_finite_numbers_big_bodies_and_huge_seeds_get_4xx(client):
+    rid = client.run_id
+    scene_id = client.get(f"/api/runs/{rid}").json()["scene_id"]
+    js = {"content-type": "application/json"}
+    for path, body in ((f"/api/runs/{rid}/tau", b'{"tau": NaN}'), (f"/api/runs/{rid}/tau", b'{"tau": Infinity}'),
+                       ("/api/runs", b'{"scene_id": "%s", "iterations": NaN}' % scene_id.encode()),
+                       (f"/api/runs/{rid}/exports", b'{"format": "splat", "exposure": NaN}')):
+        r = client.post(path, content=body, headers=js)
+        assert r.status_code == 422, (path, body, r.status_code)
+        assert "finite" in r.text or "nan" in r.text.lower(), r.text
+    assert client.post("/api/runs", json={"scene_id": scene_id, "seed": 10**30}).status_code == 422
+    big = b'{"tau": 1e-4, "pad": "' + b"x" * (2 << 20) + b'"}'
+    assert client.post(f"/api/runs/{rid}/tau", content=big, headers=js).status_code == 413
+
+
+def test_scene_with_runs_cannot_be_deleted_and_uploads_are_cleaned(client, tmp_path):
+    rid = client.run_id
+    scene_id = client.get(f"/api/runs/{rid}").json()["scene_id"]
+    r = client.delete(f"/api/scenes/{scene_id}")
+    assert r.status_code == 409 and rid in r.json()["detail"]
+    assert client.get(f"/api/runs/{rid}/frames/0/image").status_code == 200  # the run still has its scene
+    # An uploaded video whose ingest never produced a scene goes with the scene's row.
+    ws = client.app_.state.ws
+    row = ws.insert("scenes", name="clip", path=str(ws.new_dir("scenes", "deadbeef0001")), source="ingest",
+                    status="failed", id="deadbeef0001")
+    video = ws.root / "scenes" / f".{row['id']}.video"
+    video.write_bytes(b"\0" * 100)
+    assert client.delete(f"/api/scenes/{row['id']}").status_code == 204 and not video.exists()
+    # The ingest job deletes its uploaded copy, when it fails too.
+    from kgs_backend.worker import run_ingest
+
+    bogus = tmp_path / ".x.video"
+    bogus.write_bytes(b"not a video")
+    with pytest.raises(Exception):
+        run_ingest({"video": str(bogus), "out": str(tmp_path / "out"), "delete_video": True})
+    assert not bogus.exists() and not (tmp_path / "out").exists()
+
+
+def test_registry_closes_its_connections(client):
+    import os
+
+    def open_db_handles() -> int:
+        fds = Path("/proc/self/fd")
+        return sum(1 for fd in fds.iterdir() if os.path.realpath(fd).endswith("workspace.db"))
+
+    before = open_db_handles()
+    for _ in range(60):
+        client.get("/api/runs")
+        client.get("/api/scenes")
+    assert open_db_handles() <= before + 1

@@ -3,23 +3,26 @@
 from __future__ import annotations
 
 import shutil
+import threading
+import uuid
 from pathlib import Path
 from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from kgs_core.export import SUFFIX
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
 from ..registry import Workspace, new_id
+from ..schemas import StrictRequest
 
 router = APIRouter(tags=["exports"])
 
 
-class ExportRequest(BaseModel):
+class ExportRequest(StrictRequest):
     format: Literal["ply-seq", "splat", "splatv", "mp4", "glb"]
     times: str | None = Field(None, max_length=10000, description="T, T1,T2,... or START:STOP:COUNT")
     camera_path: Literal["training", "orbit"] = "training"
@@ -64,14 +67,28 @@ def download(export_id: str, ws: Workspace = Depends(workspace)) -> FileResponse
         raise HTTPException(409, f"export {export_id} is {row['status']}")
     path = Path(row["path"])
     if path.is_dir():
-        archive = path.with_suffix(".zip")
-        if not archive.is_file():
-            tmp = shutil.make_archive(str(path.parent / f".{path.name}.tmp"), "zip", root_dir=path)
-            Path(tmp).replace(archive)
-        path = archive
+        path = zipped(path)
     if not path.is_file():
         raise HTTPException(410, "the export's files are gone")
     return FileResponse(path, filename=f"{row['run_id']}-{path.name}", media_type="application/octet-stream")
+
+
+_zip_lock = threading.Lock()
+
+
+def zipped(folder: Path) -> Path:
+    """`folder.zip`, built once: concurrent first downloads wait for the one that builds it
+    (each used to write the same temporary file, and all but one failed), and it appears under
+    its final name only when complete (a unique temporary name, then a rename)."""
+    archive = folder.with_suffix(".zip")
+    with _zip_lock:
+        if not archive.is_file():
+            base = folder.parent / f".{folder.name}.{uuid.uuid4().hex}"
+            try:
+                Path(shutil.make_archive(str(base), "zip", root_dir=folder)).replace(archive)
+            finally:
+                Path(f"{base}.zip").unlink(missing_ok=True)
+    return archive
 
 
 @router.delete("/api/exports/{export_id}", status_code=204)

@@ -9,7 +9,7 @@ from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from kgs_core.run import read_log
 from kgs_core.train.config import ABLATIONS, PRESETS, overrides_from
@@ -17,11 +17,12 @@ from kgs_core.train.config import ABLATIONS, PRESETS, overrides_from
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner
 from ..registry import Workspace, new_id
+from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
 
-class TrainRequest(BaseModel):
+class TrainRequest(StrictRequest):
     scene_id: str
     name: str | None = Field(None, max_length=80)
     preset: str = "fast"
@@ -32,19 +33,19 @@ class TrainRequest(BaseModel):
     kr_form: Literal["paper", "convolve"] | None = None
     camera_blur: Literal["off", "poses", "learned"] | None = None
     ablate: list[str] = []
-    seed: int | None = None
+    seed: int | None = Field(None, ge=0, le=2**31 - 1)
 
 
-class TauRequest(BaseModel):
+class TauRequest(StrictRequest):
     tau: float = Field(..., gt=0, description="dynamic when the temporal variance K exceeds tau")
 
 
-class FinetuneRequest(BaseModel):
+class FinetuneRequest(StrictRequest):
     tau: float | None = Field(None, gt=0, description="split threshold (default: the viewer's live τ)")
     iterations: int = Field(300, ge=1, le=100_000)
 
 
-class EditRequest(BaseModel):
+class EditRequest(StrictRequest):
     op: Literal["delete", "hide", "unhide", "restore", "crop", "clear"]
     lod: int | None = None
     indices: list[int] = Field([], max_length=5_000_000)

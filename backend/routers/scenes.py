@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fnmatch
 import shutil
 import tempfile
 import zipfile
@@ -9,20 +10,25 @@ from pathlib import Path
 from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from pydantic import BaseModel, Field
+from pydantic import Field
 
 from kgs_core.data.synth.scenes import SCENES
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
 from ..registry import Workspace
+from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/scenes", tags=["scenes"])
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm")
 MAX_ZIP_FILES = 20000
+# What each upload kind must declare. Not text/plain or a form type: those a foreign web page
+# can POST without a CORS preflight.
+UPLOAD_TYPES = {"zip": ("application/zip", "application/x-zip-compressed", "application/octet-stream"),
+                "video": ("video/*", "application/octet-stream")}
 
 
-class SynthRequest(BaseModel):
+class SynthRequest(StrictRequest):
     source: Literal["synth"] = "synth"
     name: str = Field("sheet", description="built-in scene: " + ", ".join(sorted(SCENES)))
     size: int = Field(128, ge=16, le=1024)
@@ -69,6 +75,10 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
                        jr: JobRunner = Depends(jobs)) -> dict:
     """Raw request body: a dataset folder as .zip (Nerfies, D-NeRF or COLMAP layout) or a video
     (ingested with SfM as a job). Size-limited while streaming; nothing is kept on failure."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if not any(fnmatch.fnmatchcase(ctype, t) for t in UPLOAD_TYPES[kind]):
+        raise HTTPException(415, f"kind={kind} uploads need Content-Type {' or '.join(UPLOAD_TYPES[kind])}, "
+                                 f"got {ctype or 'none'!r}")
     limit = request.app.state.settings.max_upload_mb * 1024 * 1024
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
@@ -115,7 +125,7 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
         video = ws.root / "scenes" / f".{sid}.video"
         shutil.move(str(blob), video)
         row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status="queued")
-        jr.start("scenes", sid, "ingest", {"video": str(video), "out": str(out)})
+        jr.start("scenes", sid, "ingest", {"video": str(video), "out": str(out), "delete_video": True})
         return public(ws.get("scenes", row["id"]))
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)
@@ -164,9 +174,12 @@ def delete_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "scenes", scene_id)
     if row["status"] in ("queued", "running"):
         raise HTTPException(409, "the scene is still being created")
-    if any(r["status"] in ("queued", "running") for r in ws.list("runs", scene_id=scene_id)):
-        raise HTTPException(409, "a run on this scene is training")
+    runs = ws.list("runs", scene_id=scene_id)
+    if runs:  # their renders, input frames and fine-tuning read the scene
+        raise HTTPException(409, f"{len(runs)} run(s) use this scene ({', '.join(r['id'] for r in runs[:5])}): "
+                                 "delete them first")
     path = Path(row["path"])
     if path.is_relative_to(ws.root):  # never delete data the user registered from elsewhere
         shutil.rmtree(path, ignore_errors=True)
+    (ws.root / "scenes" / f".{scene_id}.video").unlink(missing_ok=True)  # an upload whose ingest never ran
     ws.delete("scenes", scene_id)

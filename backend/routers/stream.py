@@ -26,6 +26,10 @@ from ..security import websocket_token_ok
 
 router = APIRouter(tags=["stream"])
 MAX_MESSAGE = 64 * 1024
+# Text messages waiting for a client. One that stops reading while it keeps sending (a ping
+# flood) would otherwise grow this without bound: past the limit it is disconnected.
+MAX_NOTES = 256
+SLOW_CONSUMER = 4008  # close code: the client did not read its messages
 
 
 class Hub:
@@ -49,9 +53,16 @@ class Connection:
         self.pending: dict | None = None  # latest time request (coalesced)
         self.last_time: dict | None = None
         self.notes: list[dict] = []
+        self.overflow = False  # set when notes passed MAX_NOTES: the sender closes the socket
         self.wake = asyncio.Event()
 
     def notify(self, msg: dict) -> None:
+        if msg.get("type") == "pong" and any(n.get("type") == "pong" for n in self.notes):
+            return  # one unanswered pong says all there is to say
+        if len(self.notes) >= MAX_NOTES:
+            self.overflow = True
+            self.wake.set()
+            return
         self.notes.append(msg)
         if msg.get("type") == "split" and self.last_time is not None and self.pending is None:
             self.pending = dict(self.last_time)  # the dynamic set changed: resend it
@@ -64,7 +75,13 @@ def _error(message: str) -> dict:
 
 async def receiver(conn: Connection, app) -> None:
     while True:
-        text = await conn.ws.receive_text()
+        message = await conn.ws.receive()
+        if message["type"] == "websocket.disconnect":
+            raise WebSocketDisconnect(message.get("code", 1000))
+        text = message.get("text")
+        if text is None:  # a binary frame: this protocol has none from the client
+            conn.notify(_error("binary messages are not part of this protocol; send JSON text"))
+            continue
         if len(text) > MAX_MESSAGE:
             conn.notify(_error(f"message larger than {MAX_MESSAGE} bytes ignored"))
             continue
@@ -110,6 +127,9 @@ async def sender(conn: Connection, app) -> None:
     while True:
         await conn.wake.wait()
         conn.wake.clear()
+        if conn.overflow:
+            await conn.ws.close(code=SLOW_CONSUMER, reason=f"more than {MAX_NOTES} unread messages")
+            return
         while conn.notes:
             await conn.ws.send_text(json.dumps(conn.notes.pop(0)))
         if not conn.subscribed:
@@ -121,8 +141,14 @@ async def sender(conn: Connection, app) -> None:
             await conn.ws.send_text(json.dumps(_error(getattr(exc, "detail", str(exc)))))
             continue
         if conn.static_version != view.version:
+            try:
+                buf = await run_in_threadpool(view.static_buffer, conn.lod)
+            except ValueError as exc:  # an LoD level the run does not have
+                conn.subscribed = False
+                await conn.ws.send_text(json.dumps(_error(str(exc))))
+                continue
             conn.static_version = view.version
-            await conn.ws.send_bytes(await run_in_threadpool(view.static_buffer, conn.lod))
+            await conn.ws.send_bytes(buf)
         if conn.pending is not None:
             req, conn.pending = conn.pending, None
             try:

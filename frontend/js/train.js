@@ -2,20 +2,21 @@
 
 import { api, openStream } from "./api.js";
 import { drawChart } from "./chart.js";
+import { esc } from "./dom.js";
 
 const $ = (id) => document.getElementById(id);
 
 export async function showRuns() {
   const [scenes, runs] = await Promise.all([api("/api/scenes"), api("/api/runs")]);
   $("scene-list").innerHTML = scenes.length
-    ? scenes.map((s) => `<li>${s.name} <span class="muted">${s.status}</span>
-        ${s.status === "done" ? `<button data-train="${s.id}">Train (fast)</button>` : ""}</li>`).join("")
+    ? scenes.map((s) => `<li>${esc(s.name)} <span class="muted">${esc(s.status)}</span>
+        ${s.status === "done" ? `<button data-train="${esc(s.id)}">Train (fast)</button>` : ""}</li>`).join("")
     : `<li class="muted">no scenes yet</li>`;
   $("run-list").innerHTML = runs.length
-    ? runs.map((r) => `<li data-run="${r.id}"><b>${r.name}</b> <span class="status">${r.status}</span>
-        ${r.final_psnr_heldout ? ` · ${r.final_psnr_heldout.toFixed(2)} dB` : ""}
-        ${r.has_model ? `<a href="#/run/${r.id}">open</a>` : ""}
-        ${["queued", "running"].includes(r.status) ? `<button data-watch="${r.id}">watch</button> <button data-cancel="${r.id}">cancel</button>` : ""}</li>`).join("")
+    ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(r.status)}</span>
+        ${r.final_psnr_heldout ? ` · ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB` : ""}
+        ${r.has_model ? `<a href="#/run/${encodeURIComponent(r.id)}">open</a>` : ""}
+        ${["queued", "running"].includes(r.status) ? `<button data-watch="${esc(r.id)}">watch</button> <button data-cancel="${esc(r.id)}">cancel</button>` : ""}</li>`).join("")
     : `<li class="muted">no runs yet: make the demo scene, then train it</li>`;
   document.querySelectorAll("[data-train]").forEach((b) => (b.onclick = async () => {
     const run = await api("/api/runs", { method: "POST", body: { scene_id: b.dataset.train, preset: "fast",

@@ -7,6 +7,7 @@ import { FLAG_DYNAMIC, packSet, textureRows, TEX_WIDTH, SPLATS_PER_ROW } from ".
 import { SplatRenderer } from "./renderer.js";
 import { OrbitCamera, cameraCenter, flyMove, flyTurn, intrinsics, project } from "./camera.js";
 import { drawHistogram } from "./chart.js";
+import { esc } from "./dom.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -275,7 +276,7 @@ export class Viewer {
       this.requestTime();
     };
     const lod = $("lod");
-    lod.innerHTML = m.levels.map((l) => `<option value="${l.level}">LoD ${l.level} (${l.gaussians.toLocaleString()})</option>`).join("");
+    lod.innerHTML = m.levels.map((l) => `<option value="${esc(l.level)}">LoD ${esc(l.level)} (${esc(Number(l.gaussians).toLocaleString())})</option>`).join("");
     lod.value = String(m.lod_levels);
     lod.onchange = (e) => { this.lod = parseInt(e.target.value, 10); this.selected.clear(); this.subscribe(); };
     const tau = $("tau");
@@ -291,7 +292,7 @@ export class Viewer {
     $("tau-label").textContent = `τ = ${m.tau.toExponential(2)}`;
     $("finetune").onclick = async () => {
       const run = await api(`/api/runs/${this.runId}/finetune`, { method: "POST", body: { tau: this.meta.tau } });
-      $("finetune-status").innerHTML = `training <a href="#/">${run.name}</a> (runs page)`;
+      $("finetune-status").innerHTML = `training <a href="#/">${esc(run.name)}</a> (runs page)`;
     };
     drawHistogram($("histogram"), m.histogram, m.tau);
     this.updateCounts();
@@ -505,7 +506,7 @@ export class Viewer {
     if (job.status === "queued" || job.status === "running") return setTimeout(() => this.pollExport(id, format), 700);
     const el = $("export-status");
     if (job.status === "done") {
-      el.innerHTML = `<a id="export-link" href="${withToken(`/api/exports/${id}/download`)}">download ${format}</a>`;
+      el.innerHTML = `<a id="export-link" href="${esc(withToken(`/api/exports/${encodeURIComponent(id)}/download`))}">download ${esc(format)}</a>`;
     } else {
       el.textContent = `${format}: ${job.status} ${job.error || ""}`;
     }

@@ -30,7 +30,7 @@ def read_image(path: str | Path) -> np.ndarray:
             return np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
     except FileNotFoundError:
         raise ImageError(f"image file not found: {path}") from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+    except (UnidentifiedImageError, OSError, SyntaxError, Image.DecompressionBombError) as exc:
         raise ImageError(f"cannot read image {path}: {exc}") from None
 
 
@@ -42,7 +42,7 @@ def read_mask(path: str | Path) -> np.ndarray:
             return np.asarray(im.convert("L")) > 127
     except FileNotFoundError:
         raise ImageError(f"mask file not found: {path}") from None
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
         raise ImageError(f"cannot read mask {path}: {exc}") from None
 
 

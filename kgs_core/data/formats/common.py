@@ -24,6 +24,8 @@ def read_json(path: Path) -> Any:
         raise SceneError(f"{path}: invalid JSON ({exc.msg} at line {exc.lineno})") from None
     except UnicodeDecodeError:
         raise SceneError(f"{path}: not a UTF-8 text file") from None
+    except RecursionError:
+        raise SceneError(f"{path}: JSON nested too deeply") from None
 
 
 def write_json(path: Path, obj: Any) -> None:
@@ -40,6 +42,25 @@ def field(obj: dict, key: str, where: str, kind=None):
     return val
 
 
+def number(obj: dict, key: str, where: str, default=None, *, integer: bool = False, positive: bool = False):
+    """`obj[key]` (or `default` when absent) as a finite float (or int), with an error naming
+    the file and the field when it is anything else (null, a list, a string, NaN, ...)."""
+    if not isinstance(obj, dict):
+        raise SceneError(f"{where}: expected a JSON object, got {type(obj).__name__}")
+    if key not in obj and default is not None:
+        return default
+    val = field(obj, key, where)
+    if isinstance(val, bool) or not isinstance(val, (int, float)) or not np.isfinite(val):
+        raise SceneError(f"{where}: field '{key}' should be a finite number, got {json.dumps(val)[:40]}")
+    if integer:
+        if float(val) != int(val) or abs(val) > 2**31:
+            raise SceneError(f"{where}: field '{key}' should be a whole number, got {val}")
+        val = int(val)
+    if positive and val <= 0:
+        raise SceneError(f"{where}: field '{key}' should be positive, got {val}")
+    return int(val) if integer else float(val)
+
+
 def matrix(val, shape: tuple[int, ...], where: str, name: str) -> np.ndarray:
     try:
         arr = np.asarray(val, dtype=np.float64)
@@ -52,15 +73,28 @@ def matrix(val, shape: tuple[int, ...], where: str, name: str) -> np.ndarray:
     return arr
 
 
-def find_image(base: Path) -> Path:
-    """`base` itself if it exists, else `base` with a common image extension."""
-    if base.is_file():
-        return base
-    for ext in IMAGE_EXTS:
-        cand = base.with_name(base.name + ext)
-        if cand.is_file():
-            return cand
-    raise SceneError(f"image not found: {base} (tried {', '.join(IMAGE_EXTS)})")
+def inside(root: Path, rel: str | Path, where: str) -> Path:
+    """`root / rel` resolved (symlinks followed), refused unless it stays inside `root`: a
+    dataset may name only its own files (an absolute path, `../` or a symlink out of the folder
+    would let an uploaded dataset read any file the server can). The message names the field,
+    never whether the outside path exists."""
+    base = Path(root).resolve()
+    if Path(rel).is_absolute():
+        raise SceneError(f"{where}: absolute path {str(rel)!r} (paths must be relative to the dataset folder)")
+    path = (base / rel).resolve()
+    if path != base and base not in path.parents:
+        raise SceneError(f"{where}: path {str(rel)!r} leaves the dataset folder")
+    return path
+
+
+def find_image(root: Path, rel: str | Path, where: str) -> Path:
+    """`root / rel` if it is a file, else with a common image extension added; every candidate
+    must stay inside `root` (`inside`)."""
+    for cand in (str(rel), *(str(rel) + ext for ext in IMAGE_EXTS)):
+        path = inside(root, cand, where)
+        if path.is_file():
+            return path
+    raise SceneError(f"{where}: image not found: {rel} (tried {', '.join(IMAGE_EXTS)})")
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -69,7 +103,7 @@ def image_size(path: Path) -> tuple[int, int]:
     try:
         with Image.open(path) as im:
             return im.size
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
         raise SceneError(f"cannot read image {path}: {exc}") from None
 
 

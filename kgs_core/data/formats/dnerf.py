@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..scene import Camera, Frame, Scene, SceneError
-from .common import field, find_image, image_size, matrix, read_json, write_json
+from .common import field, find_image, image_size, inside, matrix, number, read_json, write_json
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 SPLITS = {"train": "train", "val": "test", "test": "test"}
@@ -33,14 +33,15 @@ def load_dnerf(root: Path) -> Scene:
             continue
         js = read_json(path)
         where = str(path)
-        angle = float(field(js, "camera_angle_x", where, (int, float)))
+        angle = number(js, "camera_angle_x", where, positive=True)
+        if angle >= math.pi:
+            raise SceneError(f"{where}: field 'camera_angle_x' should be below pi (radians), got {angle}")
         entries = field(js, "frames", where, list)
         for k, fr in enumerate(entries):
             w = f"{where} frames[{k}]"
             rel = field(fr, "file_path", w, str)
-            img = find_image((root / rel).resolve() if not Path(rel).is_absolute() else Path(rel))
-            if "time" not in fr:
-                raise SceneError(f"{w}: missing field 'time'")
+            img = find_image(root, rel, f"{w} field 'file_path'")
+            time = number(fr, "time", w)
             c2w = matrix(field(fr, "transform_matrix", w), (4, 4), w, "transform_matrix") @ GL_TO_CV
             width, height = image_size(img)
             fx = 0.5 * width / math.tan(0.5 * angle)
@@ -49,13 +50,13 @@ def load_dnerf(root: Path) -> Scene:
             viewmat[3] = (0, 0, 0, 1)
 
             def extra(key: str) -> Path | None:
-                return (root / fr[key]).resolve() if key in fr else None
+                return inside(root, field(fr, key, w, str), f"{w} field '{key}'") if key in fr else None
 
             frames.append(Frame(
-                id=str(fr.get("id", f"{split_file}_{k:04d}")), image_path=img, time=float(fr["time"]),
+                id=str(fr.get("id", f"{split_file}_{k:04d}")), image_path=img, time=time,
                 camera=Camera(K=K, viewmat=viewmat, width=width, height=height),
-                exposure=float(fr.get("exposure", 0.0)), split=split,
-                camera_id=int(fr.get("camera_id", 0 if split == "train" else 1)),
+                exposure=number(fr, "exposure", w, 0.0), split=split,
+                camera_id=number(fr, "camera_id", w, 0 if split == "train" else 1, integer=True),
                 sharp_path=extra("sharp_file_path"), mask_path=extra("mask_file_path"), motion_path=extra("motion_file_path"),
             ))
     if not frames:

@@ -23,11 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from ..scene import Camera, Frame, Normalization, Scene, SceneError
-from .common import copy_into, field, find_image, matrix, read_json, write_json
+from .common import copy_into, field, find_image, inside, matrix, number, read_json, write_json
 
 
 def is_nerfies(root: Path) -> bool:
     return (root / "dataset.json").is_file()
+
+
+MAX_IMAGE_SIDE = 16384
 
 
 def _camera(path: Path, scale: int) -> Camera:
@@ -35,13 +38,15 @@ def _camera(path: Path, scale: int) -> Camera:
     js = read_json(path)
     R = matrix(field(js, "orientation", where), (3, 3), where, "orientation")
     pos = matrix(field(js, "position", where), (3,), where, "position")
-    f = float(field(js, "focal_length", where, (int, float)))
+    f = number(js, "focal_length", where, positive=True)
     pp = matrix(field(js, "principal_point", where), (2,), where, "principal_point")
     size = matrix(field(js, "image_size", where), (2,), where, "image_size")
-    aspect = float(js.get("pixel_aspect_ratio", 1.0))
-    skew = float(js.get("skew", 0.0))
-    radial = list(js.get("radial_distortion", [0.0, 0.0, 0.0])) + [0.0, 0.0, 0.0]
-    tangential = list(js.get("tangential_distortion", [0.0, 0.0])) + [0.0, 0.0]
+    if not all(1 <= v <= MAX_IMAGE_SIDE and v == int(v) for v in size):
+        raise SceneError(f"{where}: field 'image_size' should be two whole numbers in 1..{MAX_IMAGE_SIDE}, got {size.tolist()}")
+    aspect = number(js, "pixel_aspect_ratio", where, 1.0, positive=True)
+    skew = number(js, "skew", where, 0.0)
+    radial = matrix(js.get("radial_distortion", [0.0, 0.0, 0.0]), (3,), where, "radial_distortion")
+    tangential = matrix(js.get("tangential_distortion", [0.0, 0.0]), (2,), where, "tangential_distortion")
     K = np.array([[f, skew, pp[0]], [0.0, f * aspect, pp[1]], [0.0, 0.0, 1.0]])
     viewmat = np.eye(4)
     viewmat[:3, :3] = R
@@ -56,13 +61,15 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
     ds = read_json(root / "dataset.json")
     where = str(root / "dataset.json")
     ids = [str(i) for i in field(ds, "ids", where, list)]
-    train_ids = {str(i) for i in ds.get("train_ids", ids)}
-    val_ids = {str(i) for i in ds.get("val_ids", [])}
+    train_ids = {str(i) for i in (field(ds, "train_ids", where, list) if "train_ids" in ds else ids)}
+    val_ids = {str(i) for i in (field(ds, "val_ids", where, list) if "val_ids" in ds else [])}
     unknown = (train_ids | val_ids) - set(ids)
     if unknown:
         raise SceneError(f"{where}: train_ids/val_ids name unknown ids {sorted(unknown)[:3]}")
     meta_path = root / "metadata.json"
     meta = read_json(meta_path) if meta_path.is_file() else {}
+    if not isinstance(meta, dict) or not all(isinstance(v, dict) for v in meta.values()):
+        raise SceneError(f"{meta_path}: expected an object of per-frame objects")
     rgb_dir = root / "rgb" / f"{scale}x"
     if not rgb_dir.is_dir():
         raise SceneError(f"missing image folder {rgb_dir}")
@@ -76,22 +83,25 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
         missing = [i for i in ids if warp[i] is None]
         if missing:
             raise SceneError(f"{meta_path}: frame {missing[0]} has no 'time', 'time_id' or 'warp_id'")
+        warp = {i: number(meta[i], "time_id" if "time_id" in meta[i] else "warp_id", f"{meta_path} frame {i!r}")
+                for i in ids}
         max_warp = max(warp.values()) or 1
 
     frames = []
     for i in ids:
         m = meta.get(i, {})
-        t = float(m["time"]) if explicit_time else float(warp[i]) / max_warp
-        cam = _camera(root / "camera" / f"{i}.json", scale)
+        w = f"{meta_path} frame {i!r}"
+        t = number(m, "time", w) if explicit_time else warp[i] / max_warp
+        cam = _camera(inside(root, f"camera/{i}.json", f"{where} id {i!r}"), scale)
         split = "test" if i in val_ids and i not in train_ids else "train"
 
         def extra(kind: str, ext: str) -> Path | None:
-            p = root / kind / f"{scale}x" / f"{i}{ext}"
+            p = inside(root, f"{kind}/{scale}x/{i}{ext}", f"{where} id {i!r}")
             return p if p.is_file() else None
 
         frames.append(Frame(
-            id=i, image_path=find_image(rgb_dir / i), time=t, camera=cam,
-            exposure=float(m.get("exposure", 0.0)), split=split, camera_id=int(m.get("camera_id", 0)),
+            id=i, image_path=find_image(root, f"rgb/{scale}x/{i}", f"{where} id {i!r}"), time=t, camera=cam,
+            exposure=number(m, "exposure", w, 0.0), split=split, camera_id=number(m, "camera_id", w, 0, integer=True),
             sharp_path=extra("sharp", ".png"), mask_path=extra("mask", ".png"), motion_path=extra("motion", ".npy"),
         ))
     # `ids` is the capture order: a time that goes backwards along it is an error (raised by
@@ -114,8 +124,14 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
     norm = Normalization()
     if (root / "scene.json").is_file():
         sc = read_json(root / "scene.json")
-        norm = Normalization(center=np.asarray(sc.get("center", [0, 0, 0]), float), scale=float(sc.get("scale", 1.0)))
+        where_sc = str(root / "scene.json")
+        if not isinstance(sc, dict):
+            raise SceneError(f"{where_sc}: expected a JSON object")
+        norm = Normalization(center=matrix(sc.get("center", [0, 0, 0]), (3,), where_sc, "center"),
+                             scale=number(sc, "scale", where_sc, 1.0, positive=True))
     extras = read_json(root / "kgs.json") if (root / "kgs.json").is_file() else {}
+    if not isinstance(extras, dict):
+        raise SceneError(f"{root / 'kgs.json'}: expected a JSON object")
     try:
         return Scene(name=root.name, root=root, frames=frames, points=points, point_colors=colors,
                      normalization=norm, source_format="nerfies", extras=extras)

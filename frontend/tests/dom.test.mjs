@@ -1,0 +1,15 @@
+import { test } from "node:test";
+import assert from "node:assert/strict";
+import { esc } from "../js/dom.js";
+
+test("esc turns every HTML-significant character into an entity", () => {
+  assert.equal(esc(`<img src=x onerror="alert('1')">`), "&lt;img src=x onerror=&quot;alert(&#39;1&#39;)&quot;&gt;");
+  assert.equal(esc("a & b `c`"), "a &amp; b &#96;c&#96;");
+});
+
+test("esc leaves plain names alone and accepts non-strings", () => {
+  assert.equal(esc("sheet-fast 2"), "sheet-fast 2");
+  assert.equal(esc(42), "42");
+  assert.equal(esc(null), "");
+  assert.equal(esc(undefined), "");
+});
