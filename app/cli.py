@@ -32,7 +32,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         import shutil
 
         shutil.rmtree(run_dir, ignore_errors=True)
-        train(scene, run_dir, make_config("fast", iterations=args.iterations) if args.iterations else make_config("fast"))
+        over = {"iterations": args.iterations} if args.iterations else {}
+        train(scene, run_dir, make_config("fast", scene=scene, **over))
     print("[3/4] evaluating")
     evaluate_run(run_dir)
     print((run_dir / "metrics.md").read_text())
@@ -78,10 +79,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     from kgs_core.train.trainer import train
 
     overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite,
-                               kr_form=args.kr_form, camera_blur=args.camera_blur)
+                               kr_form=args.kr_form, camera_blur=args.camera_blur, exposure=args.exposure)
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
-    cfg = make_config(args.preset, ablate=ablate, **overrides)
+    make_config(args.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
     scene = load_scene(args.scene)
+    cfg = make_config(args.preset, ablate=ablate, scene=scene, **overrides)
+    for key, why in cfg.fitted.items():
+        print(f"fitted to the scene: {key} = {why}")
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise FileExistsError(f"{out} exists: pass --resume to continue it, or choose another --out")
@@ -129,7 +133,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from kgs_backend.settings import Settings
 
     settings = Settings(workspace=Path(args.workspace), host=args.host, port=args.port, token=args.token,
-                        cors_origins=args.cors or [], max_upload_mb=args.max_upload_mb,
+                        cors_origins=args.cors or [], allowed_hosts=args.allow_host or [], max_upload_mb=args.max_upload_mb,
                         register=[Path(p) for p in args.paths])
     if not settings.loopback and not settings.token:
         settings.token = secrets.token_urlsafe(24)
@@ -201,13 +205,23 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("raster", "step", "quality", "stability", "serve")  # modules of kgs_app.bench
+BENCHMARKS = ("raster", "step", "quality", "real", "stability", "serve")  # modules of kgs_app.bench
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
     import importlib
 
     return importlib.import_module(f"kgs_app.bench.{args.what}").main(args.rest)
+
+
+def unit_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0 <= v <= 1:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return v
 
 
 def positive_int(text: str) -> int:
@@ -268,7 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="run directory")
     p.add_argument("--preset", default="fast", choices=sorted(PRESETS))
     p.add_argument("--ablate", help="comma-separated: " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()))
-    p.add_argument("--tau", type=float, help="static/dynamic threshold on the temporal variance K")
+    p.add_argument("--tau", type=float, help="static/dynamic threshold on the temporal variance K (normalised scene "
+                   "units^2; default: fitted to the scene, an RMS image motion of 0.62 px)")
+    p.add_argument("--exposure", type=unit_float, help="the training video's exposure, a fraction of the frame interval "
+                   "(default: the scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off")
     p.add_argument("--velocity", choices=["paper", "physical"], help="velocity estimate of the kinematic basis")
     p.add_argument("--basis", choices=["paper", "duff", "principal"],
                    help="kinematic frame: the paper's (reference-axis switch), branch-free, or continuous (principal)")
@@ -313,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--token", help="access token for the API (generated when binding beyond loopback)")
     p.add_argument("--cors", action="append", metavar="ORIGIN", help="allow this browser origin (CORS is off by default)")
+    p.add_argument("--allow-host", action="append", metavar="NAME",
+                   help="also answer requests whose Host is NAME (behind a reverse proxy; default: the bound address and loopback names)")
     p.add_argument("--max-upload-mb", type=int, default=512)
     p.add_argument("--demo", action="store_true", help="in an empty workspace, make and train the demo scene")
     p.set_defaults(func=cmd_serve)

@@ -94,6 +94,31 @@ def velocity_epe(model: KinematicsGS, scene: Scene) -> float | None:
     return float(np.concatenate(errs).mean()) if errs else None
 
 
+# The dynamic-region mask of a real clip, derived without ground truth (docs/quality.md): the
+# pixels where a static 3DGS of the same clip, rendered at the sharp camera, errs by more than
+# STATIC_ERROR_THRESHOLD (mean absolute RGB error), cleaned of thin edges (an opening, then
+# connected regions of at least MIN_REGION of the image) and dilated by DILATE of the width.
+STATIC_ERROR_THRESHOLD = 0.15
+MIN_REGION = 0.002
+DILATE = 0.01
+
+
+def static_error_mask(static_render: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """`(H, W)` bool: where a static model's render `(H, W, 3)` misses the target by more than
+    the threshold, as regions (a moving object), not the thin misaligned edges that any
+    reconstruction of a textured background has."""
+    from scipy import ndimage
+
+    err = np.abs(np.clip(static_render, 0, 1) - target).mean(-1)
+    mask = ndimage.binary_opening(err > STATIC_ERROR_THRESHOLD, iterations=2)
+    labels, n = ndimage.label(mask)
+    if n:
+        sizes = ndimage.sum(mask, labels, index=np.arange(1, n + 1))
+        mask = np.isin(labels, 1 + np.nonzero(sizes >= MIN_REGION * mask.size)[0])
+    radius = max(1, round(DILATE * mask.shape[1]))
+    return ndimage.binary_dilation(mask, iterations=radius) if mask.any() else mask
+
+
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = (a | b).sum()
     return float("nan") if union == 0 else float((a & b).sum() / union)

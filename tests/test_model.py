@@ -289,3 +289,19 @@ def test_blur_opacity_scale_matches_the_determinant_ratio_with_its_gradients(bac
         f32 = blur_opacity_scale(means.float(), cov6.detach().float(), sweep.detach().float(), viewmat.float(),
                                  K.float(), 64, 48)
         assert torch.allclose(f32.double(), ref.detach(), rtol=1e-4, atol=1e-5)
+
+
+def test_otsu_tau_cuts_between_the_still_mode_and_the_moving_tail():
+    """τ picked from the distribution of K: between a still mode and a moving one (on log10 K),
+    never below the floor, and the floor itself when there is one mode only."""
+    from kgs_core.model.dynamic import otsu_tau
+
+    g = torch.Generator().manual_seed(0)
+    still = 10 ** (-4.5 + 0.2 * torch.randn(8000, generator=g))  # real footage: jitter well above a fixed τ
+    moving = 10 ** (-2.0 + 0.3 * torch.randn(2000, generator=g))
+    tau = otsu_tau(torch.cat([still, moving]), floor=2e-6)
+    assert 10 ** -4.0 < tau < 10 ** -2.8
+    assert abs(float((torch.cat([still, moving]) > tau).float().mean()) - 0.2) < 0.01
+    assert otsu_tau(torch.cat([still, moving]), floor=0.05) == 0.05  # the floor wins
+    assert otsu_tau(torch.full((100,), 3e-5), floor=2e-6) == 2e-6  # nothing to separate
+    assert otsu_tau(torch.zeros(0), floor=1e-5) == 1e-5

@@ -154,7 +154,9 @@ def main(argv: list[str]) -> int:
     from kgs_core.evaluate import evaluate_model
     from kgs_core.run import load_run, read_log
     from kgs_core.train.config import make_config
-    from kgs_core.train.trainer import Trainer, interleave
+    from kgs_core.train.trainer import Trainer
+
+    from .equal_time import equal_time
 
     ap = argparse.ArgumentParser(prog="kgs-app bench quality", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="sheet")
@@ -216,39 +218,23 @@ def main(argv: list[str]) -> int:
               f"{info['iteration']} | {seconds} |", flush=True)
         return m
 
-    # Every configuration at the same iteration count, stepped in turn so that their times
-    # are measured under the same machine conditions (`interleave`).
-    first = [trainer_for(name, args.iterations) for name in names]
-    interleave(first)
-    rate = {name: tr.train_seconds / args.iterations for name, tr in zip(names, first)}
-    for name, tr in zip(names, first):
-        report(name, tr, f"{tr.train_seconds:.0f}")
-        curves[name] = curve(tr.run_dir, lambda r: r["train_seconds"])
-    if args.budget == "time":
-        # Equal time: each configuration more than 10 % off the first one's time is trained again
-        # with its iteration count scaled by the measured cost ratio (the preset's schedule
-        # scales with the count). Its time is the interleaved rate times its count: a time of its
-        # own would be measured in other machine conditions than the first configuration's.
-        budget = first[0].train_seconds
-        again = [(name, max(50, round(budget / rate[name])))
-                 for name in names[1:] if abs(rate[name] * args.iterations / budget - 1) > 0.1]
-        # With --cuts K, each is trained at K counts spread over ±5 % of the equal-time one: a
-        # compressed schedule's end state depends on where it is cut (three iterations moved the
-        # fast panel's margin by 0.2 dB), and the mean of the cuts is the steadier estimate.
-        spread = [0.0] if args.cuts == 1 else [-0.05 + 0.1 * k / (args.cuts - 1) for k in range(args.cuts)]
-        runs = [(name, max(50, round(n * (1 + f)))) for name, n in again for f in spread]
-        if runs:
-            second = [trainer_for(name, n, f"_equal_time_{n}") for name, n in runs]
-            interleave(second)
-            metrics: dict[str, list[dict]] = {}
-            for (name, n), tr in zip(runs, second):
-                label = f"{name}, same time" + (f" ({n} it.)" if args.cuts > 1 else "")
-                metrics.setdefault(name, []).append(report(label, tr, f"≈{rate[name] * n:.0f}"))
-                curves[label] = curve(tr.run_dir, lambda r, rate=rate[name]: r["iteration"] * rate)
-                dashed.add(label)
-            for name, ms in metrics.items():
-                if len(ms) > 1:
-                    print(mean_row(f"{name}, same time, mean of {len(ms)} cuts", ms), flush=True)
+    # Every configuration at the same iteration count, stepped in turn, then (--budget time)
+    # the ones whose cost differs re-trained at the equal-time count (`equal_time`).
+    first, second = equal_time(names, lambda name, n, suffix: trainer_for(name, n, suffix), args.iterations,
+                               args.budget, args.cuts)
+    rate = {t.name: t.seconds / t.iterations for t in first}
+    for t in first:
+        report(t.name, t.trainer, f"{t.seconds:.0f}")
+        curves[t.name] = curve(t.trainer.run_dir, lambda r: r["train_seconds"])
+    metrics: dict[str, list[dict]] = {}
+    for t in second:
+        label = f"{t.name}, same time" + (f" ({t.iterations} it.)" if args.cuts > 1 else "")
+        metrics.setdefault(t.name, []).append(report(label, t.trainer, f"≈{t.seconds:.0f}"))
+        curves[label] = curve(t.trainer.run_dir, lambda r, rate=rate[t.name]: r["iteration"] * rate)
+        dashed.add(label)
+    for name, ms in metrics.items():
+        if len(ms) > 1:
+            print(mean_row(f"{name}, same time, mean of {len(ms)} cuts", ms), flush=True)
     if "full" in names:
         print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
         print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")

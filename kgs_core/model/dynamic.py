@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import asdict, dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -97,6 +97,16 @@ class GaussiansAt:
     def covars(self) -> Tensor:
         """`(N, 3, 3)` world-space covariances (unpacked on each access)."""
         return unpack_covariance(self.covars6)
+
+
+class Deformed(NamedTuple):
+    """Dynamic Gaussians at one time (`KinematicsGS._deform`)."""
+
+    means: Tensor  # (D, 3)
+    covars6: Tensor  # (D, 6) packed
+    velocity: Tensor | None  # (D, 3); None where the caller said it will not read it
+    dx: Tensor  # (D, 3) position offsets (L_reg)
+    sweep: Tensor | None  # (D, 3) the convolve form's displacement over the exposure; None: no blur
 
 
 class KinematicsGS(nn.Module):
@@ -255,18 +265,17 @@ class KinematicsGS(nn.Module):
             cov6 = motion_blur_covariance_packed(cov6, sweep_all)
         sweep = None if sweep_all is None else (None, sweep_all)
         if len(idx):
-            x_t, cov_dyn, v, dx, sweep_dyn = self._deform(idx, t, exposure, dt, noise, scales[idx],
-                                                          cov6_canonical[idx], camera_motion if blur_camera else None,
-                                                          velocity)
-            means = means.index_put((idx,), x_t)
-            cov6 = cov6.index_put((idx,), cov_dyn)
-            velocities = None if v is None else velocities.index_put((idx,), v.detach())
-            dx_all = dx_all.index_put((idx,), dx)
+            d = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6_canonical[idx],
+                             camera_motion if blur_camera else None, velocity)
+            means = means.index_put((idx,), d.means)
+            cov6 = cov6.index_put((idx,), d.covars6)
+            velocities = None if d.velocity is None else velocities.index_put((idx,), d.velocity.detach())
+            dx_all = dx_all.index_put((idx,), d.dx)
             if sweep_all is not None:  # (without K.R. the dynamic Gaussians are not blurred)
-                rows = sweep_dyn if sweep_dyn is not None else torch.zeros_like(x_t)
+                rows = d.sweep if d.sweep is not None else torch.zeros_like(d.means)
                 sweep = (None, sweep_all.index_put((idx,), rows))
-            elif sweep_dyn is not None:
-                sweep = (idx, sweep_dyn)
+            elif d.sweep is not None:
+                sweep = (idx, d.sweep)
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocities, offsets_dx=dx_all, sweep=sweep)
@@ -280,23 +289,21 @@ class KinematicsGS(nn.Module):
         idx = torch.arange(len(p)) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         scales = self.scales()[idx]
         cov6 = packed_covariance(p.quats[idx], scales)
-        sweep = None
         if len(idx):
-            x_t, cov6, v, dx, sweep = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
+            d = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
         else:
-            x_t, v, dx = p.means[idx], torch.zeros(0, 3), torch.zeros(0, 3)
-        return idx, GaussiansAt(means=x_t, covars6=cov6, opacities=p.opacities[idx], sh=p.sh()[idx],
+            d = Deformed(p.means[idx], cov6, torch.zeros(0, 3), torch.zeros(0, 3), None)
+        return idx, GaussiansAt(means=d.means, covars6=d.covars6, opacities=p.opacities[idx], sh=p.sh()[idx],
                                 dynamic=torch.ones(len(idx), dtype=torch.bool),
-                                velocity=None if v is None else v.detach(), offsets_dx=dx,
-                                sweep=None if sweep is None else (None, sweep))
+                                velocity=None if d.velocity is None else d.velocity.detach(), offsets_dx=d.dx,
+                                sweep=None if d.sweep is None else (None, d.sweep))
 
     def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
-                velocity: bool = True) -> tuple[Tensor, Tensor, Tensor | None, Tensor, Tensor | None]:
-        """Deformed positions, packed covariances `(D, 6)`, velocities, offsets `dx` and the
-        convolve form's sweeps over the exposure `(D, 3)` (None when it blurs nothing) of the
-        Gaussians `idx`; `cov6_pred` is their packed canonical covariance. `velocity=False`
-        (the caller will not read it): under the convolve form at exposure 0 the covariance
+                velocity: bool = True) -> "Deformed":
+        """The Gaussians `idx` deformed to time `t` (`Deformed`); `cov6_pred` is their packed
+        canonical covariance. `velocity=False` (the caller will not read it): under the
+        convolve form at exposure 0 the covariance
         gets `(0^2 / 12) v v^T`, so the velocity's two extra field samples are skipped, the
         covariance is the residual one (the same matrix) and the velocity is None."""
         p, cfg = self.params, self.config
@@ -333,7 +340,7 @@ class KinematicsGS(nn.Module):
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
             v = None if skip_velocity else torch.zeros_like(x_t)
             cov = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
-        return x_t, pack_covariance(cov), v, off.dx, sweep
+        return Deformed(x_t, pack_covariance(cov), v, off.dx, sweep)
 
     def at_static(self) -> GaussiansAt:
         """The canonical Gaussians, no deformation (the static 3DGS baseline)."""
@@ -453,6 +460,27 @@ def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: f
     R = quat_to_rotmat(quats) @ so3_exp(off.dr)
     M = R * (scales * torch.exp(lambda_s * off.ds))[:, None, :]
     return M @ M.transpose(-1, -2)
+
+
+def otsu_tau(variance: Tensor, floor: float, bins: int = 128) -> float:
+    """A split threshold picked from the distribution of K: Otsu's threshold on log10 K (the
+    cut that best separates the still mode from the moving tail), never below `floor` (the
+    fixed τ, which says what "still" means for a clean scene). On real footage the field also
+    absorbs residual pose error and noise, so every Gaussian's K sits well above a fixed τ
+    (walk: a mode at an RMS image motion of 2.6 px) and a fixed τ calls 93-99 % of them
+    dynamic; the moving objects are the tail above that mode."""
+    lk = torch.log10(variance.double().clamp_min(1e-12))
+    if len(lk) < 2 or float(lk.max() - lk.min()) < 1e-9:
+        return floor
+    hist = torch.histc(lk, bins=bins, min=float(lk.min()), max=float(lk.max()))
+    centers = torch.linspace(float(lk.min()), float(lk.max()), bins + 1, dtype=torch.float64)
+    centers = 0.5 * (centers[1:] + centers[:-1])
+    w0 = torch.cumsum(hist, 0)
+    m0 = torch.cumsum(hist * centers, 0)
+    w1, m1 = w0[-1] - w0, m0[-1] - m0
+    between = w0 * w1 * (m0 / w0.clamp_min(1e-12) - m1 / w1.clamp_min(1e-12)) ** 2
+    k = int(torch.argmax(between[:-1]))
+    return max(floor, float(10 ** (0.5 * (centers[k] + centers[k + 1]))))
 
 
 def split_counts(model: KinematicsGS, static_only: bool = False) -> dict:

@@ -50,6 +50,9 @@ class TrainConfig:
     # static/dynamic decomposition
     decompose_at: int = 3000  # end of the warm-up in which every Gaussian deforms
     decompose_every: int = 2000  # re-run the split on this schedule (0 = never)
+    # True: each split in training picks τ from the distribution of K (`otsu_tau`), never below
+    # model.tau; False: model.tau as it is (given with --tau, the split uses it).
+    tau_auto: bool = True
     # losses
     lambda_dssim: float = 0.2
     lambda_reg: float = 1e-3
@@ -88,6 +91,11 @@ class TrainConfig:
     camera_blur: str = "off"
     lr_camera_motion: float = 3e-3
     init_from: str = ""  # a run directory: start from its final model (fine-tuning), not from points
+    # The training camera's exposure (fraction of the frame interval); None: the scene's own.
+    exposure: float | None = None
+    # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
+    # preset's constants were kept (no scene given, or every setting given explicitly).
+    fitted: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -142,10 +150,10 @@ PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 def overrides_from(iterations: int | None = None, tau: float | None = None, velocity: str | None = None,
                    basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None,
-                   kr_form: str | None = None, camera_blur: str | None = None) -> dict:
+                   kr_form: str | None = None, camera_blur: str | None = None, exposure: float | None = None) -> dict:
     """`make_config` overrides from the options the CLI and the server share (None = preset's)."""
     named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis, "model.kr_form": kr_form,
-             "seed": seed, "on_nonfinite": on_nonfinite, "camera_blur": camera_blur}
+             "seed": seed, "on_nonfinite": on_nonfinite, "camera_blur": camera_blur, "exposure": exposure}
     return {k: v for k, v in named.items() if v is not None}
 
 
@@ -162,22 +170,106 @@ def finetune_config(parent: dict, iterations: int, tau: float | None = None) -> 
     return cfg
 
 
-def make_config(preset: str = "fast", ablate: tuple = (), **overrides) -> TrainConfig:
+# The fast preset's constants are tuned on the 128², 60-frame demo scene; these are that scene's
+# size, against which fit_to_scene scales a clip's schedule and budget.
+REFERENCE_PIXELS = 128 * 128
+REFERENCE_FRAMES = 60
+# What τ means on the demo scene: 2e-5 (normalised scene units²) is an RMS image motion of
+# 0.62 px there. fit_to_scene converts this into each scene's units, so that "dynamic" means the
+# same image motion on every scene (docs/method.md).
+TAU_RMS_PX = 0.62
+MAX_ITERATION_SCALE = 4.0
+
+
+def scene_pixels_per_unit(scene) -> float | None:
+    """Median focal length over median depth of the SfM points, over the training cameras:
+    how many pixels one normalised scene unit spans at the scene's typical depth. None without
+    points in front of the cameras."""
+    import numpy as np
+
+    frames = scene.train_frames[:: max(1, len(scene.train_frames) // 16)]
+    if len(scene.points) < 10 or not frames:
+        return None
+    ratios = []
+    for f in frames:
+        z = scene.points @ f.camera.viewmat[2, :3] + f.camera.viewmat[2, 3]
+        z = z[z > 1e-6]
+        if len(z):
+            ratios.append(f.camera.K[0, 0] / float(np.median(z)))
+    return float(np.median(ratios)) if ratios else None
+
+
+def fitted_iterations(scene, iterations: int = 1500) -> tuple[int, str | None]:
+    """The fast preset's iteration count for `scene`: the demo's scaled by the square root of
+    the clip's frames x pixels over the demo's (1x to 4x), and the reason (None: unchanged)."""
+    cam = scene.train_frames[0].camera
+    n_frames, pixels = len(scene.train_frames), cam.width * cam.height
+    scale = min(MAX_ITERATION_SCALE, max(1.0, (n_frames * pixels / (REFERENCE_FRAMES * REFERENCE_PIXELS)) ** 0.5))
+    if scale == 1.0:
+        return iterations, None
+    n = int(round(iterations * scale, -1))
+    return n, (f"{n}: {n_frames} frames of {cam.width}x{cam.height} are {scale:.2f}^2 times the demo's "
+               f"{REFERENCE_FRAMES} of 128x128")
+
+
+def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
+    """The settings that follow the scene instead of a constant, each skipped when given in
+    `explicit` (so the command line can override every choice); each choice and its reason go
+    into `cfg.fitted`, which run.json keeps. (The fast preset's iteration count is fitted
+    before the preset lays out its schedule: `fitted_iterations`.)
+
+    * max_gaussians: the preset's budget scaled by the square root of the pixel count;
+    * model.deform_temporal: at least one temporal cell per four frames;
+    * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units."""
+    n_frames = len(scene.train_frames)
+    cam = scene.train_frames[0].camera
+    pixels = cam.width * cam.height
+    fitted = dict(cfg.fitted)
+    if "max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
+        cfg.max_gaussians = int(round(cfg.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
+        fitted["max_gaussians"] = f"{cfg.max_gaussians}: the preset's budget x sqrt({pixels} px / 128^2)"
+    m = cfg.model
+    if "model.deform_temporal" not in explicit and m.deform_temporal < n_frames // 4:
+        cfg.model = m = replace(m, deform_temporal=min(n_frames // 4, 128))
+        fitted["model.deform_temporal"] = f"{m.deform_temporal}: one temporal cell per four of {n_frames} frames"
+    if "model.tau" in explicit and "tau_auto" not in explicit:
+        cfg.tau_auto = False  # a τ given by hand is the τ used
+    ppu = scene_pixels_per_unit(scene)
+    if "model.tau" not in explicit and ppu is not None:
+        cfg.model = m = replace(m, tau=float(f"{(TAU_RMS_PX / ppu) ** 2:.3g}"))
+        fitted["model.tau"] = (f"{m.tau:.3g}: an RMS image motion of {TAU_RMS_PX} px at {ppu:.0f} px per scene unit "
+                               "(median focal length over median point depth)")
+    cfg.fitted = fitted
+    return cfg
+
+
+def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     if overrides.get("camera_blur", "off") not in CAMERA_BLUR:
         raise ValueError(f"camera_blur must be one of {', '.join(CAMERA_BLUR)}, got {overrides['camera_blur']!r}")
+    if overrides.get("exposure") is not None and not 0 <= overrides["exposure"] <= 1:
+        raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {overrides['exposure']!r}")
     bad = [a for a in ablate if a not in ABLATIONS]
     if bad:
         raise ValueError(f"unknown ablation {bad[0]!r}; choose from {', '.join(ABLATIONS)}")
     # The preset lays its schedule out for the iteration count (an explicit override of any
     # schedule point still wins).
+    explicit = set(overrides)
+    fitted = {}
+    if scene is not None and preset == "fast" and "iterations" not in overrides:
+        n, why = fitted_iterations(scene)
+        if why:
+            overrides, fitted = {**overrides, "iterations": n}, {"iterations": why}
     cfg = PRESETS[preset](**({"iterations": overrides["iterations"]} if "iterations" in overrides else {}))
     model_over = {k[len("model."):]: v for k, v in overrides.items() if k.startswith("model.")}
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if not k.startswith("model.")}, ablate=tuple(ablate))
     m = cfg.model
     if model_over:
         m = replace(m, **model_over)
+    if scene is not None:
+        cfg = fit_to_scene(replace(cfg, model=m, fitted=fitted), scene, explicit)
+        m = cfg.model
     if "cf" in ablate or "split" in ablate:
         m = replace(m, coarse_to_fine=False)
     if "kr" in ablate or "split" in ablate:

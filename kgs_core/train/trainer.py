@@ -18,7 +18,7 @@ from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
 from ..losses import photometric_loss, psnr
 from ..model.deformation import TimeNoise
-from ..model.dynamic import KinematicsGS, split_counts
+from ..model.dynamic import KinematicsGS, otsu_tau, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
 from ..model.render import render_model
 from ..render.types import Rendered
@@ -89,6 +89,16 @@ def check_finite(it: int, **tensors) -> None:
 
 
 
+def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
+    """Why the kinematic blur (K.R.) does nothing in this run, or None when it acts."""
+    if not cfg.model.kinematic or "deform" in cfg.ablate:
+        return None
+    if exposure <= 0:
+        return ("exposure 0: K.R. has no blur to model and only adds cost (the scene's frames say exposure 0; "
+                "give the video's with --exposure, e.g. 0.5)")
+    return None
+
+
 class Trainer:
     def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
                  on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
@@ -112,6 +122,10 @@ class Trainer:
         self.level_ends = [int(round(f * cfg.iterations)) for f in fr]
         self.noise = TimeNoise(cfg.noise_init_frames * scene.dt, cfg.noise_final_frames * scene.dt,
                                int(cfg.noise_until * cfg.iterations), int(cfg.noise_delay * cfg.iterations), cfg.noise_w_delay)
+        # The exposure K.R. models: the config's when given (`--exposure`), else the scene's.
+        self.exposure = scene.exposure if cfg.exposure is None else float(cfg.exposure)
+        # The configured τ, before any split writes its own into the model's config.
+        self.tau_floor = cfg.model.tau
         self.static_only = "deform" in cfg.ablate
         self.no_split = "split" in cfg.ablate
         self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
@@ -199,7 +213,7 @@ class Trainer:
         if noise > 0 and not c.noise_per_gaussian:  # one shift for every Gaussian
             t, noise = t + noise * float(torch.randn(())), 0.0
         camera_motion = None if self.camera_motion is None else self.camera_motion.get(frame.id)
-        out, g = render_model(model, frame.camera, t, scene.exposure, scene.dt, self.background,
+        out, g = render_model(model, frame.camera, t, self.exposure, scene.dt, self.background,
                               noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False)
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
@@ -250,11 +264,19 @@ class Trainer:
         if not self.static_only and not self.no_split:
             if nxt == c.decompose_at or (model.decomposed and c.decompose_every and nxt > c.decompose_at
                                          and (nxt - c.decompose_at) % c.decompose_every == 0):
-                model.decompose()
+                self.split()
         elif changed:
             model._knn = None
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
+
+    def split(self) -> None:
+        """A static/dynamic split in training: K recomputed, then τ the configured one or
+        (tau_auto) the one picked from the distribution of K, never below the configured one."""
+        model = self.model
+        model.variance = model.temporal_variance()
+        tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
+        model.decompose(tau, recompute=False)
 
     @torch.no_grad()
     def importance(self) -> torch.Tensor:
@@ -272,7 +294,7 @@ class Trainer:
         for i in sorted(set(pick.tolist())):
             with torch.enable_grad():
                 ones = torch.ones(len(model), 1, requires_grad=True)
-                out, _ = render_model(model, frames[i].camera, frames[i].time, self.scene.exposure, self.scene.dt,
+                out, _ = render_model(model, frames[i].camera, frames[i].time, self.exposure, self.scene.dt,
                                       colors=ones, static=self.static_only, velocity=False)
                 (grad,) = torch.autograd.grad(out.image.sum(), ones)
             total += grad[:, 0]
@@ -397,8 +419,13 @@ class Trainer:
             self.init_model()
         info = {"status": "training", "scene": str(Path(self.scene.root).resolve()), "scene_name": self.scene.name,
                 "config": cfg.to_dict(), "normalization": self.scene.normalization.to_dict(),
-                "exposure": self.scene.exposure, "dt": self.scene.dt,
+                "exposure": self.exposure, "dt": self.scene.dt,
                 "frames": len(self.scene.frames), "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height]}
+        note = kr_note(cfg, self.exposure)
+        if note:
+            info["kr_note"] = note
+            if self.progress:
+                print(f"note: {note}")
         write_run_json(self.run_dir, info)
         (self.run_dir / "error.txt").unlink(missing_ok=True)
         if cfg.on_nonfinite == "restore" and not ckpts:
@@ -455,6 +482,11 @@ class Trainer:
             info["status"] = "done"
         info.update(iteration=self.iteration, train_seconds=round(self.train_seconds, 2), lod_levels=len(self.levels) + 1,
                     final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None, **counts)
+        if self.model.decomposed and not self.static_only and not self.no_split:
+            tau = self.model.config.tau
+            info["tau"] = tau
+            info["tau_choice"] = (f"picked from the distribution of K (Otsu on log10 K), not below {self.tau_floor:.3g}"
+                                  if self.cfg.tau_auto and tau > self.tau_floor else f"the configured {tau:.3g}")
         if self.events:
             info["guard_events"] = self.events
         write_run_json(self.run_dir, info)

@@ -1,0 +1,49 @@
+"""The equal-time protocol shared by `bench quality` and `bench real`.
+
+Every configuration is first trained for the same iteration count, all of them stepped in
+turn (one step each, `interleave`), so that their times are measured under the same machine
+conditions. With `budget="time"`, each configuration whose time differs from the first one's by
+more than 10 % is trained again with its iteration count scaled by that measured cost ratio
+(the preset's schedule scales with the count); with `cuts > 1` at that many counts spread over
+±5 % of it, since a compressed schedule's end state depends on where it is cut.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from kgs_core.train.trainer import Trainer, interleave
+
+
+@dataclass
+class Trained:
+    name: str  # the configuration
+    trainer: Trainer  # finished: `.run_dir`, `.info`, `.train_seconds`
+    iterations: int
+    seconds: float  # its training time: measured (first round) or rate x iterations (re-timed)
+    retimed: bool  # trained again at the equal-time count
+
+
+def equal_time(names: list[str], trainer_for: Callable[[str, int, str], Trainer], iterations: int,
+               budget: str = "time", cuts: int = 1) -> tuple[list[Trained], list[Trained]]:
+    """Trains `names` (the first one sets the budget) and returns `(first round, re-timed runs)`.
+    `trainer_for(name, iterations, folder_suffix)` makes a fresh trainer. A re-timed run's time
+    is the interleaved rate times its count: a time of its own would be measured under other
+    machine conditions than the first configuration's."""
+    first = [trainer_for(name, iterations, "") for name in names]
+    interleave(first)
+    rate = {name: tr.train_seconds / iterations for name, tr in zip(names, first)}
+    done = [Trained(name, tr, iterations, tr.train_seconds, False) for name, tr in zip(names, first)]
+    if budget != "time":
+        return done, []
+    target = first[0].train_seconds
+    again = [(name, max(50, round(target / rate[name])))
+             for name in names[1:] if abs(rate[name] * iterations / target - 1) > 0.1]
+    spread = [0.0] if cuts == 1 else [-0.05 + 0.1 * k / (cuts - 1) for k in range(cuts)]
+    runs = [(name, max(50, round(n * (1 + f)))) for name, n in again for f in spread]
+    if not runs:
+        return done, []
+    second = [trainer_for(name, n, f"_equal_time_{n}") for name, n in runs]
+    interleave(second)
+    return done, [Trained(name, tr, n, rate[name] * n, True) for (name, n), tr in zip(runs, second)]

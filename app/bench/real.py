@@ -1,0 +1,241 @@
+"""Real-footage benchmark: `kgs-app bench real [CLIP ...]`.
+
+Each clip is a synchronised pair: a blurry hand-held video (training) and a sharp camera beside
+it (held out), as in BARD-GS; by default the shared `walk` and `kitchen` pairs. Each pair is
+ingested once (cached under `--out`), then the full method, the D3DGS-like baseline (`split`)
+and a static 3DGS (`deform`) are trained at equal wall time (`equal_time`, as `bench quality`)
+and evaluated on every sharp-camera frame:
+
+* PSNR and SSIM on the full frame;
+* the same inside the dynamic-region mask, which needs no ground truth: the pixels where the
+  static 3DGS of the first round (same iterations as the full method) errs by more than 0.15,
+  as regions, dilated (`kgs_core.evaluate.static_error_mask`). It is computed once per clip and
+  is the same for every configuration;
+* side-by-side pictures (blurry input | full method | D3DGS-like | sharp frame, mask outlined)
+  and held-out PSNR against training time.
+
+Everything lands in `--out` (a markdown table `results.md`, `views_<clip>.png`,
+`psnr_vs_time_<clip>.png`); copy what should stay into docs/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .machine import machine
+
+DEFAULT_CLIPS = ("walk", "kitchen")
+DEFAULT_DATA = "../shared/data/bardgs"
+
+
+def resolve_clip(spec: str, data: Path) -> tuple[str, Path, Path]:
+    """`walk` (looked up as `DATA/walk_blur.mp4` + `DATA/walk_sharp.mp4`) or a path to a
+    `NAME_blur.EXT` video whose `NAME_sharp.EXT` lies beside it -> (name, blurry, sharp)."""
+    p = Path(spec)
+    if p.suffix:
+        blur = p
+        if not blur.stem.endswith("_blur"):
+            raise SystemExit(f"kgs-app bench real: {spec}: a clip path must be NAME_blur.EXT with NAME_sharp.EXT beside it")
+        name = blur.stem[:-len("_blur")]
+        sharp = blur.with_name(f"{name}_sharp{blur.suffix}")
+    else:
+        name, blur, sharp = spec, data / f"{spec}_blur.mp4", data / f"{spec}_sharp.mp4"
+    for v in (blur, sharp):
+        if not v.is_file():
+            raise SystemExit(f"kgs-app bench real: clip {spec!r}: {v} not found (--data names the folder of the pairs)")
+    return name, blur, sharp
+
+
+def ingest_cached(name: str, blur: Path, sharp: Path, size: int, root: Path) -> Path:
+    """The clip's scene folder, ingested on first use and reused afterwards."""
+    from kgs_core.data.ingest import ingest
+
+    out = root / "scenes" / f"{name}{size}"
+    if not (out / "dataset.json").is_file():
+        rep = ingest(blur, out, eval_video=sharp, max_size=size, overwrite=True)
+        print(f"# ingested {name}: {rep.registered}/{rep.frames} + {rep.eval_registered}/{rep.eval_frames} frames, "
+              f"{rep.mean_reprojection_error_px:.2f} px, {sum(rep.seconds.values()):.0f} s", flush=True)
+    return out
+
+
+@torch.no_grad()
+def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) -> dict:
+    """PSNR/SSIM over every held-out (sharp camera) frame, whole and inside `masks` (one per
+    frame; frames whose mask is empty are left out of the masked means)."""
+    from kgs_core.evaluate import render_at
+    from kgs_core.losses import psnr, ssim
+
+    ps, ss, mps, mss = [], [], [], []
+    for f, mask in zip(scene.test_frames, masks):
+        gt = torch.from_numpy(f.image())
+        img = render_at(model, f, 0.0, scene.dt, static=static)[0].image.clamp(0, 1)
+        ps.append(psnr(img, gt))
+        ss.append(float(ssim(img, gt)))
+        if mask.any():
+            mps.append(psnr(img, gt, torch.from_numpy(mask)))
+            ys, xs = np.nonzero(mask)
+            y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+            if min(y1 - y0, x1 - x0) >= 11:
+                mss.append(float(ssim(img[y0:y1, x0:x1], gt[y0:y1, x0:x1])))
+    mean = lambda v: float(np.mean(v)) if v else math.nan  # noqa: E731
+    return {"psnr": mean(ps), "ssim": mean(ss), "psnr_mask": mean(mps), "ssim_mask": mean(mss)}
+
+
+@torch.no_grad()
+def dynamic_masks(static_model, scene) -> list[np.ndarray]:
+    from kgs_core.evaluate import render_at, static_error_mask
+
+    return [static_error_mask(render_at(static_model, f, 0.0, scene.dt, static=True)[0].image.numpy(), f.image())
+            for f in scene.test_frames]
+
+
+@torch.no_grad()
+def side_by_side(runs: list, scene, masks: list[np.ndarray], path: Path, count: int = 4) -> None:
+    """Rows at `count` times: blurry input | each run at the sharp camera | sharp frame (the
+    dynamic-region mask outlined in red on it)."""
+    from PIL import Image
+    from scipy import ndimage
+
+    from kgs_core.evaluate import render_at
+    from kgs_core.io import atomic_write_bytes
+
+    test, train = scene.test_frames, scene.train_frames
+    rows = []
+    for k in np.linspace(0, len(test) - 1, count + 2).round().astype(int)[1:-1]:
+        f = test[k]
+        blurry = min(train, key=lambda g: abs(g.time - f.time)).image()
+        gt = f.image().copy()
+        edge = masks[k] & ~ndimage.binary_erosion(masks[k], iterations=1)
+        gt[edge] = (1.0, 0.1, 0.1)
+        cells = [blurry] + [render_at(r.model, f, 0.0, scene.dt, static=r.static_only)[0].image.clamp(0, 1).numpy()
+                            for r in runs] + [gt]
+        h = min(c.shape[0] for c in cells)
+        w = min(c.shape[1] for c in cells)
+        rows.append(np.concatenate([c[:h, :w] for c in cells], 1))
+    import io
+
+    buf = io.BytesIO()
+    Image.fromarray((np.concatenate(rows, 0) * 255).round().astype(np.uint8)).save(buf, format="png")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def plot_curves(curves: dict, title: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.8), dpi=110)
+    for label, pts in curves.items():
+        if pts:
+            ax.plot(*zip(*pts), marker="o", ms=2, label=label, ls="--" if "same time" in label else "-")
+    ax.set_xlabel("training time (s)")
+    ax.set_ylabel("sharp-camera PSNR, 4 frames (dB)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: list[str]) -> int:
+    from kgs_core.data.formats import load_scene
+    from kgs_core.run import load_run, read_log
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import Trainer
+
+    from .equal_time import equal_time
+    from .quality import config_overrides, config_slug, select_configs
+
+    ap = argparse.ArgumentParser(prog="kgs-app bench real", description=__doc__.split("\n\n")[0])
+    ap.add_argument("clips", nargs="*", default=list(DEFAULT_CLIPS),
+                    help="clip names in --data (default: walk kitchen) or paths to NAME_blur.EXT videos")
+    ap.add_argument("--data", default=os.environ.get("KGS_BARDGS", DEFAULT_DATA),
+                    help=f"folder of NAME_blur.mp4 / NAME_sharp.mp4 pairs (default ${{KGS_BARDGS}} or {DEFAULT_DATA})")
+    ap.add_argument("--size", type=int, default=320, help="longest image side for ingest (default 320)")
+    ap.add_argument("--preset", default="fast", choices=["fast", "paper"])
+    ap.add_argument("--iterations", type=int, help="iterations of the first configuration (default: the preset's, "
+                    "fitted to the clip)")
+    ap.add_argument("--configs", default="full,split,deform",
+                    help="configurations as for bench quality; 'deform' (the static 3DGS) is always trained: it "
+                         "defines the dynamic-region mask")
+    ap.add_argument("--budget", default="time", choices=["time", "iterations"])
+    ap.add_argument("--cuts", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s)")
+    args = ap.parse_args(argv)
+    names = select_configs(args.configs)
+    static_name = next(n for n in select_configs("deform"))
+    if static_name not in names:
+        names.append(static_name)
+    clips = [resolve_clip(c, Path(args.data)) for c in args.clips]  # every clip checked before any work
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    root = Path(args.out)
+    root.mkdir(parents=True, exist_ok=True)
+    lines = [f"# bench real: {args.preset} preset, {args.size} px, same {args.budget}, seed {args.seed}; {machine()}", ""]
+    summary = {}
+    for name, blur, sharp in clips:
+        scene_dir = ingest_cached(name, blur, sharp, args.size, root)
+        scene = load_scene(scene_dir)
+
+        def trainer_for(config: str, iterations: int | None, suffix: str, scene=scene, name=name) -> Trainer:
+            over = config_overrides(config)
+            ablate = over.pop("ablate", ())
+            if iterations is not None:
+                over["iterations"] = iterations
+            cfg = make_config(args.preset, ablate=ablate, seed=args.seed, scene=scene, **over)
+            cfg.eval_every = max(cfg.iterations // 10, 1)
+            return Trainer(scene, root / "runs" / name / (config_slug(config) + suffix), cfg, progress=False)
+
+        iterations = args.iterations or trainer_for(names[0], None, "").cfg.iterations
+        print(f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
+              f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
+              f"{names[0]}", flush=True)
+        first, second = equal_time(names, trainer_for, iterations, args.budget, args.cuts)
+        static_run = load_run(next(t for t in first if t.name == static_name).trainer.run_dir)
+        masks = dynamic_masks(static_run.model, scene)
+        share = float(np.mean([m.mean() for m in masks]))
+        lines += [f"## {name}", "",
+                  f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at {scene.frames[0].camera.width}x"
+                  f"{scene.frames[0].camera.height}; dynamic-region mask: {share:.1%} of the sharp-camera pixels.", "",
+                  "| configuration | PSNR | SSIM | PSNR in mask | SSIM in mask | dynamic | Gaussians | iterations | train s |",
+                  "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        print("\n".join(lines[-5:]), flush=True)
+        curves, results, shown = {}, {}, []
+        for t in first + second:
+            run = load_run(t.trainer.run_dir)
+            m = sharp_camera_metrics(run.model, scene, run.static_only, masks)
+            label = t.name.split(" (")[0] + (", same time" if t.retimed else "")
+            label += f" ({t.iterations} it.)" if t.retimed and args.cuts > 1 else ""
+            info = t.trainer.info
+            dyn = "static" if run.static_only else f"{info['dynamic_share']:.0%}"
+            row = (f"| {label} | {m['psnr']:.2f} | {m['ssim']:.3f} | {m['psnr_mask']:.2f} | {m['ssim_mask']:.3f} | "
+                   f"{dyn} | {info['gaussians']:,} | {t.iterations} | {t.seconds:.0f} |")
+            lines.append(row)
+            print(row, flush=True)
+            results[label] = {**m, "iterations": t.iterations, "seconds": t.seconds, "gaussians": info["gaussians"],
+                              "dynamic_share": info["dynamic_share"], "run": str(t.trainer.run_dir)}
+            rate = t.seconds / t.iterations
+            curves[label] = [(r["iteration"] * rate, r["psnr_heldout"]) for r in read_log(t.trainer.run_dir)
+                             if not math.isnan(r["psnr_heldout"])]
+            # The pictures show each configuration at the shared budget: the re-timed run where there is one.
+            if t.name != static_name and (t.retimed or not any(s.name == t.name for s in second)):
+                shown.append((label, run))
+        pictures = root / f"views_{name}.png"
+        side_by_side([r for _, r in shown], scene, masks, pictures)
+        plot_curves(curves, f"{name}: held-out (sharp camera) PSNR, same {args.budget}", root / f"psnr_vs_time_{name}.png")
+        lines += ["", f"Pictures ({pictures.name}), columns: blurry input | " + " | ".join(lb for lb, _ in shown)
+                  + " | sharp frame (mask outlined).", ""]
+        summary[name] = results
+    (root / "results.md").write_text("\n".join(lines) + "\n")
+    (root / "results.json").write_text(json.dumps(summary, indent=1))
+    print(f"\nresults: {root / 'results.md'}")
+    return 0
