@@ -96,3 +96,27 @@ def test_exposure_override_and_the_kr_note(walk, tmp_path):
     assert info["exposure"] == walk.exposure == 0.5 and "kr_note" not in info
     with pytest.raises(ValueError, match="exposure must be in"):
         make_config("fast", exposure=1.5)
+
+
+def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
+    """`kgs-app bench real` on the fixture (its ingest cached under --out): every configuration
+    trained, scored on the frame and in the mask, pictures and plot written."""
+    import json
+    import shutil
+
+    from kgs_app.bench.real import main
+
+    data = tmp_path / "data"
+    data.mkdir()
+    for cam in ("blur", "sharp"):
+        (data / f"walk_{cam}.mp4").write_bytes(b"")  # never decoded: the scene is cached
+    out = tmp_path / "out"
+    shutil.copytree(FIXTURE, out / "scenes" / "walk96")
+    assert main(["walk", "--data", str(data), "--size", "96", "--iterations", "40", "--configs", "full,split",
+                 "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())["walk"]
+    assert {"full", "no split, D3DGS-like", "static 3DGS"} <= set(results)
+    for row in results.values():
+        assert 5 < row["psnr"] < 50 and row["iterations"] >= 40
+    assert "PSNR in mask" in (out / "results.md").read_text()
+    assert (out / "views_walk.png").stat().st_size > 1000 and (out / "psnr_vs_time_walk.png").is_file()

@@ -172,8 +172,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s)")
     args = ap.parse_args(argv)
+    if args.cuts < 1 or (args.cuts > 1 and args.budget != "time"):
+        ap.error("--cuts is at least 1, and more than 1 only with --budget time")
     names = select_configs(args.configs)
-    static_name = next(n for n in select_configs("deform"))
+    static_name = select_configs("deform")[0]
     if static_name not in names:
         names.append(static_name)
     clips = [resolve_clip(c, Path(args.data)) for c in args.clips]  # every clip checked before any work
@@ -195,7 +197,7 @@ def main(argv: list[str]) -> int:
             cfg.eval_every = max(cfg.iterations // 10, 1)
             return Trainer(scene, root / "runs" / name / (config_slug(config) + suffix), cfg, progress=False)
 
-        iterations = args.iterations or trainer_for(names[0], None, "").cfg.iterations
+        iterations = args.iterations or make_config(args.preset, scene=scene).iterations
         print(f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
               f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
               f"{names[0]}", flush=True)
