@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from pydantic import BaseModel, ConfigDict
 
 
@@ -15,7 +17,7 @@ class StrictRequest(BaseModel):
 def finite_json(value):
     """`value` with non-finite floats written as strings, so that a validation error that
     quotes the offending input can still be sent as JSON."""
-    if isinstance(value, float) and value != value or value in (float("inf"), float("-inf")):
+    if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     if isinstance(value, dict):
         return {k: finite_json(v) for k, v in value.items()}

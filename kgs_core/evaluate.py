@@ -119,6 +119,16 @@ def static_error_mask(static_render: np.ndarray, target: np.ndarray) -> np.ndarr
     return ndimage.binary_dilation(mask, iterations=radius) if mask.any() else mask
 
 
+def masked_ssim(img: torch.Tensor, gt: torch.Tensor, mask: np.ndarray) -> float | None:
+    """SSIM on the bounding box of a non-empty `mask`; None when the box is thinner than the
+    11-pixel window."""
+    ys, xs = np.nonzero(mask)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    if min(y1 - y0, x1 - x0) < 11:
+        return None
+    return float(ssim(img[y0:y1, x0:x1], gt[y0:y1, x0:x1]))
+
+
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = (a | b).sum()
     return float("nan") if union == 0 else float((a & b).sum() / union)
@@ -148,10 +158,9 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: 
             m = f.mask()
             if m is not None and m.any():
                 mps.append(psnr(img, gt, torch.from_numpy(m)))
-                ys, xs = np.nonzero(m)
-                y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-                if min(y1 - y0, x1 - x0) >= 11:  # SSIM on the mask's bounding box
-                    mss.append(float(ssim(img[y0:y1, x0:x1], gt[y0:y1, x0:x1])))
+                s = masked_ssim(img, gt, m)
+                if s is not None:
+                    mss.append(s)
                 if model.decomposed and not static:
                     ious.append(iou(dynamic_mask_render(model, f, scene.dt), m))
             if lpips_model is not None:

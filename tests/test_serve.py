@@ -419,6 +419,7 @@ def test_non_finite_numbers_big_bodies_and_huge_seeds_get_4xx(client):
         assert r.status_code == 422, (path, body, r.status_code)
         assert "finite" in r.text or "nan" in r.text.lower(), r.text
     assert client.post("/api/runs", json={"scene_id": scene_id, "seed": 10**30}).status_code == 422
+    assert client.post("/api/runs", json={"scene_id": scene_id, "exposure": 1.5}).status_code == 422
     big = b'{"tau": 1e-4, "pad": "' + b"x" * (2 << 20) + b'"}'
     assert client.post(f"/api/runs/{rid}/tau", content=big, headers=js).status_code == 413
 
@@ -446,15 +447,33 @@ def test_scene_with_runs_cannot_be_deleted_and_uploads_are_cleaned(client, tmp_p
     assert not bogus.exists() and not (tmp_path / "out").exists()
 
 
-def test_registry_closes_its_connections(client):
-    import os
+def test_registry_closes_its_connections(tmp_path, monkeypatch):
+    """Every connection the registry opens is closed again (a connection's own `with` only
+    commits: an outside probe saw 25 open handles after 900 requests)."""
+    import sqlite3
 
-    def open_db_handles() -> int:
-        fds = Path("/proc/self/fd")
-        return sum(1 for fd in fds.iterdir() if os.path.realpath(fd).endswith("workspace.db"))
+    from kgs_backend import registry
 
-    before = open_db_handles()
-    for _ in range(60):
-        client.get("/api/runs")
-        client.get("/api/scenes")
-    assert open_db_handles() <= before + 1
+    opened = []
+
+    class Tracked(sqlite3.Connection):
+        closed = False
+
+        def close(self):
+            self.closed = True
+            super().close()
+
+    real_connect = sqlite3.connect
+
+    def connect(*args, **kwargs):
+        db = real_connect(*args, factory=Tracked, **kwargs)
+        opened.append(db)
+        return db
+
+    monkeypatch.setattr(registry.sqlite3, "connect", connect)
+    ws = registry.Workspace(tmp_path / "ws")
+    row = ws.insert("scenes", name="s", path=str(tmp_path / "s"), source="path", status="done")
+    ws.update("scenes", row["id"], status="failed")
+    assert ws.get("scenes", row["id"])["status"] == "failed" and len(ws.list("scenes")) == 1
+    ws.delete("scenes", row["id"])
+    assert len(opened) >= 5 and all(db.closed for db in opened)

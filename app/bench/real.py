@@ -69,7 +69,7 @@ def ingest_cached(name: str, blur: Path, sharp: Path, size: int, root: Path) -> 
 def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) -> dict:
     """PSNR/SSIM over every held-out (sharp camera) frame, whole and inside `masks` (one per
     frame; frames whose mask is empty are left out of the masked means)."""
-    from kgs_core.evaluate import render_at
+    from kgs_core.evaluate import masked_ssim, render_at
     from kgs_core.losses import psnr, ssim
 
     ps, ss, mps, mss = [], [], [], []
@@ -80,10 +80,9 @@ def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) ->
         ss.append(float(ssim(img, gt)))
         if mask.any():
             mps.append(psnr(img, gt, torch.from_numpy(mask)))
-            ys, xs = np.nonzero(mask)
-            y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-            if min(y1 - y0, x1 - x0) >= 11:
-                mss.append(float(ssim(img[y0:y1, x0:x1], gt[y0:y1, x0:x1])))
+            s = masked_ssim(img, gt, mask)
+            if s is not None:
+                mss.append(s)
     mean = lambda v: float(np.mean(v)) if v else math.nan  # noqa: E731
     return {"psnr": mean(ps), "ssim": mean(ss), "psnr_mask": mean(mps), "ssim_mask": mean(mss)}
 

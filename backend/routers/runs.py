@@ -34,6 +34,7 @@ class TrainRequest(StrictRequest):
     camera_blur: Literal["off", "poses", "learned"] | None = None
     ablate: list[str] = []
     seed: int | None = Field(None, ge=0, le=2**31 - 1)
+    exposure: float | None = Field(None, ge=0, le=1, description="the training video's exposure (default: the scene's)")
 
 
 class TauRequest(StrictRequest):
@@ -87,7 +88,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     if bad:
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
     overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form,
-                               camera_blur=req.camera_blur)
+                               camera_blur=req.camera_blur, exposure=req.exposure)
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",

@@ -112,6 +112,7 @@ class TrainConfig:
             d[k] = tuple(d[k])
         if isinstance(d.get("camera_blur"), bool):  # runs saved when it was an on/off switch
             d["camera_blur"] = "poses" if d["camera_blur"] else "off"
+        d.setdefault("tau_auto", False)  # runs saved before it split at their configured τ
         known = {f.name for f in fields(cls)}
         return cls(model=ModelConfig.from_dict(m), **{k: v for k, v in d.items() if k in known})
 
@@ -127,7 +128,10 @@ def paper_preset(iterations: int = 30_000) -> TrainConfig:
                        model=ModelConfig(sh_degree=3), eval_every=at(1000), checkpoint_every=at(5000))
 
 
-def fast_preset(iterations: int = 1500) -> TrainConfig:
+FAST_ITERATIONS = 1500  # the fast preset's count on the demo scene (fitted_iterations scales it)
+
+
+def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
     """Tuned to converge in minutes on two CPU cores at ~128 px: fewer iterations and
     Gaussians, SH degree 1, one LoD level (FLoD stays in the paper preset), everything else
     scaled to the shorter schedule (and to `iterations` when it is not the default 1,500:
@@ -199,7 +203,7 @@ def scene_pixels_per_unit(scene) -> float | None:
     return float(np.median(ratios)) if ratios else None
 
 
-def fitted_iterations(scene, iterations: int = 1500) -> tuple[int, str | None]:
+def fitted_iterations(scene, iterations: int = FAST_ITERATIONS) -> tuple[int, str | None]:
     """The fast preset's iteration count for `scene`: the demo's scaled by the square root of
     the clip's frames x pixels over the demo's (1x to 4x), and the reason (None: unchanged)."""
     cam = scene.train_frames[0].camera
