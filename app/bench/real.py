@@ -54,7 +54,8 @@ def resolve_clip(spec: str, data: Path) -> tuple[str, Path, Path]:
 
 
 def ingest_cached(name: str, blur: Path, sharp: Path, size: int, root: Path) -> Path:
-    """The clip's scene folder, ingested on first use and reused afterwards."""
+    """The clip's scene folder, ingested on first use and reused afterwards (keyed by the
+    clip's name and size only: delete `--out/scenes/NAME SIZE` after changing a video)."""
     from kgs_core.data.ingest import ingest
 
     out = root / "scenes" / f"{name}{size}"
@@ -173,6 +174,8 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     if args.cuts < 1 or (args.cuts > 1 and args.budget != "time"):
         ap.error("--cuts is at least 1, and more than 1 only with --budget time")
+    if args.size < 32 or (args.iterations is not None and args.iterations < 1):
+        ap.error(f"--size must be at least 32 and --iterations at least 1 (got {args.size}, {args.iterations})")
     names = select_configs(args.configs)
     static_name = select_configs("deform")[0]
     if static_name not in names:
@@ -187,11 +190,9 @@ def main(argv: list[str]) -> int:
         scene_dir = ingest_cached(name, blur, sharp, args.size, root)
         scene = load_scene(scene_dir)
 
-        def trainer_for(config: str, iterations: int | None, suffix: str, scene=scene, name=name) -> Trainer:
-            over = config_overrides(config)
+        def trainer_for(config: str, iterations: int, suffix: str, scene=scene, name=name) -> Trainer:
+            over = {**config_overrides(config), "iterations": iterations}
             ablate = over.pop("ablate", ())
-            if iterations is not None:
-                over["iterations"] = iterations
             cfg = make_config(args.preset, ablate=ablate, seed=args.seed, scene=scene, **over)
             cfg.eval_every = max(cfg.iterations // 10, 1)
             return Trainer(scene, root / "runs" / name / (config_slug(config) + suffix), cfg, progress=False)
