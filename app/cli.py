@@ -79,7 +79,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     from kgs_core.train.trainer import train
 
     overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite,
-                               kr_form=args.kr_form, camera_blur=args.camera_blur, exposure=args.exposure)
+                               kr_form=args.kr_form, camera_blur=args.camera_blur, exposure=args.exposure,
+                               pose_refine=None if args.pose_refine is None else args.pose_refine == "on")
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
     make_config(args.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
     scene = load_scene(args.scene)
@@ -295,6 +296,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-blur", choices=list(CAMERA_BLUR),
                    help="also blur every Gaussian along the camera's own motion during the exposure (hand-held shake): "
                         "from the poses' differences, or learned per frame from there (default off; docs/quality.md)")
+    p.add_argument("--pose-refine", choices=["on", "off"],
+                   help="fit a rigid correction of each training camera's pose, for footage whose structure-from-motion "
+                        "poses are poor (default off; docs/real-footage.md)")
     p.add_argument("--on-nonfinite", choices=["error", "restore"],
                    help="NaN/Inf in training: stop with an error naming the tensor (default), or restore the last "
                         "good checkpoint and continue with a lower learning rate")

@@ -305,3 +305,22 @@ def test_otsu_tau_cuts_between_the_still_mode_and_the_moving_tail():
     assert otsu_tau(torch.cat([still, moving]), floor=0.05) == 0.05  # the floor wins
     assert otsu_tau(torch.full((100,), 3e-5), floor=2e-6) == 2e-6  # nothing to separate
     assert otsu_tau(torch.zeros(0), floor=1e-5) == 1e-5
+
+
+def test_static_field_offsets_are_the_fields_own_under_a_sample_of_static_gaussians():
+    """L_reg's static term: the field's offsets under static Gaussians (which render without
+    it), at most `count` of them, with gradients into the field only."""
+    m = moving_model(n=40)
+    m.dynamic[:] = False
+    m.dynamic[:10] = True
+    t = 0.3
+    all_static = m.static_field_dx(t, count=1000)
+    assert all_static.shape == (30, 3)
+    expected = m.deform(m.params.means.detach()[10:], torch.full((30,), t)).dx
+    torch.testing.assert_close(all_static, expected)
+    assert all_static.abs().max() > 1e-3  # this field moves things: the term is not vacuous
+    sample = m.static_field_dx(t, count=8)
+    assert sample.shape == (8, 3)
+    sample.norm(dim=-1).mean().backward()
+    assert m.params.means.grad is None  # positions are not pulled by the term
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in m.deform.parameters())

@@ -176,6 +176,18 @@ class KinematicsGS(nn.Module):
         self._knn = None
         return self.dynamic
 
+    def static_field_dx(self, t: float, count: int) -> Tensor:
+        """`(S, 3)` the field's position offsets at `t` for `S <= count` static Gaussians drawn
+        at random: L_reg's static term. The static Gaussians render without the field, so
+        their rendered offsets are zero and a term over those says nothing; the paper's L_reg
+        holds the field's offsets over the static set down. A sample is an unbiased estimate of
+        the mean at a fraction of the cost of evaluating the field on every static Gaussian."""
+        idx = torch.nonzero(~self.dynamic).squeeze(1)
+        if len(idx) > count:
+            idx = idx[torch.randint(len(idx), (count,))]
+        x = self.params.means.detach()[idx]
+        return self.deform.at_times(x, [torch.full((len(x),), float(t))])[0].dx
+
     def knn_index(self) -> Tensor:
         """`(D, k)` indices into the dynamic subset: each dynamic Gaussian's nearest dynamic
         neighbours (itself included), rebuilt when the dynamic set changes."""

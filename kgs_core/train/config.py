@@ -56,6 +56,11 @@ class TrainConfig:
     # losses
     lambda_dssim: float = 0.2
     lambda_reg: float = 1e-3
+    # Static Gaussians drawn per step for L_reg's static term (the field's offsets under them,
+    # `KinematicsGS.static_field_dx`, as the paper sums L_reg over the static set); 0 leaves it
+    # out. Off by default: measured within the seed spread on walk and the sheet, and with a
+    # scene-scaled lambda_reg 0.9 dB worse and 33 % slower on kitchen (docs/real-footage.md).
+    reg_static_samples: int = 0
     lambda_ani: float = 1e-4
     eps_ani: float = 1e-6
     lambda_tv: float = 1e-4  # K-Planes smoothness
@@ -90,6 +95,12 @@ class TrainConfig:
     # "learned" (per-frame motion fitted from there, at lr_camera_motion). docs/quality.md.
     camera_blur: str = "off"
     lr_camera_motion: float = 3e-3
+    # Fit a rigid correction of each training camera's pose (train/pose_refine.py). Off by
+    # default: on `walk` it fitted the training views 2 dB better and the sharp camera 0.3 dB
+    # worse, in twice the time (docs/real-footage.md).
+    pose_refine: bool = False
+    lr_pose: float = 1e-3
+    lr_pose_final: float = 1e-5
     init_from: str = ""  # a run directory: start from its final model (fine-tuning), not from points
     # The training camera's exposure (fraction of the frame interval); None: the scene's own.
     exposure: float | None = None
@@ -154,10 +165,12 @@ PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 def overrides_from(iterations: int | None = None, tau: float | None = None, velocity: str | None = None,
                    basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None,
-                   kr_form: str | None = None, camera_blur: str | None = None, exposure: float | None = None) -> dict:
+                   kr_form: str | None = None, camera_blur: str | None = None, exposure: float | None = None,
+                   pose_refine: bool | None = None) -> dict:
     """`make_config` overrides from the options the CLI and the server share (None = preset's)."""
     named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis, "model.kr_form": kr_form,
-             "seed": seed, "on_nonfinite": on_nonfinite, "camera_blur": camera_blur, "exposure": exposure}
+             "seed": seed, "on_nonfinite": on_nonfinite, "camera_blur": camera_blur, "exposure": exposure,
+             "pose_refine": pose_refine}
     return {k: v for k, v in named.items() if v is not None}
 
 

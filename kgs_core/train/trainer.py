@@ -26,6 +26,7 @@ from ..run import save_decomposition, save_torch, write_run_json
 from .camera_motion import CameraMotion
 from .config import TrainConfig
 from .densify import DensifyStrategy
+from .pose_refine import PoseCorrection
 
 
 class NonFiniteError(FloatingPointError):
@@ -130,6 +131,7 @@ class Trainer:
         self.no_split = "split" in cfg.ablate
         self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
                               if cfg.camera_blur != "off" else None)
+        self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
 
     # ------------------------------------------------------------ setup
 
@@ -189,13 +191,15 @@ class Trainer:
             {"params": nets["deform_mlp"] + nets["fine_mlp"], "lr": c.lr_deform, "name": "mlp"},
             {"params": nets["kappa"], "lr": c.lr_kappa, "name": "kappa"},
         ] + ([{"params": [self.camera_motion.motion], "lr": c.lr_camera_motion, "name": "camera_motion"}]
-             if c.camera_blur == "learned" else []), eps=1e-15, fused=True)
+             if c.camera_blur == "learned" else [])
+          + ([{"params": [self.pose_correction.delta], "lr": c.lr_pose, "name": "pose"}]
+             if self.pose_correction is not None else []), eps=1e-15, fused=True)
 
     def set_learning_rates(self, it: int) -> None:
         """Schedules (exponential decay) times `lr_scale` (lowered by each NaN recovery)."""
         c = self.cfg
         schedules = {"means": (c.lr_means, c.lr_means_final), "grid": (c.lr_grid, c.lr_grid_final),
-                     "mlp": (c.lr_deform, c.lr_deform_final)}
+                     "mlp": (c.lr_deform, c.lr_deform_final), "pose": (c.lr_pose, c.lr_pose_final)}
         for g in [*self.opt.param_groups, *self.net_opt.param_groups]:
             g.setdefault("base_lr", g["lr"])
             if g["name"] in schedules:
@@ -214,16 +218,21 @@ class Trainer:
             t, noise = t + noise * float(torch.randn(())), 0.0
         camera_motion = None if self.camera_motion is None else self.camera_motion.get(frame.id)
         out, g = render_model(model, frame.camera, t, self.exposure, scene.dt, self.background,
-                              noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False)
+                              noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False,
+                              world_transform=self.world_transform(frame))
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if not self.static_only:
             if c.lambda_reg > 0 and g.offsets_dx is not None:
-                # L_reg: mean |dx| over the static set plus mean |dx| over the dynamic set.
+                # L_reg: mean |dx| over the dynamic set plus mean |dx| over the static set. After
+                # the split the static Gaussians render without the field, so their term is the
+                # field's offsets at a sample of them (`static_field_dx`).
                 norms = g.offsets_dx.norm(dim=-1)
                 dyn = g.dynamic
                 reg = norms[dyn].mean() if dyn.any() else norms.sum() * 0
-                if (~dyn).any():
+                if model.decomposed and c.reg_static_samples > 0 and (~dyn).any():
+                    reg = reg + model.static_field_dx(t, c.reg_static_samples).norm(dim=-1).mean()
+                elif (~dyn).any():
                     reg = reg + norms[~dyn].mean()
                 loss = loss + c.lambda_reg * reg
             if c.lambda_tv > 0:
@@ -232,6 +241,11 @@ class Trainer:
             s = model.scales()
             loss = loss + c.lambda_ani * (s.max(-1).values / (s.min(-1).values + c.eps_ani)).mean()
         return loss, out
+
+    def world_transform(self, frame: Frame):
+        """The training frame's pose correction as a rigid motion of the Gaussians (None when
+        poses are not refined)."""
+        return None if self.pose_correction is None else self.pose_correction.world_transform(frame)
 
     def train_step(self, it: int) -> float:
         c = self.cfg
@@ -295,7 +309,8 @@ class Trainer:
             with torch.enable_grad():
                 ones = torch.ones(len(model), 1, requires_grad=True)
                 out, _ = render_model(model, frames[i].camera, frames[i].time, self.exposure, self.scene.dt,
-                                      colors=ones, static=self.static_only, velocity=False)
+                                      colors=ones, static=self.static_only, velocity=False,
+                                      world_transform=self.world_transform(frames[i]))
                 (grad,) = torch.autograd.grad(out.image.sum(), ones)
             total += grad[:, 0]
         return total
@@ -377,6 +392,7 @@ class Trainer:
             "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
             "strategy": {"grad_sum": self.strategy.grad_sum, "count": self.strategy.count},
             "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
+            "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
         })
         return path
 
@@ -385,6 +401,8 @@ class Trainer:
         self.model = KinematicsGS.from_state(state["model"])
         if self.camera_motion is not None and state.get("camera_motion") is not None:
             self.camera_motion.load_state_dict(state["camera_motion"])
+        if self.pose_correction is not None and state.get("pose_correction") is not None:
+            self.pose_correction.load_state_dict(state["pose_correction"])
         self.make_optimizers()
         self.opt.load_state_dict(state["opt"])
         self.net_opt.load_state_dict(state["net_opt"])
@@ -487,6 +505,8 @@ class Trainer:
             info["tau"] = tau
             info["tau_choice"] = (f"picked from the distribution of K (Otsu on log10 K), not below {self.tau_floor:.3g}"
                                   if self.cfg.tau_auto and tau > self.tau_floor else f"the configured {tau:.3g}")
+        if self.pose_correction is not None:
+            info["pose_refine"] = self.pose_correction.summary()
         if self.events:
             info["guard_events"] = self.events
         write_run_json(self.run_dir, info)
