@@ -33,6 +33,12 @@ def pid_alive(pid: int | None) -> bool:
         return True
 
 
+def last_checkpoint(run_dir: Path) -> int | None:
+    """The iteration of a run directory's last checkpoint, None without one."""
+    its = [int(p.stem.split("_")[-1]) for p in (run_dir / "checkpoints").glob("ckpt_*.pt") if p.stem.split("_")[-1].isdigit()]
+    return max(its) if its else None
+
+
 class JobRunner:
     def __init__(self, ws: Workspace):
         self.ws = ws
@@ -58,6 +64,12 @@ class JobRunner:
             status, error = "cancelled", None
         elif rc == 0:
             status, error = "done", None
+        elif rc < 0 and table == "runs" and last_checkpoint(Path(row["path"])) is not None:
+            # Killed by a signal (the OOM killer, a kill -9): not a failure of the run, which
+            # can continue from its last checkpoint (POST /api/runs/{id}/resume).
+            status = "interrupted"
+            error = (f"the training process was killed (signal {-rc}); its last checkpoint "
+                     f"(iteration {last_checkpoint(Path(row['path']))}) is kept: resume it")
         else:
             status, error = "failed", self.last_error(id_) or f"job process exited with code {rc}"
         self.ws.update(table, id_, status=status, error=error, pid=None)
@@ -69,7 +81,10 @@ class JobRunner:
         path = self.ws.root / "jobs" / f"{id_}.log"
         if not path.is_file():
             return None
-        lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+        # Paths inside the workspace are told relative to it: the server's own layout is not
+        # the client's business.
+        root = str(self.ws.root.resolve()) + os.sep
+        lines = [ln.replace(root, "") for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
         for ln in reversed(lines):
             if ln and not ln.startswith(" ") and ("Error" in ln or "Exception" in ln):
                 return ln[-2000:]
@@ -96,8 +111,10 @@ class JobRunner:
                         threading.Thread(target=self._poll_foreign, args=(table, row["id"], row["pid"]),
                                          daemon=True).start()
                     else:
+                        kept = table == "runs" and last_checkpoint(Path(row["path"])) is not None
                         self.ws.update(table, row["id"], status="interrupted", pid=None,
-                                       error="the server stopped while this job ran; its last checkpoint is kept")
+                                       error="the server stopped while this job ran"
+                                       + ("; its last checkpoint is kept" if kept else "; it left no checkpoint"))
 
     def _poll_foreign(self, table: str, id_: str, pid: int) -> None:
         import time

@@ -8,6 +8,8 @@ processes (`kgs_backend.worker`).
 
 from __future__ import annotations
 
+import errno
+import sqlite3
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -80,6 +82,23 @@ def register_existing(ws: Workspace, extra: list[Path]) -> list[str]:
     return ids
 
 
+def storage_failure(exc: Exception) -> tuple[int, str] | None:
+    """`(status, message)` for a write the workspace's storage refused: a full disk or quota
+    (507 Insufficient Storage) or a read-only file system or database (503); None for any
+    other error. The message names the problem, not the server's paths."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return 507, "the workspace's disk is full: nothing was written; free space and retry"
+    if isinstance(exc, OSError) and exc.errno == errno.EROFS:
+        return 503, "the workspace is on a read-only file system: nothing was written"
+    if isinstance(exc, sqlite3.OperationalError):
+        text = str(exc).lower()
+        if "full" in text:
+            return 507, "the workspace's disk is full: the registry could not be written"
+        if "readonly" in text or "read-only" in text or "disk i/o" in text or "unable to open" in text:
+            return 503, "the workspace registry cannot be written (read-only or unavailable storage)"
+    return None
+
+
 def create_app(settings: Settings) -> FastAPI:
     ws = Workspace(settings.workspace)
     job_runner = JobRunner(ws)
@@ -98,6 +117,15 @@ def create_app(settings: Settings) -> FastAPI:
     async def validation_error(request, exc: RequestValidationError):
         # FastAPI's own handler quotes the input back and fails on a NaN it cannot encode.
         return JSONResponse(status_code=422, content={"detail": finite_json(jsonable_encoder(exc.errors()))})
+
+    async def storage_error(request, exc: Exception):
+        failure = storage_failure(exc)
+        if failure is None:
+            raise exc  # any other error stays a 500 (with its traceback in the server's log)
+        return JSONResponse(status_code=failure[0], content={"detail": failure[1]})
+
+    app.add_exception_handler(OSError, storage_error)
+    app.add_exception_handler(sqlite3.OperationalError, storage_error)
 
     app.state.settings = settings
     app.state.ws = ws

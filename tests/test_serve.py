@@ -3,9 +3,13 @@ in-process; training and export jobs run as real worker processes)."""
 
 from __future__ import annotations
 
+import errno
 import io
 import json
+import os
 import shutil
+import signal
+import sqlite3
 import time
 import zipfile
 from pathlib import Path
@@ -271,14 +275,26 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
         st = recv_json_until(w, "status")
         assert st["status"] == "cancelled"
     assert client.post(f"/api/runs/{long['id']}/cancel").status_code == 409
-    assert client.get(f"/api/runs/{long['id']}").json()["has_model"]
+    stopped = client.get(f"/api/runs/{long['id']}").json()
+    assert stopped["has_model"] and stopped["resumable"]
+    # Resume continues from the checkpoint; a worker killed by a signal leaves the run
+    # "interrupted" (not failed), resumable again.
+    assert client.post(f"/api/runs/{long['id']}/resume").status_code == 202
+    deadline = time.time() + 120
+    while (client.get(f"/api/runs/{long['id']}").json().get("progress") or {}).get("iteration", 0) <= stopped["iteration"]:
+        assert time.time() < deadline, "the resumed run made no progress"
+        time.sleep(0.3)
+    os.kill(client.app_.state.ws.get("runs", long["id"])["pid"], signal.SIGKILL)
+    killed = wait_status(client, f"/api/runs/{long['id']}", done=("interrupted", "failed"))
+    assert killed["status"] == "interrupted" and "resume" in killed["error"] and killed["resumable"], killed
     # A failing job keeps its error.
     bad = client.app_.state.ws.insert("scenes", name="broken", path=str(ws_dir / "scenes" / "broken"), source="upload",
                                       status="done")
     (ws_dir / "scenes" / "broken").mkdir()
     (ws_dir / "scenes" / "broken" / "dataset.json").write_text("{")
     failed = wait_status(client, f"/api/runs/{client.post('/api/runs', json={'scene_id': bad['id']}).json()['id']}")
-    assert failed["status"] == "failed" and "dataset.json" in failed["error"]
+    assert failed["status"] == "failed" and "scenes/broken/dataset.json" in failed["error"]
+    assert str(ws_dir.resolve()) not in failed["error"]  # the workspace's own path is not told
     # Export as a job, then download.
     e = client.post(f"/api/runs/{done['id']}/exports", json={"format": "splat", "times": "0.5"}).json()
     e = wait_status(client, f"/api/exports/{e['id']}")
@@ -296,11 +312,16 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     meta = client.get(f"/api/runs/{ft['id']}").json()
     assert meta["tau"] == pytest.approx(tau) and meta["split"]["gaussians"] == done["gaussians"]
     assert client.post("/api/runs/nope/finetune", json={}).status_code == 404
+    assert client.post(f"/api/runs/{done['id']}/resume").status_code == 409  # it finished
     # A restarted server lists the earlier runs and their states.
     app2 = create_app(Settings(workspace=ws_dir))
     with TestClient(app2, base_url=BASE) as c2:
         statuses = {r["id"]: r["status"] for r in c2.get("/api/runs").json()}
-    assert statuses[done["id"]] == "done" and statuses[long["id"]] == "cancelled" and statuses[failed["id"]] == "failed"
+    assert statuses[done["id"]] == "done" and statuses[long["id"]] == "interrupted" and statuses[failed["id"]] == "failed"
+    # Deleting a run deletes its exports: their files are no longer downloadable.
+    assert client.delete(f"/api/runs/{done['id']}").status_code == 204
+    assert client.get(f"/api/exports/{e['id']}/download").status_code == 404
+    assert not (ws_dir / "exports" / e["id"]).exists()
 
 
 def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
@@ -477,3 +498,26 @@ def test_registry_closes_its_connections(tmp_path, monkeypatch):
     assert ws.get("scenes", row["id"])["status"] == "failed" and len(ws.list("scenes")) == 1
     ws.delete("scenes", row["id"])
     assert len(opened) >= 5 and all(db.closed for db in opened)
+
+
+def test_full_or_read_only_storage_is_named_not_a_500(client, monkeypatch):
+    """A full disk answers 507 and a read-only workspace 503, each with a message that names
+    the problem and no server path; other errors stay errors."""
+    scene_id = client.get(f"/api/runs/{client.run_id}").json()["scene_id"]
+    ws = client.app_.state.ws
+    for exc, status, words in [
+        (OSError(errno.ENOSPC, "No space left on device", str(ws.root / "runs")), 507, "disk is full"),
+        (OSError(errno.EROFS, "Read-only file system", str(ws.root / "runs")), 503, "read-only"),
+        (sqlite3.OperationalError("attempt to write a readonly database"), 503, "registry cannot be written"),
+        (sqlite3.OperationalError("database or disk is full"), 507, "disk is full"),
+    ]:
+        def refuse(*a, _exc=exc, **k):
+            raise _exc
+
+        monkeypatch.setattr(ws, "new_dir", refuse)
+        r = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 10})
+        assert r.status_code == status and words in r.json()["detail"], (exc, r.text)
+        assert str(ws.root) not in r.text
+    monkeypatch.setattr(ws, "new_dir", lambda *a, **k: (_ for _ in ()).throw(OSError(errno.EACCES, "denied")))
+    with pytest.raises(PermissionError):
+        client.post("/api/runs", json={"scene_id": scene_id, "iterations": 10})

@@ -15,7 +15,7 @@ from kgs_core.run import read_log
 from kgs_core.train.config import ABLATIONS, PRESETS, overrides_from
 
 from ..deps import get_or_404, jobs, run_view, workspace
-from ..jobs import JobRunner
+from ..jobs import JobRunner, last_checkpoint
 from ..registry import Workspace, new_id
 from ..schemas import StrictRequest
 
@@ -32,6 +32,7 @@ class TrainRequest(StrictRequest):
     basis: Literal["paper", "duff", "principal"] | None = None
     kr_form: Literal["paper", "convolve"] | None = None
     camera_blur: Literal["off", "poses", "learned"] | None = None
+    pose_refine: bool | None = None  # fit each training camera's pose correction (default off)
     ablate: list[str] = []
     seed: int | None = Field(None, ge=0, le=2**31 - 1)
     exposure: float | None = Field(None, ge=0, le=1, description="the training video's exposure (default: the scene's)")
@@ -69,7 +70,17 @@ def public(row: dict) -> dict:
     for k in ("iteration", "train_seconds", "final_psnr_heldout", "gaussians", "dynamic_share", "lod_levels"):
         if k in info:
             out[k] = info[k]
+    out["resumable"] = resumable(row, info)
     return out
+
+
+def resumable(row: dict, info: dict) -> bool:
+    """A run that stopped short of its iterations (interrupted, cancelled or failed) and left
+    a checkpoint to continue from."""
+    last = last_checkpoint(Path(row["path"]))
+    total = (info.get("config") or {}).get("iterations")
+    return (row["status"] in ("interrupted", "cancelled", "failed") and last is not None
+            and isinstance(total, int) and last < total)
 
 
 @router.get("")
@@ -88,7 +99,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     if bad:
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
     overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form,
-                               camera_blur=req.camera_blur, exposure=req.exposure)
+                               camera_blur=req.camera_blur, exposure=req.exposure, pose_refine=req.pose_refine)
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",
@@ -135,12 +146,38 @@ def cancel_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
     return public(ws.get("runs", run_id))
 
 
+@router.post("/{run_id}/resume", status_code=202)
+def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
+    """Continues a run that stopped short from its last checkpoint, with its own configuration."""
+    row = get_or_404(ws, "runs", run_id)
+    info = read_json(Path(row["path"]) / "run.json")
+    if not resumable(row, info):
+        raise HTTPException(409, f"run {run_id} cannot be resumed (status: {row['status']}; it needs a checkpoint "
+                                 "short of its iterations)")
+    scene = ws.get("scenes", row["scene_id"]) if row["scene_id"] else None
+    if scene is None:
+        raise HTTPException(409, "the run's scene is no longer in the workspace")
+    ws.update("runs", run_id, status="queued", error=None)
+    jr.start("runs", run_id, "train", {"scene_dir": scene["path"], "run_dir": row["path"], "config": info["config"],
+                                       "resume": True})
+    return public(ws.get("runs", run_id))
+
+
 @router.delete("/{run_id}", status_code=204)
 def delete_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "runs", run_id)
     if row["status"] in ("queued", "running", "cancelling"):
         raise HTTPException(409, "the run is training: cancel it first")
+    exports = ws.list("exports", run_id=run_id)
+    if any(e["status"] in ("queued", "running", "cancelling") for e in exports):
+        raise HTTPException(409, "an export of this run is running: wait for it or cancel it first")
     request.app.state.views.drop(run_id)
+    # Its exports go with it: a deleted run's files must not stay downloadable.
+    for e in exports:
+        folder = Path(e["path"]).parent
+        if folder.is_relative_to(ws.root / "exports"):
+            shutil.rmtree(folder, ignore_errors=True)
+        ws.delete("exports", e["id"])
     path = Path(row["path"])
     if path.is_relative_to(ws.root):
         shutil.rmtree(path, ignore_errors=True)

@@ -1,4 +1,4 @@
-// The runs page: scenes (make the demo scene), start a run, live loss/PSNR chart, cancel, open.
+// The runs page: scenes (make the demo scene), start a run, live loss/PSNR chart, cancel, resume, open.
 
 import { api, openStream } from "./api.js";
 import { drawChart } from "./chart.js";
@@ -16,7 +16,8 @@ export async function showRuns() {
     ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(r.status)}</span>
         ${r.final_psnr_heldout ? ` · ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB` : ""}
         ${r.has_model ? `<a href="#/run/${encodeURIComponent(r.id)}">open</a>` : ""}
-        ${["queued", "running"].includes(r.status) ? `<button data-watch="${esc(r.id)}">watch</button> <button data-cancel="${esc(r.id)}">cancel</button>` : ""}</li>`).join("")
+        ${["queued", "running"].includes(r.status) ? `<button data-watch="${esc(r.id)}">watch</button> <button data-cancel="${esc(r.id)}">cancel</button>` : ""}
+        ${r.resumable ? `<button data-resume="${esc(r.id)}" title="${esc(r.error || "")}">resume</button>` : ""}</li>`).join("")
     : `<li class="muted">no runs yet: make the demo scene, then train it</li>`;
   document.querySelectorAll("[data-train]").forEach((b) => (b.onclick = async () => {
     const run = await api("/api/runs", { method: "POST", body: { scene_id: b.dataset.train, preset: "fast",
@@ -28,7 +29,12 @@ export async function showRuns() {
     await api(`/api/runs/${b.dataset.cancel}/cancel`, { method: "POST" });
     setTimeout(showRuns, 1500);
   }));
-  document.querySelectorAll("[data-watch]").forEach((b) => (b.onclick = () => watch(b.dataset.watch)));
+  document.querySelectorAll("[data-resume]").forEach((b) => (b.onclick = async () => {
+    await api(`/api/runs/${b.dataset.resume}/resume`, { method: "POST" });
+    await showRuns();
+    watch(b.dataset.resume);
+  }));
+    document.querySelectorAll("[data-watch]").forEach((b) => (b.onclick = () => watch(b.dataset.watch)));
 }
 
 export async function makeDemoScene() {
