@@ -64,12 +64,11 @@ class JobRunner:
             status, error = "cancelled", None
         elif rc == 0:
             status, error = "done", None
-        elif rc < 0 and table == "runs" and last_checkpoint(Path(row["path"])) is not None:
+        elif rc < 0 and table == "runs" and (kept := last_checkpoint(Path(row["path"]))) is not None:
             # Killed by a signal (the OOM killer, a kill -9): not a failure of the run, which
             # can continue from its last checkpoint (POST /api/runs/{id}/resume).
             status = "interrupted"
-            error = (f"the training process was killed (signal {-rc}); its last checkpoint "
-                     f"(iteration {last_checkpoint(Path(row['path']))}) is kept: resume it")
+            error = f"the training process was killed (signal {-rc}); its last checkpoint (iteration {kept}) is kept: resume it"
         else:
             status, error = "failed", self.last_error(id_) or f"job process exited with code {rc}"
         self.ws.update(table, id_, status=status, error=error, pid=None)

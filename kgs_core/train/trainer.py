@@ -224,16 +224,14 @@ class Trainer:
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if not self.static_only:
             if c.lambda_reg > 0 and g.offsets_dx is not None:
-                # L_reg: mean |dx| over the dynamic set plus mean |dx| over the static set. After
-                # the split the static Gaussians render without the field, so their term is the
-                # field's offsets at a sample of them (`static_field_dx`).
+                # L_reg: mean |dx| over the dynamic set plus mean |dx| over the static set. The
+                # static Gaussians render without the field (their rendered dx is 0), so their
+                # term is the field's offsets under a sample of them, when reg_static_samples > 0.
                 norms = g.offsets_dx.norm(dim=-1)
                 dyn = g.dynamic
                 reg = norms[dyn].mean() if dyn.any() else norms.sum() * 0
                 if model.decomposed and c.reg_static_samples > 0 and (~dyn).any():
                     reg = reg + model.static_field_dx(t, c.reg_static_samples).norm(dim=-1).mean()
-                elif (~dyn).any():
-                    reg = reg + norms[~dyn].mean()
                 loss = loss + c.lambda_reg * reg
             if c.lambda_tv > 0:
                 loss = loss + c.lambda_tv * model.deform.planes.smoothness()
