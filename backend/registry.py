@@ -12,6 +12,11 @@ WORKSPACE/
 Resources are addressed by registry ids (12 hex digits), never by paths: a client cannot make
 the server read or write outside the workspace. Paths passed to `kgs-app serve PATH...` are
 registered at start-up (scene folders and run directories).
+
+Paths inside the workspace are stored relative to it (absolute ones only for folders
+registered from elsewhere), and rows come back with absolute paths: a copied or moved
+workspace finds its own folders, instead of listing every run twice and writing edits into
+the original.
 """
 
 from __future__ import annotations
@@ -57,6 +62,11 @@ class Workspace:
         self._lock = threading.Lock()
         with self._connect() as db:
             db.executescript(SCHEMA)
+            # Registries written before paths were stored relative: rewrite those inside.
+            for table in TABLES:
+                for id_, path in db.execute(f"SELECT id, path FROM {table}").fetchall():
+                    if Path(path).is_absolute() and (kept := self._stored(path)) != path:
+                        db.execute(f"UPDATE {table} SET path = ? WHERE id = ?", (kept, id_))
 
     @contextmanager
     def _connect(self) -> Iterator[sqlite3.Connection]:
@@ -78,6 +88,8 @@ class Workspace:
         row.setdefault("created", time.time())
         if "params" in row and not isinstance(row["params"], str):
             row["params"] = json.dumps(row["params"])
+        if "path" in row:
+            row["path"] = self._stored(row["path"])
         cols = ", ".join(row)
         with self._lock, self._connect() as db:
             db.execute(f"INSERT INTO {table} ({cols}) VALUES ({', '.join('?' * len(row))})", tuple(row.values()))
@@ -87,12 +99,12 @@ class Workspace:
         assert table in TABLES
         with self._connect() as db:
             r = db.execute(f"SELECT * FROM {table} WHERE id = ?", (id_,)).fetchone()
-        return _row(r)
+        return self._row(r)
 
     def find_path(self, table: str, path: Path) -> dict | None:
         with self._connect() as db:
-            r = db.execute(f"SELECT * FROM {table} WHERE path = ?", (str(Path(path).resolve()),)).fetchone()
-        return _row(r)
+            r = db.execute(f"SELECT * FROM {table} WHERE path = ?", (self._stored(path),)).fetchone()
+        return self._row(r)
 
     def list(self, table: str, **where) -> list[dict]:
         assert table in TABLES
@@ -101,12 +113,14 @@ class Workspace:
             q += " WHERE " + " AND ".join(f"{k} = ?" for k in where)
             args = tuple(where.values())
         with self._connect() as db:
-            return [_row(r) for r in db.execute(q + " ORDER BY created", args).fetchall()]
+            return [self._row(r) for r in db.execute(q + " ORDER BY created", args).fetchall()]
 
     def update(self, table: str, id_: str, **fields) -> None:
         assert table in TABLES
         if "params" in fields and not isinstance(fields["params"], str):
             fields["params"] = json.dumps(fields["params"])
+        if "path" in fields:
+            fields["path"] = self._stored(fields["path"])
         with self._lock, self._connect() as db:
             db.execute(f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?",
                        (*fields.values(), id_))
@@ -118,11 +132,19 @@ class Workspace:
     def new_dir(self, kind: str, id_: str) -> Path:
         return self.root / kind / id_
 
+    # ------------------------------------------------------------ paths
 
-def _row(r) -> dict | None:
-    if r is None:
-        return None
-    d = dict(r)
-    if "params" in d:
-        d["params"] = json.loads(d["params"] or "{}")
-    return d
+    def _stored(self, path: str | Path) -> str:
+        """How a path is kept: relative (POSIX) when inside the workspace, else absolute."""
+        p = Path(path).resolve()
+        return p.relative_to(self.root).as_posix() if p.is_relative_to(self.root) else str(p)
+
+    def _row(self, r) -> dict | None:
+        if r is None:
+            return None
+        d = dict(r)
+        if "params" in d:
+            d["params"] = json.loads(d["params"] or "{}")
+        if "path" in d:
+            d["path"] = str(self.root / d["path"])  # an absolute stored path stays as it is
+        return d

@@ -71,11 +71,13 @@ class LoadedRun:
         return "deform" in (self.info.get("config", {}).get("ablate") or ())
 
     def scene_path(self) -> Path:
-        """The training scene: as recorded, else relative to the run's workspace (runs written
-        before paths were stored absolute, or a workspace that moved)."""
+        """The training scene: relative to the run first (`scene_from_run`: a copied or moved
+        workspace reads its own copy, not the original), then as recorded, then in the run's
+        workspace (runs written before either was stored, or a workspace that moved)."""
         recorded = Path(self.info.get("scene", ""))
-        candidates = [recorded] if recorded.is_absolute() else [recorded, self.path.parent.parent.parent / recorded,
-                                                                self.path.parent.parent / "scenes" / recorded.name]
+        candidates = [self.path / self.info["scene_from_run"]] if self.info.get("scene_from_run") else []
+        candidates += [recorded] if recorded.is_absolute() else [recorded, self.path.parent.parent.parent / recorded]
+        candidates.append(self.path.parent.parent / "scenes" / recorded.name)
         for c in candidates:
             if (c / "scene.json").is_file() or c.is_dir():
                 return c

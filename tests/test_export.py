@@ -237,8 +237,9 @@ def test_parse_times():
     assert parse_times(None, [0.1]) == [0.1]
     assert parse_times("0:1:3", []) == [0.0, 0.5, 1.0]
     assert parse_times("0.2,0.4", []) == [0.2, 0.4]
-    with pytest.raises(ValueError):
-        parse_times("0:1:0", [])
+    for bad in ("0:1:0", "0:1:5000", ",".join(["0.5"] * 5000), "1:2:3", "0:1"):
+        with pytest.raises(ValueError, match="--times"):
+            parse_times(bad, [])
 
 
 def test_server_side_render_of_a_blurred_bake_matches_the_training_render(tiny_run):

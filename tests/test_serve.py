@@ -188,10 +188,60 @@ def test_unknown_ids(client):
         assert client.get(path).status_code == 404, path
     assert client.delete("/api/runs/abc").status_code == 404
     assert client.post("/api/runs", json={"scene_id": "abc"}).status_code == 404
-    with pytest.raises(WebSocketDisconnect) as exc:
-        with client.websocket_connect(WS + "/api/runs/abc/stream") as w:
-            w.receive()
-    assert exc.value.code == 4404
+    with client.websocket_connect(WS + "/api/runs/abc/stream") as w:
+        assert w.receive() == {"type": "websocket.close", "code": 4404, "reason": "no run with id 'abc'"}
+
+
+def test_websocket_refusals_on_a_real_server(copy_run, tmp_path):
+    """Against uvicorn, not TestClient (which shows close codes a real server never sent): a
+    missing or wrong token closes with 4401 and an unknown run with 4404, after the handshake,
+    so a browser sees the code; a foreign Origin is refused at the handshake (HTTP 403)."""
+    from websockets.exceptions import ConnectionClosed, InvalidStatus
+    from websockets.sync.client import connect
+
+    from kgs_backend.launch import ServerProcess
+
+    with ServerProcess([copy_run], tmp_path / "workspace", token="s3cret") as srv:
+        base, rid = srv.base.replace("http", "ws", 1), srv.runs[0]["id"]
+        for path, code in ((f"/api/runs/{rid}/stream", 4401), (f"/api/runs/{rid}/stream?token=wrong", 4401),
+                           ("/api/runs/nope/stream?token=s3cret", 4404)):
+            with connect(base + path, open_timeout=30) as w, pytest.raises(ConnectionClosed) as exc:
+                w.recv(timeout=30)
+            assert exc.value.rcvd is not None and exc.value.rcvd.code == code, path
+        with pytest.raises(InvalidStatus) as exc:
+            connect(base + f"/api/runs/{rid}/stream?token=s3cret", origin="http://evil.example", open_timeout=30)
+        assert exc.value.response.status_code == 403
+        with connect(base + f"/api/runs/{rid}/stream?token=s3cret", open_timeout=30) as w:
+            w.send(json.dumps({"type": "subscribe"}))
+            while isinstance(msg := w.recv(timeout=60), str):
+                pass
+            assert unpack_buffer(msg)[0]["kind"] == "static"
+
+
+def test_a_copied_workspace_uses_its_own_folders(copy_run):
+    """Paths are stored relative to the workspace (the registry and run.json): a copy lists
+    each run once, and its edits and renders use the copy's files, not the original's."""
+    original = copy_run.parent.parent  # a workspace layout: runs/<name>, scenes/bounce
+    with TestClient(create_app(Settings(workspace=original)), base_url=BASE) as c:
+        assert len(c.get("/api/runs").json()) == 1
+    copy = original.parent / "moved"
+    shutil.copytree(original, copy)
+    app = create_app(Settings(workspace=copy))
+    with TestClient(app, base_url=BASE) as c:
+        runs = c.get("/api/runs").json()
+        assert len(runs) == 1 and len(c.get("/api/scenes").json()) == 1
+        rid = runs[0]["id"]
+        row = app.state.ws.get("runs", rid)
+        assert Path(row["path"]).is_relative_to(copy.resolve())
+        with sqlite3.connect(copy / "workspace.db") as db:
+            assert not any(Path(p).is_absolute() for (p,) in db.execute("SELECT path FROM runs UNION SELECT path FROM scenes"))
+        assert c.post(f"/api/runs/{rid}/edits", json={"op": "delete", "indices": [0]}).status_code == 200
+        assert c.get(f"/api/runs/{rid}/frames/0/image").status_code == 200
+        from kgs_backend.deps import run_view
+
+        assert run_view(app, rid).run.scene_path().resolve().is_relative_to(copy.resolve())
+    assert (copy / "runs" / copy_run.name / "edits.json").is_file()
+    assert not (copy_run / "edits.json").exists()
 
 
 def test_token_required_when_set(ws_dir, copy_run):
@@ -204,10 +254,8 @@ def test_token_required_when_set(ws_dir, copy_run):
         assert c.get("/api/runs", params={"token": "s3cret"}).status_code == 200
         assert c.get(f"/api/runs/{rid}/render", headers={"X-KGS-Token": "s3cret"}).status_code == 200
         assert c.get("/").status_code == 200  # the page itself holds no data; the API needs the token
-        with pytest.raises(WebSocketDisconnect) as exc:
-            with c.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
-                w.receive()
-        assert exc.value.code == 4401
+        with c.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
+            assert w.receive()["code"] == 4401
         with c.websocket_connect(WS + f"/api/runs/{rid}/stream?token=s3cret") as w:
             w.send_json({"type": "subscribe"})
             assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
@@ -441,6 +489,11 @@ def test_non_finite_numbers_big_bodies_and_huge_seeds_get_4xx(client):
         assert "finite" in r.text or "nan" in r.text.lower(), r.text
     assert client.post("/api/runs", json={"scene_id": scene_id, "seed": 10**30}).status_code == 422
     assert client.post("/api/runs", json={"scene_id": scene_id, "exposure": 1.5}).status_code == 422
+    for times in ("0:1:100000000", "0:1:0", ",".join(["1"] * 4500), "0:2:3"):  # refused before a job starts
+        r = client.post(f"/api/runs/{rid}/exports", json={"format": "splat", "times": times})
+        assert r.status_code == 422 and "--times" in r.text, times[:20]
+    r = client.post("/api/scenes", json={"source": "synth", "size": 1024, "frames": 2000, "subframes": 64})
+    assert r.status_code == 422 and "subframes" in r.text
     big = b'{"tau": 1e-4, "pad": "' + b"x" * (2 << 20) + b'"}'
     assert client.post(f"/api/runs/{rid}/tau", content=big, headers=js).status_code == 413
 

@@ -10,9 +10,10 @@ from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from kgs_core.export import SUFFIX
+from kgs_core.export.bake import parse_times
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
@@ -29,6 +30,13 @@ class ExportRequest(StrictRequest):
     exposure: float = Field(0.0, ge=0, le=1)
     lod: int | None = Field(None, ge=1)
     side_by_side: bool = False
+
+    @field_validator("times")
+    @classmethod
+    def times_parse(cls, v: str | None) -> str | None:
+        """Refused here (422), not by the export job after a 202."""
+        parse_times(v, [])
+        return v
 
 
 def public(row: dict) -> dict:

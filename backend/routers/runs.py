@@ -11,7 +11,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
 from pydantic import Field
 
-from kgs_core.run import read_log
+from kgs_core.run import RunError, read_log
 from kgs_core.train.config import ABLATIONS, PRESETS, overrides_from
 
 from ..deps import get_or_404, jobs, run_view, workspace
@@ -212,7 +212,13 @@ def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace 
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     scene = ws.get("scenes", parent["scene_id"]) if parent["scene_id"] else None
-    scene_dir = scene["path"] if scene else info.get("scene")
+    if scene:
+        scene_dir = scene["path"]
+    else:
+        try:
+            scene_dir = str(run_view(request.app, run_id).run.scene_path())
+        except RunError:
+            raise HTTPException(409, f"run {run_id}: its scene is no longer there") from None
     ws.insert("runs", id=rid, scene_id=parent["scene_id"], name=f"{parent['name']}-ft", path=str(run_dir),
               status="queued", params={"finetune_of": run_id, "tau": tau, "iterations": req.iterations})
     jr.start("runs", rid, "train", {"scene_dir": scene_dir, "run_dir": str(run_dir), "config": cfg.to_dict()})

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from kgs_core.data.synth.scenes import SCENES
 
@@ -28,6 +28,9 @@ UPLOAD_TYPES = {"zip": ("application/zip", "application/x-zip-compressed", "appl
                 "video": ("video/*", "application/octet-stream")}
 
 
+MAX_SYNTH_PIXELS = 1 << 31  # e.g. 1024² x 2048 x 1, 512² x 512 x 16, the demo's 128² x 60 x 16 = 2^24
+
+
 class SynthRequest(StrictRequest):
     source: Literal["synth"] = "synth"
     name: str = Field("sheet", description="built-in scene: " + ", ".join(sorted(SCENES)))
@@ -35,6 +38,15 @@ class SynthRequest(StrictRequest):
     frames: int = Field(60, ge=2, le=2000)
     subframes: int = Field(16, ge=1, le=64)
     blur: Literal["none", "mild", "severe"] = "mild"
+
+    @model_validator(mode="after")
+    def bounded_work(self) -> "SynthRequest":
+        # Each bound alone allows 1024² x 2000 x 64 rendered pixels: days of CPU.
+        renders = self.size * self.size * self.frames * self.subframes
+        if renders > MAX_SYNTH_PIXELS:
+            raise ValueError(f"size² x frames x subframes is {renders:,}, above {MAX_SYNTH_PIXELS:,} "
+                             "(lower one of them)")
+        return self
 
 
 def public(row: dict) -> dict:

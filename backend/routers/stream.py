@@ -188,6 +188,11 @@ async def progress(conn: Connection, app) -> None:
 
 @router.websocket("/api/runs/{run_id}/stream")
 async def stream(ws: WebSocket, run_id: str) -> None:
+    # Accepted, then closed with a code: a handshake refused before accepting reaches a
+    # browser as close code 1006 with no reason (a real server answers it with an HTTP 403),
+    # while 4401/4404 after accepting tell the page what went wrong. (Host and Origin are
+    # refused at the handshake by HostOriginGuard: a cross-site page gets no connection.)
+    await ws.accept()
     if not await websocket_token_ok(ws):
         await ws.close(code=4401, reason="missing or wrong access token")
         return
@@ -195,7 +200,6 @@ async def stream(ws: WebSocket, run_id: str) -> None:
     if app.state.ws.get("runs", run_id) is None:
         await ws.close(code=4404, reason=f"no run with id {run_id!r}")
         return
-    await ws.accept()
     conn = Connection(ws, run_id)
     hub = app.state.hub
     hub.subs[run_id].add(conn)

@@ -101,7 +101,8 @@ export class Viewer {
     this.ws = openStream(this.runId);
     this.ws.onopen = () => this.subscribe();
     this.ws.onmessage = (e) => (typeof e.data === "string" ? this.onJSON(JSON.parse(e.data)) : this.onBuffer(e.data));
-    this.ws.onclose = () => this.status("connection closed");
+    // 4401 (token), 4404 (run), 4008 (slow reader) come with a reason worth showing.
+    this.ws.onclose = (e) => this.status(e.reason ? `connection closed (${e.code}): ${e.reason}` : "connection closed");
   }
 
   subscribe() {

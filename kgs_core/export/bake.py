@@ -167,9 +167,12 @@ def quat_to_rotmat_np(q: np.ndarray) -> np.ndarray:
                      2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
 
 
+MAX_TIMES = 4096  # more exported times than this is a typo (one file or video frame each)
+
+
 def parse_times(spec: str | None, default: list[float]) -> list[float]:
     """`--times`: `0.5` (one time), `0,0.25,0.5` (a list) or `0:1:30` (30 evenly spaced times,
-    both ends included); None gives `default`. Times must lie in [0, 1]."""
+    both ends included); None gives `default`. Times must lie in [0, 1], at most MAX_TIMES."""
     if spec is None or spec == "":
         return list(default)
     try:
@@ -178,15 +181,17 @@ def parse_times(spec: str | None, default: list[float]) -> list[float]:
             if len(parts) != 3:
                 raise ValueError
             a, b, n = float(parts[0]), float(parts[1]), int(parts[2])
-            if n < 1:
-                raise ValueError
+            if not 1 <= n <= MAX_TIMES:
+                raise ValueError(f"--times: COUNT must be in 1..{MAX_TIMES}, got {n}")
             times = np.linspace(a, b, n).tolist()
         else:
             times = [float(s) for s in spec.split(",") if s.strip()]
-    except ValueError:
+    except ValueError as exc:
+        if str(exc).startswith("--times"):
+            raise
         raise ValueError(f"--times: expected T, T1,T2,... or START:STOP:COUNT, got {spec!r}") from None
-    if not times:
-        raise ValueError(f"--times: no times in {spec!r}")
+    if not times or len(times) > MAX_TIMES:
+        raise ValueError(f"--times: between 1 and {MAX_TIMES} times, got {len(times)} in {spec[:40]!r}")
     bad = [t for t in times if not (0.0 <= t <= 1.0) or not np.isfinite(t)]
     if bad:
         raise ValueError(f"--times: times must lie in [0, 1], got {bad[:3]}")

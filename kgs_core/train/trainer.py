@@ -4,6 +4,7 @@ held-out PSNR against wall time, checkpoints and resume."""
 from __future__ import annotations
 
 import math
+import os
 import random
 import time
 import traceback
@@ -433,7 +434,11 @@ class Trainer:
             self.restore(ckpts[-1])
         else:
             self.init_model()
-        info = {"status": "training", "scene": str(Path(self.scene.root).resolve()), "scene_name": self.scene.name,
+        scene_root = Path(self.scene.root).resolve()
+        # The scene both as an absolute path (for people) and relative to the run (what a
+        # copied or moved workspace, or data folder, still finds): `LoadedRun.scene_path`.
+        info = {"status": "training", "scene": str(scene_root), "scene_from_run": os.path.relpath(scene_root, self.run_dir.resolve()),
+                "scene_name": self.scene.name,
                 "config": cfg.to_dict(), "normalization": self.scene.normalization.to_dict(),
                 "exposure": self.exposure, "dt": self.scene.dt,
                 "frames": len(self.scene.frames), "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height]}
