@@ -13,6 +13,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from kgs_core.data.formats import load_scene
     from kgs_core.data.synth.generate import DEFAULT_SCENE, synthesize
     from kgs_core.evaluate import evaluate_run
+    from kgs_core.threads import tuner_for_process
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import train
 
@@ -33,7 +34,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
         shutil.rmtree(run_dir, ignore_errors=True)
         over = {"iterations": args.iterations} if args.iterations else {}
-        train(scene, run_dir, make_config("fast", scene=scene, **over))
+        train(scene, run_dir, make_config("fast", scene=scene, **over), threads=tuner_for_process())
     print("[3/4] evaluating")
     evaluate_run(run_dir)
     print((run_dir / "metrics.md").read_text())
@@ -75,6 +76,7 @@ def cmd_ingest(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     """Train Kinematics-GS on a scene folder; writes a run directory."""
     from kgs_core.data.formats import load_scene
+    from kgs_core.threads import tuner_for_process
     from kgs_core.train.config import make_config, overrides_from
     from kgs_core.train.trainer import train
 
@@ -90,10 +92,63 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise FileExistsError(f"{out} exists: pass --resume to continue it, or choose another --out")
-    info = train(scene, out, cfg, resume=args.resume)
+    info = train(scene, out, cfg, resume=args.resume, threads=tuner_for_process())
     print(f"{info['status']}: {info['iteration']} iterations in {info['train_seconds']:.0f} s, "
           f"{info['gaussians']:,} Gaussians ({info['dynamic_share']:.0%} dynamic), held-out PSNR "
           f"{info['final_psnr_heldout']:.2f} dB -> {out}")
+    return 0
+
+
+def cmd_train_many(args: argparse.Namespace) -> int:
+    """Trains every scene x preset x seed into OUT/runs/, in turn here or as Ray tasks (--ray)."""
+    import json
+
+    from kgs_core.data.formats import load_scene
+    from kgs_core.io import atomic_write_text
+    from kgs_core.threads import tuner_for_process
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import Trainer
+
+    from .cluster import run_trainers
+
+    presets = [p for p in args.presets.split(",") if p]
+    seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+    if args.task_cpus < 1:
+        raise ValueError(f"--task-cpus must be at least 1, got {args.task_cpus}")
+    for p in presets:
+        make_config(p)  # an unknown preset fails before any scene is read
+    out = Path(args.out)
+    trainers = []
+    for folder in args.scenes:
+        scene = load_scene(folder)  # every scene checked before any training
+        name = Path(folder).resolve().name
+        for preset in presets:
+            for seed in seeds:
+                run_dir = out / "runs" / f"{name}-{preset}-s{seed}"
+                if run_dir.exists() and any(run_dir.iterdir()):
+                    raise FileExistsError(f"{run_dir} exists: remove it or choose another --out")
+                overrides = {"iterations": args.iterations} if args.iterations else {}
+                cfg = make_config(preset, scene=scene, seed=seed, **overrides)
+                trainers.append(Trainer(scene, run_dir, cfg, progress=args.ray is None))
+    print(f"{len(trainers)} trainings: {len(args.scenes)} scenes x {len(presets)} presets x {len(seeds)} seeds -> {out / 'runs'}")
+    if args.ray is None:
+        nodes = []
+        for i, t in enumerate(trainers, 1):
+            print(f"[{i}/{len(trainers)}] {t.run_dir.name}")
+            t.threads = tuner_for_process()
+            t.run()
+    else:
+        nodes = run_trainers(trainers, args.ray, args.task_cpus)
+    rows = [{"run": str(t.run_dir), "iterations": t.info["iteration"], "train_seconds": round(t.train_seconds, 1),
+             "psnr_heldout": t.info.get("final_psnr_heldout"), "gaussians": t.info["gaussians"],
+             "dynamic_share": t.info["dynamic_share"], **({"node": n} if n else {})}
+            for t, n in zip(trainers, nodes or [None] * len(trainers))]
+    atomic_write_text(out / "train-many.json", json.dumps(rows, indent=1))
+    print("| run | iterations | train s | held-out PSNR | Gaussians | dynamic |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: |")
+    for r in rows:
+        print(f"| {Path(r['run']).name} | {r['iterations']} | {r['train_seconds']:.0f} | {r['psnr_heldout']:.2f} | "
+              f"{r['gaussians']:,} | {r['dynamic_share']:.0%} |")
     return 0
 
 
@@ -206,7 +261,7 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("raster", "step", "quality", "real", "stability", "serve")  # modules of kgs_app.bench
+BENCHMARKS = ("raster", "step", "quality", "real", "stability", "serve", "threads")  # modules of kgs_app.bench
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -307,6 +362,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.set_defaults(func=cmd_train)
 
+    p = sub.add_parser("train-many", help="train several scenes x presets x seeds, in turn or as Ray tasks (--ray)")
+    p.add_argument("scenes", nargs="+", help="scene folders")
+    p.add_argument("--out", required=True, help="workspace folder: runs go to OUT/runs/SCENE-PRESET-sSEED (with --ray "
+                   "on a cluster, a folder every node mounts)")
+    p.add_argument("--presets", default="fast", help="comma-separated, of: " + ", ".join(sorted(PRESETS)))
+    p.add_argument("--seeds", default="0", help="comma-separated training seeds")
+    p.add_argument("--iterations", type=positive_int, help="override every preset's iteration count")
+    from .cluster import add_ray_options
+
+    add_ray_options(p)
+    p.set_defaults(func=cmd_train_many)
+
     p = sub.add_parser("eval", help="evaluate a run: PSNR/SSIM (+ in the dynamic mask), decomposition IoU, FPS per LoD")
     p.add_argument("run")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
@@ -362,13 +429,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="raster: rasteriser timings and a raster-only training step; step: the whole model's "
                         "training step at the demo scale, by phase; serve: scrubbing latency, 50 clients; "
                         "stability: float32 vs float64 and training on extreme sequences; quality: each "
-                        "ablation and baseline on the same time budget, tau sweep")
+                        "ablation and baseline on the same time budget, tau sweep; real: the shared real clips "
+                        "against the baselines; threads: training alone, two at once and beside a busy "
+                        "process under each OpenMP setting")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options of the benchmark (--help for them)")
     p.set_defaults(func=cmd_bench)
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
+    from kgs_core.threads import configure_process
+
+    configure_process()  # before anything imports torch: OpenMP reads its settings once
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -16,6 +16,8 @@ import sys
 import threading
 from pathlib import Path
 
+from kgs_core.threads import cores_available, placement_env, requested_cores
+
 from .registry import Workspace
 
 
@@ -46,13 +48,27 @@ class JobRunner:
 
     def start(self, table: str, id_: str, kind: str, spec: dict, on_done=None) -> None:
         log = open(self.ws.root / "jobs" / f"{id_}.log", "ab")
+        cores = self.share(len(self.live()) + 1)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(placement_env(cores) if cores else {})}
         proc = subprocess.Popen([sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec)],
-                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         log.close()
         self.procs[id_] = proc
         self.ws.update(table, id_, status="running", pid=proc.pid, error=None)
         threading.Thread(target=self._watch, args=(table, id_, proc, on_done), daemon=True).start()
+
+    def live(self) -> list[str]:
+        return [i for i, p in list(self.procs.items()) if p.poll() is None]
+
+    @staticmethod
+    def share(jobs: int) -> int | None:
+        """The cores a job starts with when `jobs` run at once: the machine's (or KGS_THREADS)
+        divided among them, at least one; None with KGS_THREADS=off (the environment is left
+        alone). A training then follows the load (kgs_core.threads.ThreadTuner): it takes the
+        cores back when the others end, and gives way to the server's own rendering."""
+        if os.environ.get("KGS_THREADS", "").strip().lower() == "off":
+            return None
+        return max(1, (requested_cores() or cores_available()) // max(1, jobs))
 
     def _watch(self, table: str, id_: str, proc: subprocess.Popen, on_done) -> None:
         rc = proc.wait()

@@ -13,7 +13,7 @@ stamp="$VENV/.kgs-stamp-$(sha256sum pyproject.toml | cut -c1-16)"
 if [ ! -f "$stamp" ]; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
   "$VENV/bin/python" -m pip install -q "torch==2.13.0"
-  "$VENV/bin/python" -m pip install -q -e ".[dev]"
+  "$VENV/bin/python" -m pip install -q -e ".[dev,cluster]"  # cluster: Ray, for its tests
   rm -f "$VENV"/.kgs-stamp-*
   touch "$stamp"
 fi

@@ -26,13 +26,16 @@ class Trained:
 
 
 def equal_time(names: list[str], trainer_for: Callable[[str, int, str], Trainer], iterations: int,
-               budget: str = "time", cuts: int = 1) -> tuple[list[Trained], list[Trained]]:
+               budget: str = "time", cuts: int = 1,
+               train_all: Callable[[list[Trainer]], object] = interleave) -> tuple[list[Trained], list[Trained]]:
     """Trains `names` (the first one sets the budget) and returns `(first round, re-timed runs)`.
     `trainer_for(name, iterations, folder_suffix)` makes a fresh trainer. A re-timed run's time
-    is the interleaved rate times its count: a time of its own would be measured under other
-    machine conditions than the first configuration's."""
+    is the first round's rate times its count: a time of its own would be measured under other
+    machine conditions than the first configuration's. `train_all` trains a list of trainers:
+    stepped in turn here (`interleave`), or as Ray tasks (`kgs_app.cluster.run_trainers`), where
+    each configuration's rate is its own task's, on whichever node ran it."""
     first = [trainer_for(name, iterations, "") for name in names]
-    interleave(first)
+    train_all(first)
     rate = {name: tr.train_seconds / iterations for name, tr in zip(names, first)}
     done = [Trained(name, tr, iterations, tr.train_seconds, False) for name, tr in zip(names, first)]
     if budget != "time":
@@ -45,5 +48,5 @@ def equal_time(names: list[str], trainer_for: Callable[[str, int, str], Trainer]
     if not runs:
         return done, []
     second = [trainer_for(name, n, f"_equal_time_{n}") for name, n in runs]
-    interleave(second)
+    train_all(second)
     return done, [Trained(name, tr, n, rate[name] * n, True) for (name, n), tr in zip(runs, second)]

@@ -156,6 +156,7 @@ def main(argv: list[str]) -> int:
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import Trainer
 
+    from ..cluster import add_ray_options, ray_runner, timing_note
     from .equal_time import equal_time
 
     ap = argparse.ArgumentParser(prog="kgs-app bench quality", description=__doc__.split("\n\n")[0])
@@ -176,7 +177,9 @@ def main(argv: list[str]) -> int:
                          "spread over ±5%% of the equal-time one, and report their mean too (default 1)")
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
     ap.add_argument("--plot", default="docs/quality_psnr_vs_time.png")
-    ap.add_argument("--out", help="keep the runs here (default: a temporary folder)")
+    ap.add_argument("--out", help="keep the runs here (default: a temporary folder; with --ray on a cluster, a "
+                    "folder every node mounts)")
+    add_ray_options(ap)
     args = ap.parse_args(argv)
     if args.cuts < 1:
         ap.error(f"--cuts must be at least 1, got {args.cuts}")
@@ -220,8 +223,9 @@ def main(argv: list[str]) -> int:
 
     # Every configuration at the same iteration count, stepped in turn, then (--budget time)
     # the ones whose cost differs re-trained at the equal-time count (`equal_time`).
+    nodes: list[str] = []
     first, second = equal_time(names, lambda name, n, suffix: trainer_for(name, n, suffix), args.iterations,
-                               args.budget, args.cuts)
+                               args.budget, args.cuts, **ray_runner(args, nodes))
     rate = {t.name: t.seconds / t.iterations for t in first}
     for t in first:
         report(t.name, t.trainer, f"{t.seconds:.0f}")
@@ -235,6 +239,8 @@ def main(argv: list[str]) -> int:
     for name, ms in metrics.items():
         if len(ms) > 1:
             print(mean_row(f"{name}, same time, mean of {len(ms)} cuts", ms), flush=True)
+    if nodes:
+        print("\n" + timing_note(nodes, args.task_cpus))
     if "full" in names:
         print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
         print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")

@@ -152,6 +152,7 @@ def main(argv: list[str]) -> int:
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import Trainer
 
+    from ..cluster import add_ray_options, ray_runner, timing_note
     from .equal_time import equal_time
     from .quality import config_overrides, config_slug, select_configs
 
@@ -170,7 +171,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--budget", default="time", choices=["time", "iterations"])
     ap.add_argument("--cuts", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s)")
+    ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s; "
+                    "with --ray on a cluster, a folder every node mounts)")
+    add_ray_options(ap)
     args = ap.parse_args(argv)
     if args.cuts < 1 or (args.cuts > 1 and args.budget != "time"):
         ap.error("--cuts is at least 1, and more than 1 only with --budget time")
@@ -201,13 +204,15 @@ def main(argv: list[str]) -> int:
         print(f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
               f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
               f"{names[0]}", flush=True)
-        first, second = equal_time(names, trainer_for, iterations, args.budget, args.cuts)
+        nodes: list[str] = []
+        first, second = equal_time(names, trainer_for, iterations, args.budget, args.cuts, **ray_runner(args, nodes))
         static_run = load_run(next(t for t in first if t.name == static_name).trainer.run_dir)
         masks = dynamic_masks(static_run.model, scene)
         share = float(np.mean([m.mean() for m in masks]))
         lines += [f"## {name}", "",
                   f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at {scene.frames[0].camera.width}x"
-                  f"{scene.frames[0].camera.height}; dynamic-region mask: {share:.1%} of the sharp-camera pixels.", "",
+                  f"{scene.frames[0].camera.height}; dynamic-region mask: {share:.1%} of the sharp-camera pixels."
+                  + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""), "",
                   "| configuration | PSNR | SSIM | PSNR in mask | SSIM in mask | dynamic | Gaussians | iterations | train s |",
                   "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
         print("\n".join(lines[-5:]), flush=True)

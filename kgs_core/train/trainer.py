@@ -104,8 +104,9 @@ def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
 class Trainer:
     def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
                  on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
-                 on_step: Callable[[int, float], None] | None = None):
+                 on_step: Callable[[int, float], None] | None = None, threads=None):
         self.scene, self.cfg = scene, cfg
+        self.threads = threads  # a kgs_core.threads.ThreadTuner, or None (the count stays as it is)
         self.run_dir = Path(run_dir)
         self.progress, self.on_log, self.should_stop, self.on_step = progress, on_log, should_stop, on_step
         self.lr_scale = 1.0  # lowered by NaN recoveries (on_nonfinite = "restore")
@@ -470,6 +471,8 @@ class Trainer:
                         raise
                     self.recover(exc)
                     continue
+                if self.threads is not None:
+                    self.threads.observe(time.perf_counter() - t0)
                 self.after_step(self.iteration)
                 self.iteration += 1
                 self.train_seconds += time.perf_counter() - t0
