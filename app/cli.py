@@ -100,7 +100,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_train_many(args: argparse.Namespace) -> int:
-    """Trains every scene x preset x seed into OUT/runs/, in turn here or as Ray tasks (--ray)."""
+    """Trains every scene x preset x configuration x seed into OUT/runs/, in turn here or as Ray
+    tasks (--ray); a table and OUT/train-many.json summarise them."""
     import json
 
     from kgs_core.data.formats import load_scene
@@ -109,8 +110,10 @@ def cmd_train_many(args: argparse.Namespace) -> int:
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import Trainer
 
+    from .bench.quality import config_overrides, config_slug, select_configs
     from .cluster import run_trainers
 
+    configs = select_configs(args.configs)
     presets = [p for p in args.presets.split(",") if p]
     seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
     if args.task_cpus < 1:
@@ -123,14 +126,17 @@ def cmd_train_many(args: argparse.Namespace) -> int:
         scene = load_scene(folder)  # every scene checked before any training
         name = Path(folder).resolve().name
         for preset in presets:
-            for seed in seeds:
-                run_dir = out / "runs" / f"{name}-{preset}-s{seed}"
-                if run_dir.exists() and any(run_dir.iterdir()):
-                    raise FileExistsError(f"{run_dir} exists: remove it or choose another --out")
-                overrides = {"iterations": args.iterations} if args.iterations else {}
-                cfg = make_config(preset, scene=scene, seed=seed, **overrides)
-                trainers.append(Trainer(scene, run_dir, cfg, progress=args.ray is None))
-    print(f"{len(trainers)} trainings: {len(args.scenes)} scenes x {len(presets)} presets x {len(seeds)} seeds -> {out / 'runs'}")
+            for config in configs:
+                for seed in seeds:
+                    run_dir = out / "runs" / f"{name}-{preset}-{config_slug(config)}-s{seed}"
+                    if run_dir.exists() and any(run_dir.iterdir()):
+                        raise FileExistsError(f"{run_dir} exists: remove it or choose another --out")
+                    over = config_overrides(config) | ({"iterations": args.iterations} if args.iterations else {})
+                    ablate = over.pop("ablate", ())
+                    cfg = make_config(preset, ablate=ablate, scene=scene, seed=seed, **over)
+                    trainers.append(Trainer(scene, run_dir, cfg, progress=args.ray is None))
+    print(f"{len(trainers)} trainings: {len(args.scenes)} scenes x {len(presets)} presets x {len(configs)} "
+          f"configurations x {len(seeds)} seeds -> {out / 'runs'}")
     if args.ray is None:
         nodes = []
         for i, t in enumerate(trainers, 1):
@@ -362,11 +368,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("train-many", help="train several scenes x presets x seeds, in turn or as Ray tasks (--ray)")
+    p = sub.add_parser("train-many", help="train scenes x presets x configurations x seeds, in turn or as Ray tasks "
+                       "(--ray)")
     p.add_argument("scenes", nargs="+", help="scene folders")
-    p.add_argument("--out", required=True, help="workspace folder: runs go to OUT/runs/SCENE-PRESET-sSEED (with --ray "
+    p.add_argument("--out", required=True, help="workspace folder: runs go to OUT/runs/SCENE-PRESET-CONFIG-sSEED (with --ray "
                    "on a cluster, a folder every node mounts)")
     p.add_argument("--presets", default="fast", help="comma-separated, of: " + ", ".join(sorted(PRESETS)))
+    p.add_argument("--configs", default="full", help="comma-separated configurations, as for bench quality (full, "
+                   "split, deform, cf, ..., NAME@KEY=VALUE)")
     p.add_argument("--seeds", default="0", help="comma-separated training seeds")
     p.add_argument("--iterations", type=positive_int, help="override every preset's iteration count")
     from .cluster import add_ray_options

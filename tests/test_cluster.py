@@ -80,6 +80,23 @@ def test_missing_ray_is_a_clear_error(tiny_run, tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "o" / "runs").exists()  # nothing trained, nothing half-written
 
 
+def test_train_many_trains_every_combination_in_turn(tiny_run, tmp_path, capsys):
+    from kgs_app.cli import main
+
+    scene = tiny_run.parent.parent / "scenes" / "bounce"
+    out = tmp_path / "many"
+    assert main(["train-many", str(scene), "--out", str(out), "--configs", "full,split", "--seeds", "0,1",
+                 "--iterations", "8"]) == 0
+    rows = json.loads((out / "train-many.json").read_text())
+    names = sorted(p.name for p in (out / "runs").iterdir())
+    assert names == sorted(f"bounce-fast-{c}-s{s}" for c in ("full", "no_split_D3DGS-like") for s in (0, 1))
+    assert len(rows) == 4 and all(r["iterations"] == 8 for r in rows)
+    assert all(json.loads((out / "runs" / n / "run.json").read_text())["config"]["seed"] == int(n[-1]) for n in names)
+    assert main(["train-many", str(scene), "--out", str(out), "--iterations", "8", "--seeds", "0",
+                 "--configs", "split"]) == 2  # the run exists: refused, nothing overwritten
+    assert "exists" in capsys.readouterr().err
+
+
 def test_placement_environment(monkeypatch):
     assert placement_env(3) == {"OMP_NUM_THREADS": "3", "GOMP_SPINCOUNT": str(SPIN_COUNT)}
     assert placement_env(0)["OMP_NUM_THREADS"] == "1"
