@@ -15,12 +15,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import os
 import random
 import statistics
 import struct
 import tempfile
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -133,24 +135,58 @@ async def wait_for_cache(url: str, timeout: float = 300.0) -> float:
     raise RuntimeError("the trajectory cache was not ready in time")
 
 
-async def clients(url: str, n: int, seconds: float) -> list[float]:
+async def clients(url: str, n: int, seconds: float) -> tuple[list[float], int]:
+    """Latencies of `n` scrubbing clients, and how many of them failed."""
     lat: list[float] = []
-    await asyncio.gather(*(scrub_client(url, seconds, lat, i) for i in range(n)))
-    return lat
+    done = await asyncio.gather(*(scrub_client(url, seconds, lat, i) for i in range(n)), return_exceptions=True)
+    return lat, sum(isinstance(d, BaseException) for d in done)
 
 
-def bench_clients(run: Path, n_clients: int, seconds: float, warm_cache: bool) -> dict:
+def rss_mb(pid: int) -> float:
+    """Resident memory of a process (Linux), MB."""
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return math.nan
+
+
+def api(base: str, method: str, path: str, body: dict | None = None) -> dict:
+    req = urllib.request.Request(base + path, method=method, data=None if body is None else json.dumps(body).encode(),
+                                 headers={"Content-Type": "application/json"})
+    return json.loads(urllib.request.urlopen(req).read() or b"null")
+
+
+def bench_clients(run: Path, n_clients: int, seconds: float, warm_cache: bool, training_scene: Path | None = None) -> dict:
+    """`n_clients` scrubbing one run for `seconds`; with `training_scene`, while the server
+    trains the fast preset on it (a job started through the API, cancelled afterwards)."""
     from kgs_backend.launch import ServerProcess
 
-    with ServerProcess([run], Path(tempfile.mkdtemp(prefix="kgs-bench-ws-"))) as srv:
+    paths = [run] + ([training_scene] if training_scene else [])
+    with ServerProcess(paths, Path(tempfile.mkdtemp(prefix="kgs-bench-ws-"))) as srv:
         url = srv.base.replace("http", "ws", 1) + f"/api/runs/{srv.runs[0]['id']}/stream"
         asyncio.run(clients(url, 1, 1.0))  # load the model
         cache_s = asyncio.run(wait_for_cache(url)) if warm_cache else None
-        lat = asyncio.run(clients(url, n_clients, seconds))
+        job = None
+        if training_scene:
+            scene_id = api(srv.base, "GET", "/api/scenes")[0]["id"]
+            job = api(srv.base, "POST", "/api/runs", {"scene_id": scene_id, "iterations": 1_000_000})["id"]
+            time.sleep(10.0)  # past the job's start-up: scrub while it trains
+        rss0 = rss_mb(srv.proc.pid)
+        lat, errors = asyncio.run(clients(url, n_clients, seconds))
+        rss1 = rss_mb(srv.proc.pid)
+        trained = None
+        if job:
+            row = api(srv.base, "GET", f"/api/runs/{job}")
+            trained = (row.get("progress") or {}).get("iteration")
+            if row["status"] != "running":
+                raise RuntimeError(f"the training job was not running while the clients scrubbed: {row['status']} "
+                                   f"{row.get('error')}")
+            api(srv.base, "POST", f"/api/runs/{job}/cancel")
     lat.sort()
-    return {"clients": n_clients, "seconds": seconds, "requests": len(lat),
+    return {"clients": n_clients, "seconds": seconds, "requests": len(lat), "errors": errors,
             "p50_ms": statistics.median(lat), "p95_ms": lat[int(0.95 * (len(lat) - 1))],
-            "per_client_hz": len(lat) / seconds / n_clients, "cache_ready_s": cache_s}
+            "per_client_hz": len(lat) / seconds / n_clients, "cache_ready_s": cache_s,
+            "server_rss_mb": (rss0, rss1), "training_iteration": trained}
 
 
 def main(argv: list[str]) -> int:
@@ -161,6 +197,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--clients", type=int, default=50)
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--skip-clients", action="store_true")
+    ap.add_argument("--with-training", action="store_true",
+                    help="also scrub (cache warm) while the server trains the demo scene through its API")
     ap.add_argument("--run", help="also measure a real run directory (interpolation error of a trained field)")
     args = ap.parse_args(argv)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
@@ -180,10 +218,18 @@ def main(argv: list[str]) -> int:
               f"{r['interp_err_max']:.2e} (scene extent {extent:.2f}); cache {r['cache_samples']} samples, "
               f"built in {r['cache_build_s']:.1f} s")
     if not args.skip_clients:
-        for warm in (False, True):
-            c = bench_clients(run, args.clients, args.seconds, warm)
-            print(f"{c['clients']} scrubbing clients, {c['seconds']:.0f} s, "
-                  f"{'trajectory cache warm' if warm else 'cold start (exact until the cache is built)'}: "
-                  f"{c['requests']} buffers, p50 {c['p50_ms']:.0f} ms, p95 {c['p95_ms']:.0f} ms, "
-                  f"{c['per_client_hz']:.1f} buffers/s per client")
+        cases = [(False, None), (True, None)]
+        if args.with_training:
+            from kgs_core.data.synth.generate import DEFAULT_SCENE, synthesize
+
+            cases.append((True, synthesize(DEFAULT_SCENE, root / "train-scene", blur="mild", progress=False)))
+        for warm, scene in cases:
+            c = bench_clients(run, args.clients, args.seconds, warm, scene)
+            what = "trajectory cache warm" if warm else "cold start (exact until the cache is built)"
+            if scene:
+                what += f", while the server trains the fast preset (iteration {c['training_iteration']} at the end)"
+            print(f"{c['clients']} scrubbing clients, {c['seconds']:.0f} s, {what}: "
+                  f"{c['requests']} buffers, {c['errors']} errors, p50 {c['p50_ms']:.0f} ms, p95 {c['p95_ms']:.0f} ms, "
+                  f"{c['per_client_hz']:.1f} buffers/s per client; server RSS {c['server_rss_mb'][0]:.0f} -> "
+                  f"{c['server_rss_mb'][1]:.0f} MB")
     return 0
