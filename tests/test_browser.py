@@ -113,6 +113,19 @@ def test_tau_slider_updates_counts(page):
     assert "e-" in page.inner_text("#tau-label")
 
 
+def test_every_control_is_labelled_and_explained(page):
+    """Each input, select and button of the side panel has an accessible name (its own
+    aria-label, a wrapping label or its text) and a tooltip (its own title or its label's)."""
+    missing = page.evaluate("""() => [...document.querySelectorAll('#controls input, #controls select, #controls button')]
+        .filter((el) => {
+          const label = el.closest('label');
+          const name = el.getAttribute('aria-label') || (label && label.textContent.trim()) || el.textContent.trim();
+          const tip = el.title || (label && label.title);
+          return !name || !tip;
+        }).map((el) => el.id)""")
+    assert missing == []
+
+
 def test_frame_matches_the_server_render(page, server):
     t = 0.5
     web = pixels(page, t)
@@ -133,6 +146,10 @@ def test_edit_then_export_drops_deleted_splats(page, server):
     page.click("#edit-delete")
     page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts')"
                            f".dataset.static == {total - n_sel}", timeout=30_000)
+    # The header and the LoD menu show the new total too.
+    assert page.get_attribute("#run-title", "data-kept") == str(total - n_sel)
+    assert f"{total - n_sel:,} Gaussians" in page.inner_text("#run-title")
+    assert f"({total - n_sel:,})" in page.eval_on_selector("#lod", "s => s.options[s.selectedIndex].textContent")
     page.select_option("#export-format", "glb")
     page.click("#export-go")
     page.wait_for_selector("#export-link", timeout=120_000)

@@ -139,6 +139,26 @@ def test_splatv_container_and_fit(tiny_run, tmp_path):
     assert json.loads(out.with_name(out.name + ".json").read_text())["fit"] == fit
 
 
+def test_splatv_cameras_are_display_sized_and_the_suffix_is_added(tiny_run, tmp_path):
+    """splaTV reads fx against its window width: the cameras keep the training field of view at
+    a display-sized width; `--out NAME` without the suffix writes NAME.splatv."""
+    import math
+
+    from kgs_core.data.formats import load_scene
+    from kgs_core.export.splatv import DISPLAY_WIDTH
+
+    res = export_run(tiny_run, "splatv", out=tmp_path / "scene", times="0:1:3", progress=False)
+    assert res.path == tmp_path / "scene.splatv" and res.path.is_file()
+    data = res.path.read_bytes()
+    (n,) = struct.unpack_from("<I", data, 4)
+    cams = json.loads(data[8:8 + n])[0]["cameras"]
+    cam = load_scene(tiny_run.parent.parent / "scenes" / "bounce").train_frames[0].camera
+    assert cams and cams[0]["width"] == DISPLAY_WIDTH
+    fov = lambda f, w: 2 * math.degrees(math.atan(w / (2 * f)))  # noqa: E731
+    assert abs(fov(cams[0]["fx"], cams[0]["width"]) - fov(cam.K[0, 0], cam.width)) < 1e-6
+    assert fov(cams[0]["fx"], DISPLAY_WIDTH) < 90  # not the 158° splaTV drew from 48 px frames
+
+
 def test_mp4_training_path_and_side_by_side(tiny_run, tmp_path):
     import av
 

@@ -183,6 +183,13 @@ def test_edits_change_sets_and_are_stored(client, copy_run):
         f"/api/runs/{rid}").json()["split"]["gaussians"]
 
 
+def test_runs_list_tells_runs_apart(client):
+    (run,) = client.get("/api/runs").json()
+    assert run["scene_name"] == "bounce"
+    assert run["folder"].startswith("runs/") and not run["folder"].startswith("/")
+    assert run["created"] > 0
+
+
 def test_unknown_ids(client):
     for path in ("/api/runs/abc", "/api/scenes/abc", "/api/exports/abc", "/api/exports/abc/download"):
         assert client.get(path).status_code == 404, path

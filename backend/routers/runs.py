@@ -65,6 +65,10 @@ def public(row: dict) -> dict:
     path = Path(row["path"])
     info = read_json(path / "run.json")
     out = {k: row[k] for k in ("id", "scene_id", "name", "status", "error", "created")}
+    # What tells two runs of one name apart on the runs page: their scene and their folder
+    # (its last two parts: the server's own layout is not the client's business).
+    out["scene_name"] = info.get("scene_name")
+    out["folder"] = f"{path.parent.name}/{path.name}"
     out["progress"] = read_json(path / "progress.json") or None
     out["has_model"] = (path / "model.pt").is_file()
     for k in ("iteration", "train_seconds", "final_psnr_heldout", "gaussians", "dynamic_share", "lod_levels"):

@@ -14,6 +14,7 @@ export async function showRuns() {
     : `<li class="muted">no scenes yet</li>`;
   $("run-list").innerHTML = runs.length
     ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(r.status)}</span>
+        <span class="muted run-where">${esc(r.scene_name || "?")} · ${esc(new Date(r.created * 1000).toLocaleString())} · ${esc(r.folder)}</span>
         ${r.final_psnr_heldout ? ` · ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB` : ""}
         ${r.has_model ? `<a href="#/run/${encodeURIComponent(r.id)}">open</a>` : ""}
         ${["queued", "running"].includes(r.status) ? `<button data-watch="${esc(r.id)}">watch</button> <button data-cancel="${esc(r.id)}">cancel</button>` : ""}

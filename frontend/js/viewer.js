@@ -43,7 +43,6 @@ export class Viewer {
     this.meta = await api(`/api/runs/${this.runId}`);
     if (!this.meta.has_model) throw new Error(`run ${this.runId} has no model yet (${this.meta.status})`);
     const m = this.meta;
-    $("run-title").textContent = `${m.name} · ${m.split.gaussians.toLocaleString()} Gaussians`;
     this.initCamera();
     this.initControls();
     this.connect();
@@ -315,11 +314,17 @@ export class Viewer {
     });
   }
 
+  // The title, the set counts and the LoD menu all show what is kept now: after a delete or a
+  // restore (the server's "split" message) they change together.
   updateCounts() {
     const s = this.meta.split;
+    $("run-title").textContent = `${this.meta.name} · ${s.kept.toLocaleString()} Gaussians`;
+    $("run-title").dataset.kept = s.kept;
     $("counts").textContent = `static ${s.static_kept.toLocaleString()} · dynamic ${s.dynamic_kept.toLocaleString()}`;
     $("counts").dataset.dynamic = s.dynamic_kept;
     $("counts").dataset.static = s.static_kept;
+    const option = document.querySelector(`#lod option[value="${Number(s.lod)}"]`);
+    if (option) option.textContent = `LoD ${Number(s.lod)} (${s.kept.toLocaleString()})`;
   }
 
   nearestInput() {

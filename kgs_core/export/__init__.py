@@ -68,6 +68,8 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
     run_dir = Path(run_dir)
     name = f"{fmt}_lod{source.lod}" + (f"_exp{exposure:g}" if exposure else "")
     out = Path(out) if out else run_dir / "exports" / (name + SUFFIX.get(fmt, ""))
+    if fmt in SUFFIX and out.suffix.lower() != SUFFIX[fmt]:
+        out = out.with_name(out.name + SUFFIX[fmt])  # `--out scene` writes scene.splatv, as documented
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists (pass --force to replace it)")
     report = {"format": fmt, "run": str(run_dir), "lod": source.lod, "exposure": exposure,

@@ -215,17 +215,26 @@ def evaluate_splatv(d: dict, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return p, M @ np.swapaxes(M, 1, 2), opacity
 
 
+DISPLAY_WIDTH = 1280  # splaTV's cameras are sized for a window about this wide
+
+
 def splatv_cameras(frames, limit: int = 10) -> list[dict]:
-    """Cameras in the splaTV/3DGS `cameras.json` form (centre, camera-to-world rotation, focal)."""
+    """Cameras in the splaTV/3DGS `cameras.json` form (centre, camera-to-world rotation, focal).
+
+    splaTV reads `fx`/`fy` in pixels of its window (`innerWidth`) and ignores the camera's own
+    size, so the training camera's focal length in pixels of a 128 px frame drew a 158° field
+    of view there and the scene tiny. Each camera is written scaled up to a display-sized
+    image (DISPLAY_WIDTH wide, the same field of view and aspect), never scaled down."""
     if not frames:
         return []
     step = max(1, len(frames) // limit)
     out = []
     for i, f in enumerate(frames[::step][:limit]):
         R = f.camera.viewmat[:3, :3]
-        out.append({"id": i, "img_name": f.id, "width": f.camera.width, "height": f.camera.height,
+        k = max(1.0, DISPLAY_WIDTH / f.camera.width)
+        out.append({"id": i, "img_name": f.id, "width": round(f.camera.width * k), "height": round(f.camera.height * k),
                     "position": f.camera.center.tolist(), "rotation": R.T.tolist(),
-                    "fx": float(f.camera.K[0, 0]), "fy": float(f.camera.K[1, 1])})
+                    "fx": float(f.camera.K[0, 0]) * k, "fy": float(f.camera.K[1, 1]) * k})
     return out
 
 
