@@ -124,6 +124,8 @@ def test_every_control_is_labelled_and_explained(page):
           return !name || !tip;
         }).map((el) => el.id)""")
     assert missing == []
+    captured = page.eval_on_selector('#exposure option[value="captured"]', "o => [o.textContent, o.disabled]")
+    assert captured[0].startswith("as captured (exposure ") and captured[1] is False  # the test run's is 0.5
 
 
 def test_frame_matches_the_server_render(page, server):

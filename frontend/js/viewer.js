@@ -271,6 +271,10 @@ export class Viewer {
       this.buildArrows();
       this.dirty = true;
     };
+    // Say which exposure "as captured" renders with; with none recorded it would change nothing.
+    const captured = document.querySelector('#exposure option[value="captured"]');
+    captured.textContent = `as captured (exposure ${Number(m.exposure || 0).toFixed(2)})`;
+    captured.disabled = !(m.exposure > 0);
     $("exposure").onchange = (e) => {
       this.exposure = e.target.value === "captured" ? m.exposure : 0;
       this.requestTime();
