@@ -138,6 +138,18 @@ def test_frame_matches_the_server_render(page, server):
     assert err < MAX_MEAN_ERROR
 
 
+def test_selection_keeps_to_the_front_unless_through(page):
+    """A box takes the visible surface by default, not what lies behind it; "through" takes
+    every splat inside it."""
+    pixels(page, 0.5)
+    front = page.evaluate("kgs.selectBox(0, 0, 48, 48)")
+    page.check("#select-through")
+    every = page.evaluate("kgs.selectBox(0, 0, 48, 48)")
+    page.uncheck("#select-through")
+    page.evaluate("kgs.setSelection(new Set())")
+    assert 0 < front < every
+
+
 def test_edit_then_export_drops_deleted_splats(page, server):
     pixels(page, 0.5)
     page.select_option("#tool", "box")

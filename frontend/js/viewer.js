@@ -8,6 +8,7 @@ import { SplatRenderer } from "./renderer.js";
 import { OrbitCamera, cameraCenter, flyMove, flyTurn, intrinsics, project } from "./camera.js";
 import { drawHistogram } from "./chart.js";
 import { esc } from "./dom.js";
+import { frontOf } from "./pick.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -420,19 +421,23 @@ export class Viewer {
   }
 
   // Indices (within the LoD level) of drawn splats whose centre projects inside `inside(u, v)`.
+  // The splats whose centres fall inside a screen region. By default only those at the front:
+  // a box around a ball must not take the wall behind it (deleting would leave a hole there).
+  // "Through" (#select-through) takes everything inside, at every depth.
   pick(inside) {
     const vm = this.currentViewmat(), K = this.intrinsics();
-    const out = new Set();
+    const hits = [];  // [index, u, v, depth]
     for (const set of [this.static, this.dynamic]) {
       if (!set) continue;
       const isDyn = set === this.dynamic;
       if ((isDyn && !(this.show & 2)) || (!isDyn && !(this.show & 1))) continue;
       for (let i = 0; i < set.count; i++) {
         const [u, v, z] = project(vm, K, [set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
-        if (z > 0.01 && inside(u, v)) out.add(set.index[i]);
+        if (z > 0.01 && inside(u, v)) hits.push([set.index[i], u, v, z]);
       }
     }
-    return out;
+    if ($("select-through").checked) return new Set(hits.map((h) => h[0]));
+    return new Set(frontOf(hits).map((h) => h[0]));
   }
 
   editPointer(e, phase) {
@@ -551,3 +556,4 @@ export class Viewer {
     return { width: w, height: h, rgb: out };
   }
 }
+
