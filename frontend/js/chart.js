@@ -33,9 +33,13 @@ export function drawChart(canvas, series, { xLabel = "", title = "" } = {}) {
   });
 }
 
+// The distribution of log10 K (the temporal variance each split compares with τ): bars on a
+// log count scale, static (K <= τ) blue and dynamic orange, τ the white line; the axis is
+// labelled with its ends and τ, the legend says which colour is which.
 export function drawHistogram(canvas, hist, tau) {
   const ctx = canvas.getContext("2d");
-  const w = canvas.width, h = canvas.height;
+  const w = canvas.width, h = canvas.height, axis = 12;
+  const plot = h - axis;
   ctx.clearRect(0, 0, w, h);
   ctx.fillStyle = "#15171c";
   ctx.fillRect(0, 0, w, h);
@@ -46,11 +50,22 @@ export function drawHistogram(canvas, hist, tau) {
   counts.forEach((c, i) => {
     const x = ((edges[i] - lo) / (hi - lo)) * w;
     const bw = ((edges[i + 1] - edges[i]) / (hi - lo)) * w;
-    const bh = (Math.log1p(c) / max) * (h - 4);
+    const bh = (Math.log1p(c) / max) * (plot - 10);
     ctx.fillStyle = edges[i] >= lt ? "#ff8c00" : "#5a7fd0";
-    ctx.fillRect(x, h - bh, Math.max(1, bw - 1), bh);
+    ctx.fillRect(x, plot - bh, Math.max(1, bw - 1), bh);
   });
   const xt = ((lt - lo) / (hi - lo)) * w;
   ctx.fillStyle = "#fff";
-  ctx.fillRect(xt, 0, 1, h);
+  ctx.fillRect(xt, 0, 1, plot);
+  ctx.font = "9px sans-serif";
+  ctx.fillStyle = "#aab";
+  ctx.fillText(`${lo.toFixed(1)}`, 1, h - 2);
+  const right = `${hi.toFixed(1)}`;
+  ctx.fillText(right, w - ctx.measureText(right).width - 1, h - 2);
+  const mid = "log₁₀ K (count: log scale)";
+  ctx.fillText(mid, (w - ctx.measureText(mid).width) / 2, h - 2);
+  ctx.fillStyle = "#5a7fd0";
+  ctx.fillText("■ static", 2, 9);
+  ctx.fillStyle = "#ff8c00";
+  ctx.fillText("■ dynamic", 46, 9);
 }

@@ -9,6 +9,7 @@ import { OrbitCamera, cameraCenter, flyMove, flyTurn, intrinsics, project } from
 import { drawHistogram } from "./chart.js";
 import { esc } from "./dom.js";
 import { frontOf } from "./pick.js";
+import { arrowScale, arrowSegments } from "./arrows.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -169,15 +170,11 @@ export class Viewer {
   buildArrows() {
     const d = this.dynamic;
     if (!d || !d.velocity) { this.renderer.setLines(new Float32Array(0)); return; }
-    const step = Math.max(1, this.stride);
-    const len = (this.meta.dt || 0.02) * 3;  // three frame intervals of motion
-    const out = [];
-    for (let i = 0; i < d.count; i += step) {
-      const p = [d.positions[3 * i], d.positions[3 * i + 1], d.positions[3 * i + 2]];
-      const v = [d.velocity[3 * i], d.velocity[3 * i + 1], d.velocity[3 * i + 2]];
-      out.push(p[0], p[1], p[2], 0, p[0] + len * v[0], p[1] + len * v[1], p[2] + len * v[2], 1);
-    }
-    this.renderer.setLines(new Float32Array(out));
+    const [scale, frames] = arrowScale(d.positions, d.velocity, d.count, this.meta.dt || 0.02);
+    const vm = this.currentViewmat();  // the head strokes face the camera of this moment
+    this.renderer.setLines(arrowSegments(d.positions, d.velocity, d.count, Math.max(1, this.stride), scale,
+                                         [vm[8], vm[9], vm[10]]));
+    $("arrow-scale").textContent = `arrows: ${frames.toFixed(frames < 10 ? 1 : 0)} frame intervals of motion`;
   }
 
   requestSort(force = false) {
@@ -264,7 +261,11 @@ export class Viewer {
       this.show = ($("show-static").checked ? 1 : 0) | ($("show-dynamic").checked ? 2 : 0);
       this.dirty = true;
     };
-    $("overlay").onchange = (e) => { this.overlay = parseInt(e.target.value, 10); this.dirty = true; };
+    $("overlay").onchange = (e) => {
+      this.overlay = parseInt(e.target.value, 10);
+      $("overlay-legend").dataset.overlay = this.overlay;  // the legend of the chosen overlay (CSS)
+      this.dirty = true;
+    };
     $("arrows").onchange = (e) => { this.arrows = e.target.checked; this.dirty = true; };
     $("density").oninput = (e) => {
       this.stride = parseInt(e.target.value, 10);

@@ -31,7 +31,9 @@ bool splat_footprint(vec4 c, mat3 S, mat3 W, vec4 intr, float o, bool solid,
 // solid ellipses coloured by their screen-space major axis and dims everything else.
 vec3 overlay_colour(vec3 rgb, bool dyn, bool solid, int overlay, vec2 major) {
   if (overlay == 1) return mix(rgb, dyn ? vec3(1.0, 0.55, 0.0) : vec3(0.35, 0.5, 0.85), 0.6);
-  if (overlay == 2) return solid ? vec3(0.5 + 0.5 * major.x, 0.5 + 0.5 * major.y, 0.9) : rgb * 0.35;
+  // The axis's doubled angle, so that the colour does not depend on its arbitrary sign: horizontal
+  // pink, vertical blue, the two diagonals mint and violet (the legend in index.html).
+  if (overlay == 2) return solid ? vec3(0.5 + 0.5 * (major.x * major.x - major.y * major.y), 0.5 + major.x * major.y, 0.9) : rgb * 0.35;
   return rgb;
 }
 
