@@ -153,7 +153,8 @@ def cmd_train_many(args: argparse.Namespace) -> int:
     print("| run | iterations | train s | held-out PSNR | Gaussians | dynamic |")
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
-        print(f"| {Path(r['run']).name} | {r['iterations']} | {r['train_seconds']:.0f} | {r['psnr_heldout']:.2f} | "
+        psnr = "n/a" if r["psnr_heldout"] is None else f"{r['psnr_heldout']:.2f}"
+        print(f"| {Path(r['run']).name} | {r['iterations']} | {r['train_seconds']:.0f} | {psnr} | "
               f"{r['gaussians']:,} | {r['dynamic_share']:.0%} |")
     return 0
 

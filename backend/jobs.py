@@ -49,7 +49,10 @@ class JobRunner:
     def start(self, table: str, id_: str, kind: str, spec: dict, on_done=None) -> None:
         log = open(self.ws.root / "jobs" / f"{id_}.log", "ab")
         cores = self.share(len(self.live()) + 1)
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(placement_env(cores) if cores else {})}
+        # The count is the runner's choice, not the user's: the job's ThreadTuner may change it
+        # (unless the server itself was given a fixed count, which its KGS_OMP_FROM_USER says).
+        placement = {**placement_env(cores), "KGS_OMP_FROM_USER": os.environ.get("KGS_OMP_FROM_USER", "0")} if cores else {}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **placement}
         proc = subprocess.Popen([sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec)],
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         log.close()

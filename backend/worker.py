@@ -10,7 +10,6 @@ the job to stop: training then saves a checkpoint and the model as they are ("ca
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import time
@@ -28,7 +27,7 @@ def run_train(spec: dict) -> None:
     from kgs_core.data.formats import load_scene
     from kgs_core.io import atomic_write_text
     from kgs_core.model.dynamic import split_counts
-    from kgs_core.threads import tuner_for_process
+    from kgs_core.threads import omp_threads, tuner_for_process
     from kgs_core.train.config import TrainConfig, make_config
     from kgs_core.train.trainer import Trainer
 
@@ -58,7 +57,7 @@ def run_train(spec: dict) -> None:
             "elapsed": now - t0, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}))
 
     # The job runner's share of the cores to start with, then whatever the load leaves free.
-    threads = tuner_for_process(start=int(os.environ.get("OMP_NUM_THREADS", "0")) or None)
+    threads = tuner_for_process(start=omp_threads())
     trainer = Trainer(scene, run_dir, cfg, progress=False, on_log=on_log, should_stop=lambda: STOP, on_step=on_step,
                       threads=threads)
     trainer.run(resume=bool(spec.get("resume")))

@@ -42,6 +42,12 @@ def requested_cores() -> int | None:
     return int(raw) if raw.isdigit() and int(raw) > 0 else None
 
 
+def omp_threads() -> int | None:
+    """`OMP_NUM_THREADS` as a count: None when unset or not a plain number (e.g. a nested "4,2")."""
+    raw = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return int(raw) if raw.isdigit() and int(raw) > 0 else None
+
+
 def configure_process() -> int | None:
     """Sets this process's placement from `KGS_THREADS` (else every available core), before
     torch is imported where possible; returns the thread count, None when left alone."""
@@ -51,7 +57,7 @@ def configure_process() -> int | None:
         os.environ["KGS_OMP_FROM_USER"] = "1" if "OMP_NUM_THREADS" in os.environ else "0"
     for key, value in placement_env(requested_cores() or cores_available()).items():
         os.environ.setdefault(key, value)
-    threads = int(os.environ["OMP_NUM_THREADS"]) if os.environ["OMP_NUM_THREADS"].isdigit() else None
+    threads = omp_threads()
     if threads and "torch" in sys.modules:  # too late for libgomp's wait policy, not for the count
         sys.modules["torch"].set_num_threads(threads)
     return threads

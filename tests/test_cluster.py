@@ -120,6 +120,13 @@ def test_a_fresh_process_gets_the_placement_and_explicit_settings_win():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**env, "KGS_THREADS": "1", "GOMP_SPINCOUNT": "5"})
     assert out.stdout.split() == ["1", "5", "1"]
+    # An OMP_NUM_THREADS of the user's is kept, and no tuner changes it.
+    code2 = ("import os; from kgs_core.threads import configure_process, tuner_for_process; configure_process(); "
+             "print(os.environ['OMP_NUM_THREADS'], tuner_for_process())")
+    env2 = {k: v for k, v in env.items() if k != "KGS_OMP_FROM_USER"}
+    out = subprocess.run([sys.executable, "-c", code2], capture_output=True, text=True, check=True,
+                         env={**env2, "OMP_NUM_THREADS": "1"})
+    assert out.stdout.split() == ["1", "None"]
 
 
 def test_the_job_runner_divides_the_cores(monkeypatch):
