@@ -16,7 +16,7 @@ import sys
 import threading
 from pathlib import Path
 
-from kgs_core.threads import cores_available, placement_env, requested_cores
+from kgs_core.threads import cores_available, placement_env, placement_off, requested_cores
 
 from .registry import Workspace
 
@@ -69,7 +69,7 @@ class JobRunner:
         divided among them, at least one; None with KGS_THREADS=off (the environment is left
         alone). A training then follows the load (kgs_core.threads.ThreadTuner): it takes the
         cores back when the others end, and gives way to the server's own rendering."""
-        if os.environ.get("KGS_THREADS", "").strip().lower() == "off":
+        if placement_off():
             return None
         return max(1, (requested_cores() or cores_available()) // max(1, jobs))
 

@@ -36,6 +36,11 @@ def placement_env(cores: int) -> dict[str, str]:
     return {"OMP_NUM_THREADS": str(max(1, int(cores))), "GOMP_SPINCOUNT": str(SPIN_COUNT)}
 
 
+def placement_off() -> bool:
+    """`KGS_THREADS=off`: leave OpenMP's and torch's own defaults alone."""
+    return os.environ.get("KGS_THREADS", "").strip().lower() == "off"
+
+
 def requested_cores() -> int | None:
     """`KGS_THREADS` as a number of cores: None when unset, "off" or not a positive number."""
     raw = os.environ.get("KGS_THREADS", "").strip()
@@ -51,7 +56,7 @@ def omp_threads() -> int | None:
 def configure_process() -> int | None:
     """Sets this process's placement from `KGS_THREADS` (else every available core), before
     torch is imported where possible; returns the thread count, None when left alone."""
-    if os.environ.get("KGS_THREADS", "").strip().lower() == "off":
+    if placement_off():
         return None
     if "KGS_OMP_FROM_USER" not in os.environ:  # inherited by child processes: set once, at the top
         os.environ["KGS_OMP_FROM_USER"] = "1" if "OMP_NUM_THREADS" in os.environ else "0"
