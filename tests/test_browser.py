@@ -181,3 +181,28 @@ def test_edit_then_export_drops_deleted_splats(page, server):
     page.click("#edit-restore")
     page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts')"
                            f".dataset.static == {total}", timeout=30_000)
+
+
+def test_cold_open_shows_its_steps_then_clears(browser, server):
+    """The overlay over the canvas says what is loading (the run, the connection, each set as it
+    arrives) and is gone once the first frame has both sets."""
+    ctx = browser.new_context(viewport={"width": 900, "height": 600})
+    page = ctx.new_page()
+    page.add_init_script("""
+        window.loadingSteps = [];
+        document.addEventListener("DOMContentLoaded", () => {
+          const el = document.getElementById("loading");
+          new MutationObserver(() => { if (!el.hidden) window.loadingSteps.push(el.textContent); })
+            .observe(el, { childList: true, characterData: true, subtree: true, attributes: true });
+        });
+    """)
+    page.goto(f"{server['base']}/#/run/{server['run_id']}")
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    page.wait_for_function("document.getElementById('loading').hidden", timeout=30_000)
+    steps = page.evaluate("window.loadingSteps")
+    # ("loading the run…" comes first, before DOMContentLoaded, when the observer starts)
+    assert any("connecting" in s for s in steps), steps
+    assert any("receiving Gaussians" in s and "static" in s and "dynamic" in s for s in steps), steps
+    page.evaluate("kgs.drawn()")
+    assert page.evaluate("document.getElementById('loading').hidden")
+    ctx.close()

@@ -15,6 +15,7 @@ async function route() {
       await viewer.start();
       document.body.dataset.ready = "1";
     } catch (e) {
+      $("loading").hidden = true;
       $("status").textContent = e.message;
       throw e;
     }

@@ -41,9 +41,14 @@ export class Viewer {
   }
 
   async start() {
+    this.loading("loading the run…");
     this.renderer = await SplatRenderer.create(this.canvas);
     this.meta = await api(`/api/runs/${this.runId}`);
-    if (!this.meta.has_model) throw new Error(`run ${this.runId} has no model yet (${this.meta.status})`);
+    if (!this.meta.has_model) {
+      this.loading(null);
+      throw new Error(`run ${this.runId} has no model yet (${this.meta.status})`);
+    }
+    this.loading("connecting…");
     const m = this.meta;
     this.initCamera();
     this.initControls();
@@ -103,12 +108,16 @@ export class Viewer {
     this.ws.onopen = () => this.subscribe();
     this.ws.onmessage = (e) => (typeof e.data === "string" ? this.onJSON(JSON.parse(e.data)) : this.onBuffer(e.data));
     // 4401 (token), 4404 (run), 4008 (slow reader) come with a reason worth showing.
-    this.ws.onclose = (e) => this.status(e.reason ? `connection closed (${e.code}): ${e.reason}` : "connection closed");
+    this.ws.onclose = (e) => {
+      this.loading(null);
+      this.status(e.reason ? `connection closed (${e.code}): ${e.reason}` : "connection closed");
+    };
   }
 
   subscribe() {
     this.static = null;
     this.dynamic = null;
+    this.loadingProgress();
     this.ws.send(JSON.stringify({ type: "subscribe", lod: this.lod, velocity: true }));
     this.requestTime();
   }
@@ -132,6 +141,19 @@ export class Viewer {
     }
   }
 
+  // The cold-open steps, shown over the canvas until the first frame has both sets (null hides).
+  loading(text) {
+    const el = $("loading");
+    el.hidden = !text;
+    el.textContent = text || "";
+  }
+
+  loadingProgress() {
+    if (this.static && this.dynamic) return this.loading(null);
+    const got = (set, name) => (set ? `${name} ${set.count.toLocaleString()} ✓` : `${name}…`);
+    this.loading(`receiving Gaussians: ${got(this.static, "static")} · ${got(this.dynamic, "dynamic")}`);
+  }
+
   onBuffer(data) {
     const set = parseBuffer(data);
     if (set.header.kind === "static") {
@@ -143,6 +165,7 @@ export class Viewer {
       this.dynamic = set;
       this.lastDynamicT = set.header.t;
     }
+    this.loadingProgress();
     this.rebuild();
   }
 
