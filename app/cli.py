@@ -64,12 +64,17 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     from kgs_core.data.ingest import ingest
 
     rep = ingest(args.video, args.out, eval_video=args.eval_video, every=args.every, max_frames=args.max_frames,
-                 max_size=args.max_size, exposure=args.exposure, overwrite=args.overwrite,
-                 undistort=not args.keep_distortion)
-    print(f"registered {rep.registered}/{rep.frames} training frames"
-          + (f", {rep.eval_registered}/{rep.eval_frames} held-out frames" if rep.eval_video else "")
-          + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points; "
-          f"times {rep.seconds} -> {args.out}")
+                 max_size=args.max_size, exposure=args.exposure, mapper=args.mapper, holdout_every=args.holdout_every,
+                 fixed_camera=args.fixed_camera, cache_dir=False if args.no_cache else True,
+                 overwrite=args.overwrite, undistort=not args.keep_distortion)
+    print(f"{rep.mapper} mapper: posed {rep.registered}/{rep.frames} training frames"
+          + (f", {rep.eval_registered}/{rep.eval_frames} frames of the second camera" if rep.eval_video else "")
+          + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points")
+    for a in rep.attempts:
+        print(f"  tried {a['mapper']}: {a['outcome']}, {a['registered_fraction']:.0%} posed in {a['seconds']:.1f} s")
+    print(f"held out: {rep.holdout}; stride {rep.stride} ({rep.stride_reason})"
+          + ("; decoded frames, features and matches reused from the cache" if rep.cached else ""))
+    print(f"seconds {rep.seconds} -> {args.out}")
     return 0
 
 
@@ -268,7 +273,7 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("raster", "step", "quality", "real", "stability", "serve", "threads")  # modules of kgs_app.bench
+BENCHMARKS = ("raster", "step", "quality", "real", "ingest", "stability", "serve", "threads")  # modules of kgs_app.bench
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -324,12 +329,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_synth)
 
+    from kgs_core.data.sfm import MAPPERS
+
     p = sub.add_parser("ingest", help="structure from motion on a (blurry) video -> scene folder")
     p.add_argument("video")
     p.add_argument("--eval-video", help="a synchronised second video: registered as held-out test views")
     p.add_argument("--out", required=True)
-    p.add_argument("--every", type=int, default=1, help="keep every k-th frame")
-    p.add_argument("--max-frames", type=int)
+    p.add_argument("--every", type=int, help="keep every k-th frame (default: all, or about 300 of a longer video)")
+    p.add_argument("--max-frames", type=int, help="keep at most this many frames from the start")
+    p.add_argument("--mapper", choices=MAPPERS, default="auto",
+                   help="SfM mapper: keyframes (fast), global (GLOMAP), incremental (slowest, most robust); "
+                        "auto tries keyframes, then incremental")
+    p.add_argument("--holdout-every", type=int,
+                   help="with one video, hold out every n-th frame as a test view (default 8; 0: none)")
+    p.add_argument("--fixed-camera", action="store_true",
+                   help="the camera does not move: skip SfM and give every frame one pose")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not reuse or keep decoded frames, features and matches (cache: $KGS_CACHE_DIR or "
+                        "~/.cache/kinematics-gs)")
     p.add_argument("--max-size", type=int, default=960, help="downscale so the long side is at most this")
     p.add_argument("--keep-distortion", action="store_true",
                    help="keep the SfM camera's lens distortion instead of undistorting frames to pinhole "

@@ -75,7 +75,8 @@ def run_ingest(spec: dict) -> None:
     from kgs_core.data.ingest import ingest
 
     try:
-        ingest(spec["video"], spec["out"], max_size=int(spec.get("max_size", 960)), overwrite=True)
+        # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
+        ingest(spec["video"], spec["out"], max_size=int(spec.get("max_size", 960)), cache_dir=False, overwrite=True)
     finally:
         if spec.get("delete_video"):  # the uploaded copy: its frames are in the scene now, or it failed
             Path(spec["video"]).unlink(missing_ok=True)

@@ -7,6 +7,19 @@ import torch
 torch.set_num_threads(min(2, os.cpu_count() or 1))
 
 
+@pytest.fixture(autouse=True, scope="session")
+def ingest_cache(tmp_path_factory):
+    """Ingest's frame-set cache lives in a temporary folder, not in the user's home."""
+    folder = tmp_path_factory.mktemp("kgs-cache")
+    old = os.environ.get("KGS_CACHE_DIR")
+    os.environ["KGS_CACHE_DIR"] = str(folder)
+    yield folder
+    if old is None:
+        os.environ.pop("KGS_CACHE_DIR", None)
+    else:
+        os.environ["KGS_CACHE_DIR"] = old
+
+
 @pytest.fixture(scope="session")
 def ext():
     """The compiled C++ rasteriser (built once per machine, then cached)."""

@@ -10,18 +10,7 @@ from kgs_core.data.ingest import ingest
 from kgs_core.data.scene import SceneError
 from kgs_core.data.synth.generate import synthesize
 from kgs_core.data.video import decode_video, encode_video
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising |s R src + t - dst|^2."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = (S * np.diag(D)).sum() / (xs**2).sum(1).mean()
-    return s, R, mu_d - s * R @ mu_s
+from kgs_app.bench.ingest import umeyama
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +32,8 @@ def test_video_round_trip(room_video):
 
 def test_sfm_recovers_camera_centres(room_video, tmp_path):
     video, gt = room_video
-    report = ingest(video, tmp_path / "scene", max_size=None, exposure=0.0, progress=False)
+    report = ingest(video, tmp_path / "scene", max_size=None, exposure=0.0, holdout_every=0, progress=False)
+    assert report.mapper == "keyframes" and report.attempts[0]["outcome"] == "ok"
     assert report.registered_fraction >= 0.9
     assert report.mean_reprojection_error_px < 1.5
     scene = load_scene(tmp_path / "scene")
@@ -85,9 +75,81 @@ def test_unregistrable_video(tmp_path):
     rng = np.random.default_rng(0)
     flat = [np.full((96, 96, 3), 120, np.uint8) + rng.integers(0, 2, (96, 96, 3), dtype=np.uint8) for _ in range(6)]
     video = encode_video(flat, tmp_path / "flat.mp4")
-    with pytest.raises(SceneError, match="structure from motion"):
+    with pytest.raises(SceneError, match=r"structure from motion.*flat\.mp4.*--fixed-camera"):
         ingest(video, tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch):
+    """When the keyframes form no model (here: a keyframe step longer than the clip, kept from
+    shrinking, leaves one keyframe), auto goes on to the incremental mapper and records both
+    attempts."""
+    from kgs_core.data import sfm
+    from kgs_core.data.ingest import frame_set
+    from kgs_core.data.sfm import run_sfm
+
+    monkeypatch.setattr(sfm, "MIN_KEYFRAMES", 0)
+    video, _ = room_video
+    folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
+    result = run_sfm(folder / "database.db", folder / "images", tmp_path / "work", meta["names_a"], [],
+                     meta["sharpness"], "auto", keyframe_step=64, progress=False)
+    assert result.mapper == "incremental"
+    assert [a["mapper"] for a in result.attempts] == ["keyframes", "incremental"]
+    assert result.attempts[0]["outcome"] == "no model" and result.attempts[1]["registered_fraction"] >= 0.9
+
+
+def test_frame_set_is_cached_and_reused(room_video, tmp_path):
+    """A second ingest of the same frames with another mapper reuses the decoded frames,
+    features and matches; a changed stride is another frame set."""
+    video, _ = room_video
+    cache = tmp_path / "cache"
+    first = ingest(video, tmp_path / "a", max_size=None, cache_dir=cache, progress=False)
+    assert not first.cached and "features" in first.seconds
+    again = ingest(video, tmp_path / "b", max_size=None, cache_dir=cache, mapper="incremental", progress=False)
+    assert again.cached and "features" not in again.seconds and again.mapper == "incremental"
+    assert again.registered >= 0.9 * again.frames
+    assert len([d for d in cache.iterdir() if not d.name.startswith(".")]) == 1
+    ingest(video, tmp_path / "c", max_size=None, every=2, cache_dir=cache, progress=False)
+    assert len([d for d in cache.iterdir() if not d.name.startswith(".")]) == 2
+
+
+def test_one_video_holds_out_its_own_frames(room_video, tmp_path):
+    from kgs_core.evaluate import heldout_kind
+
+    video, _ = room_video
+    report = ingest(video, tmp_path / "scene", max_size=None, exposure=0.4, progress=False)  # default: every 8th
+    scene = load_scene(tmp_path / "scene")
+    test_ids = sorted(int(f.id[3:]) for f in scene.test_frames)
+    assert test_ids == [4, 12] and len(scene.train_frames) == 14
+    assert all(f.camera_id == 0 and f.exposure == pytest.approx(0.4) for f in scene.test_frames)
+    assert "same-camera" in report.holdout and "same-camera" in heldout_kind(scene)
+    with pytest.raises(SceneError, match="holdout_every"):
+        ingest(video, tmp_path / "bad", holdout_every=1, progress=False)
+
+
+def test_long_video_gets_a_stride(room_video):
+    from kgs_core.data.ingest import choose_stride
+
+    video, _ = room_video  # 16 frames
+    assert choose_stride(video, None, None, auto_max_frames=100) == (1, "all 16 frames")
+    stride, why = choose_stride(video, None, None, auto_max_frames=5)
+    assert stride == 3 and "16 frames" in why and "every 3rd" in why and "--every" in why
+    assert choose_stride(video, None, None, auto_max_frames=12)[0] == 1  # a third too many: kept whole
+    assert choose_stride(video, 3, None, auto_max_frames=5) == (3, "given")
+    with pytest.raises(SceneError, match="--every"):
+        choose_stride(video, 0, None)
+
+
+def test_fixed_camera_skips_sfm(room_video, tmp_path):
+    video, _ = room_video
+    report = ingest(video, tmp_path / "still", max_size=None, fixed_camera=True, holdout_every=0, progress=False)
+    scene = load_scene(tmp_path / "still")
+    assert report.mapper == "fixed-camera" and len(scene.train_frames) == 16 and len(scene.points) > 1000
+    view = scene.train_frames[0].camera.viewmat
+    assert all(np.allclose(f.camera.viewmat, view) for f in scene.train_frames)
+    # the starting points lie in front of the camera
+    z = scene.points @ view[2, :3] + view[2, 3]
+    assert (z > 0).all()
 
 
 def test_undistort_frame_makes_a_radial_camera_pinhole(tmp_path):

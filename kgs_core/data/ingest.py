@@ -1,15 +1,24 @@
-"""Video ingest: decode, subsample, score sharpness, structure-from-motion with pycolmap, and
-write a Nerfies-layout scene.
+"""Video ingest: decode, subsample, score sharpness, structure from motion (`sfm.py`), and write a
+Nerfies-layout scene.
 
-Blurry frames are where COLMAP fails, so the model is built from the sharpest frames first and
-the rest are registered into it afterwards. An optional second, synchronised video (the BARD-GS
-protocol: a sharp camera beside the blurry one) is registered into the same model and becomes
-the held-out test views. Frames are named so that both videos interleave in time
-(`f00012_a`, `f00012_b`), which lets sequential matching pair the two cameras.
+Two shapes of input:
+- one video (the common case): every `holdout_every`-th frame is held out of training and scored
+  as a test view. Those are same-camera interpolations at the training exposure, not novel
+  views, and the scene records so (`extras.ingest.holdout`).
+- two synchronised videos (the BARD-GS protocol: a sharp camera beside the blurry one): the
+  second one is registered into the same model and becomes the held-out test views.
+
+The decoded frames, their sharpness, features and matches are cached per frame set (videos,
+stride, frame cap and size) under `cache_dir`, so a re-run with another mapper starts at mapping.
+A still camera can skip SfM altogether (`fixed_camera`): every frame gets one pose.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import math
+import os
 import shutil
 import tempfile
 import time
@@ -23,7 +32,15 @@ from ..io import atomic_directory
 from .formats import write_nerfies
 from .formats.colmap import camera_from_colmap
 from .scene import Camera, Frame, Scene, SceneError
-from .video import decode_video
+from .sfm import MAPPERS, extract_and_match, run_sfm
+from .video import count_frames, decode_video
+
+AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
+# Seconds per frame at 320 px on two cores (docs/data.md, "Ingest speed"): decode and write,
+# features, sequential matching, keyframe mapping. Only for the estimate printed at the start.
+SECONDS_PER_FRAME_320 = {"decode": 0.024, "features": 0.026, "matching": 0.02, "mapping": 0.06}
+FIXED_CAMERA_FOV_DEG = 60.0
+PNG_LEVEL = 1  # zlib level for frames: level 6 (PIL's default) took 4x as long for files ~1.3x smaller  # assumed horizontal field of view when no SfM runs
 
 
 @dataclass
@@ -37,6 +54,12 @@ class IngestReport:
     mean_reprojection_error_px: float
     points: int
     seconds: dict = field(default_factory=dict)
+    mapper: str = ""
+    attempts: list = field(default_factory=list)
+    stride: int = 1
+    stride_reason: str = ""
+    holdout: str = ""
+    cached: bool = False
 
     @property
     def registered_fraction(self) -> float:
@@ -50,57 +73,100 @@ def sharpness(img: np.ndarray) -> float:
     return float(lap.var())
 
 
-def run_sfm(work: Path, names_a: list[str], names_b: list[str], scores: dict[str, float],
-            sharp_fraction: float, progress: bool) -> tuple[object, dict]:
-    """Features, sequential matching and two-stage incremental mapping. Returns the largest
-    reconstruction and timings."""
-    import pycolmap
+def choose_stride(video: Path, every: int | None, max_frames: int | None,
+                  auto_max_frames: int = AUTO_MAX_FRAMES) -> tuple[int, str]:
+    """(stride, why). A given `every` wins; else a long video is thinned to about
+    `auto_max_frames` frames (spread over the whole clip, unlike a frame cap, which keeps the
+    start)."""
+    if every is not None:
+        if every < 1:
+            raise SceneError(f"--every must be at least 1, got {every}")
+        return every, "given"
+    total = count_frames(video)
+    stride = max(1, round(total / auto_max_frames))  # 301-449 frames stay whole: halving them loses more
+    if max_frames or stride == 1:
+        return 1, f"all {total} frames"
+    return stride, (f"{video.name} has {total} frames: kept every {ordinal(stride)} ({math.ceil(total / stride)} "
+                    f"frames) to stay near {auto_max_frames}; pass --every to choose")
 
-    db, images, sparse = work / "database.db", work / "images", work / "sparse"
-    timings = {}
-    t0 = time.perf_counter()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = 1600
-    extraction.use_gpu = False
-    for names in (names_a, names_b):  # one camera per video
-        if names:
-            pycolmap.extract_features(db, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      extraction_options=extraction, device=pycolmap.Device.cpu)
-    timings["features"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    pairing = pycolmap.SequentialPairingOptions()
-    pairing.overlap = 12 if names_b else 8
-    pairing.quadratic_overlap = True
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.use_gpu = False
-    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
-    timings["matching"] = time.perf_counter() - t0
 
+def ordinal(n: int) -> str:
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
+def estimate_seconds(frames: int, long_side: int | None, cached: bool) -> float:
+    """A rough ingest time: the measured per-frame rates, scaled by pixels for the image stages."""
+    scale = ((long_side or 960) / 320) ** 2
+    rates = SECONDS_PER_FRAME_320
+    prep = 0.0 if cached else frames * (rates["decode"] * scale + rates["features"] * scale + rates["matching"])
+    return prep + frames * rates["mapping"]
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("KGS_CACHE_DIR") or Path.home() / ".cache" / "kinematics-gs") / "ingest"
+
+
+def frame_set_key(videos: list[Path], every: int, max_frames: int | None, max_size: int | None) -> str:
+    """Names one decoded frame set: the videos (path, size, modification time) and how they were
+    sampled. Features and matches depend on nothing else."""
+    parts = []
+    for v in videos:
+        st = v.stat()
+        parts.append(f"{v.resolve()}:{st.st_size}:{st.st_mtime_ns}")
+    parts.append(f"every={every}:max_frames={max_frames}:max_size={max_size}:v1")
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:20]
+
+
+def build_frame_set(folder: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
+                    max_size: int | None, progress: bool) -> dict:
+    """Decodes both videos into `folder/images`, scores sharpness, extracts features and matches
+    them into `folder/database.db`, and writes `folder/frames.json` (names, sharpness, timings)."""
     t0 = time.perf_counter()
-    ranked = sorted(scores, key=scores.get, reverse=True)
-    first = sorted(ranked[: max(8, int(len(ranked) * sharp_fraction))])
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.image_names = first
-    opts.num_threads = 2
-    opts.random_seed = 0
-    stage1 = sparse / "stage1"
-    stage1.mkdir(parents=True, exist_ok=True)
-    recs = pycolmap.incremental_mapping(db, images, stage1, options=opts)
-    if not recs:
-        raise SceneError("structure from motion found no initial model in the sharpest frames "
-                         "(too little texture or parallax?)")
-    best = max(recs, key=lambda k: recs[k].num_reg_images())
-    # Stage 2: continue from the sharp model and register every frame.
-    opts2 = pycolmap.IncrementalPipelineOptions()
-    opts2.num_threads = 2
-    opts2.random_seed = 0
-    final = sparse / "final"
-    final.mkdir(parents=True, exist_ok=True)
-    recs2 = pycolmap.incremental_mapping(db, images, final, options=opts2, input_path=stage1 / str(best))
-    timings["mapping"] = time.perf_counter() - t0
-    pool = list(recs2.values()) or [recs[best]]
-    rec = max(pool, key=lambda r: r.num_reg_images())
-    return rec, timings
+    frames_a = decode_video(video, every, max_frames, max_size, progress)
+    frames_b: list[np.ndarray] = []
+    if eval_video is not None:
+        frames_b = decode_video(eval_video, every, max_frames, max_size, progress)
+        if len(frames_b) != len(frames_a):
+            raise SceneError(f"frame counts differ: {video} has {len(frames_a)}, {eval_video} has {len(frames_b)} "
+                             "(synchronised videos must have one frame per time step)")
+    (folder / "images").mkdir(parents=True)
+    names_a, names_b, scores = [], [], {}
+    for tag, frames, names in (("a", frames_a, names_a), ("b", frames_b, names_b)):
+        for i, img in enumerate(frames):
+            name = f"f{i:05d}_{tag}.png"
+            Image.fromarray(img).save(folder / "images" / name, compress_level=PNG_LEVEL)
+            names.append(name)
+            scores[name] = round(sharpness(img), 2)
+    timings = {"decode": time.perf_counter() - t0}
+    timings.update(extract_and_match(folder / "database.db", folder / "images", names_a, names_b, progress))
+    meta = {"names_a": names_a, "names_b": names_b, "sharpness": scores,
+            "seconds": {k: round(v, 2) for k, v in timings.items()}}
+    (folder / "frames.json").write_text(json.dumps(meta))
+    return meta
+
+
+def frame_set(video: Path, eval_video: Path | None, every: int, max_frames: int | None, max_size: int | None,
+              cache_dir: Path | None, progress: bool, scratch: Path) -> tuple[Path, dict, bool]:
+    """(folder, metadata, reused): the cached frame set when there is one, else a new one, built
+    atomically into the cache (or into `scratch` when caching is off)."""
+    if cache_dir is None:
+        folder = scratch / "frames"
+        return folder, build_frame_set(folder, video, eval_video, every, max_frames, max_size, progress), False
+    videos = [video] + ([eval_video] if eval_video else [])
+    folder = Path(cache_dir) / frame_set_key(videos, every, max_frames, max_size)
+    meta_path = folder / "frames.json"
+    if meta_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text())
+            if progress:
+                print(f"reusing decoded frames, features and matches from {folder}", flush=True)
+            return folder, meta, True
+        except (OSError, ValueError):
+            pass  # unreadable: rebuild it
+    with atomic_directory(folder, overwrite=True) as tmp:
+        meta = build_frame_set(tmp, video, eval_video, every, max_frames, max_size, progress)
+    return folder, meta, False
 
 
 def undistort_frame(cam, image_path: Path):
@@ -112,56 +178,92 @@ def undistort_frame(cam, image_path: Path):
     return pinhole, np.ascontiguousarray(pixels.to_array()[..., :3])
 
 
-def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = None, every: int = 1,
+def frame_ranges(indices: list[int]) -> str:
+    """`[3, 4, 5, 9]` -> `"3-5, 9"`."""
+    out, start = [], None
+    for k, i in enumerate(indices):
+        if start is None:
+            start = i
+        if k + 1 == len(indices) or indices[k + 1] != i + 1:
+            out.append(f"{start}" if start == i else f"{start}-{i}")
+            start = None
+    return ", ".join(out)
+
+
+def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = None, every: int | None = None,
            max_frames: int | None = None, max_size: int | None = 960, exposure: float = 0.5,
-           sharp_fraction: float = 0.5, min_registered: float = 0.3, overwrite: bool = False,
+           mapper: str = "auto", holdout_every: int | None = None, fixed_camera: bool = False,
+           cache_dir: str | Path | None | bool = True, min_registered: float = 0.3, overwrite: bool = False,
            undistort: bool = True, progress: bool = True) -> IngestReport:
     """Builds a scene folder from a video. `exposure` is the assumed shutter fraction of the
     training video (unknown from the file; 0.5 is typical for indoor hand-held footage).
 
+    `every`: keep every k-th frame (None: all frames, or about AUTO_MAX_FRAMES of a long video).
+    `holdout_every`: with one video, every n-th frame is a test view (None: 8; 0: none).
+    `cache_dir`: where frame sets are cached (True: `default_cache_dir()`; None or False: off).
     With `undistort` (the default) every frame whose SfM camera has lens distortion is
-    resampled to a pinhole camera by pycolmap's undistorter (cropped to valid pixels), since
-    the rasteriser is pinhole; the distorted model stays under `colmap/sparse/0`."""
+    resampled to a pinhole camera by pycolmap's undistorter (cropped to valid pixels), since the
+    rasteriser is pinhole; the distorted model stays under `colmap/sparse/0`."""
     video = Path(video)
+    eval_video = Path(eval_video) if eval_video is not None else None
     if not 0 <= exposure <= 1:
         raise SceneError(f"exposure must be in [0, 1], got {exposure}")
+    if mapper not in MAPPERS:
+        raise SceneError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
+    for v in [video] + ([eval_video] if eval_video else []):
+        if not v.is_file():
+            raise SceneError(f"video not found: {v}")
+    if holdout_every is None:
+        holdout_every = 0 if eval_video is not None else 8
+    if holdout_every < 0 or holdout_every == 1:
+        raise SceneError(f"holdout_every must be 0 (none) or at least 2, got {holdout_every}")
+    stride, stride_reason = choose_stride(video, every, max_frames)
+    if progress and every is None and stride > 1:
+        print(stride_reason, flush=True)
+    cache = default_cache_dir() if cache_dir is True else (Path(cache_dir) if cache_dir else None)
     t_start = time.perf_counter()
-    frames_a = decode_video(video, every, max_frames, max_size, progress)
-    frames_b: list[np.ndarray] = []
-    if eval_video is not None:
-        frames_b = decode_video(Path(eval_video), every, max_frames, max_size, progress)
-        if len(frames_b) != len(frames_a):
-            raise SceneError(f"frame counts differ: {video} has {len(frames_a)}, {eval_video} has {len(frames_b)} "
-                             "(synchronised videos must have one frame per time step)")
-    decode_s = time.perf_counter() - t_start
-    n = len(frames_a)
     with tempfile.TemporaryDirectory(prefix="kgs-sfm-") as tmpdir:
         work = Path(tmpdir)
-        (work / "images").mkdir()
-        names_a, names_b, scores = [], [], {}
-        for i, img in enumerate(frames_a):
-            name = f"f{i:05d}_a.png"
-            Image.fromarray(img).save(work / "images" / name)
-            names_a.append(name)
-            scores[name] = sharpness(img)
-        for i, img in enumerate(frames_b):
-            name = f"f{i:05d}_b.png"
-            Image.fromarray(img).save(work / "images" / name)
-            names_b.append(name)
-            scores[name] = sharpness(img)
-        rec, timings = run_sfm(work, names_a, names_b, scores, sharp_fraction, progress)
-        timings["decode"] = decode_s
+        if fixed_camera:
+            return _ingest_fixed_camera(video, Path(out), eval_video, stride, stride_reason, max_frames, max_size,
+                                        exposure, holdout_every, overwrite, progress)
+        if progress:
+            count = count_frames(video)
+            kept = min(math.ceil(count / stride), max_frames or count) * (2 if eval_video else 1)
+            print(f"ingesting {kept} frames; expect about {estimate_seconds(kept, max_size, False):.0f} s "
+                  "(less when the frames were ingested before)", flush=True)
+        folder, meta, reused = frame_set(video, eval_video, stride, max_frames, max_size, cache, progress, work)
+        names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
+        timings = {} if reused else dict(meta["seconds"])
+        t0 = time.perf_counter()
+        result = run_sfm(folder / "database.db", folder / "images", work, names_a, names_b, scores, mapper,
+                         progress=progress)
+        timings["mapping"] = time.perf_counter() - t0
+        n = len(names_a)
+        if result is None:
+            raise SceneError(f"structure from motion found no model in {video} ({n} frames): too little texture "
+                             "or parallax? Try another stride (--every), a longer clip, or --fixed-camera for a "
+                             "camera that does not move")
+        rec = result.rec
         reg = {im.name: im for im in rec.images.values() if im.has_pose}
         n_a = sum(1 for nm in names_a if nm in reg)
         n_b = sum(1 for nm in names_b if nm in reg)
         if n_a < max(2, min_registered * n):
-            raise SceneError(f"structure from motion registered only {n_a} of {n} frames of {video} "
-                             f"(need {min_registered:.0%}); try a slower subsample (--every) or more texture")
+            missing = [i for i, nm in enumerate(names_a) if nm not in reg]
+            raise SceneError(
+                f"structure from motion posed only {n_a} of {n} frames of {video} (need {min_registered:.0%}; "
+                f"mappers tried: {', '.join(a['mapper'] + ' ' + a['outcome'] for a in result.attempts)}). "
+                f"Frames not posed (index after the stride of {stride}): {frame_ranges(missing)}. Try another "
+                "stride (--every), a longer clip with more camera movement, or --fixed-camera for a camera that "
+                "does not move")
         report = IngestReport(
-            video=str(video), eval_video=str(eval_video) if eval_video else None, frames=n, eval_frames=len(frames_b),
+            video=str(video), eval_video=str(eval_video) if eval_video else None, frames=n, eval_frames=len(names_b),
             registered=n_a, eval_registered=n_b, mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
-            points=rec.num_points3D(), seconds={k: round(v, 2) for k, v in timings.items()},
-        )
+            points=rec.num_points3D(), mapper=result.mapper, attempts=result.attempts, stride=stride,
+            stride_reason=stride_reason, cached=reused,
+            holdout=("second camera (novel view)" if eval_video else
+                     f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none"))
+        t0 = time.perf_counter()
         out = Path(out)
         with atomic_directory(out, overwrite=overwrite) as tmp:
             (tmp / "rgb" / "1x").mkdir(parents=True)
@@ -175,32 +277,80 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                     cam = rec.cameras[im.camera_id]
                     K, dist = camera_from_colmap(cam, f"{video}: SfM camera")
                     width, height = int(cam.width), int(cam.height)
+                    fid = f"c{cam_id}_{i:05d}"
+                    dst = tmp / "rgb" / "1x" / f"{fid}.png"
                     if undistort and np.any(dist != 0):
-                        cam, pixels = undistort_frame(cam, work / "images" / nm)
+                        cam, pixels = undistort_frame(cam, folder / "images" / nm)
                         K, dist = camera_from_colmap(cam, f"{video}: undistorted camera")
                         width, height = int(cam.width), int(cam.height)
-                        Image.fromarray(pixels).save(work / "images" / nm)
+                        Image.fromarray(pixels).save(dst, compress_level=PNG_LEVEL)
+                    else:
+                        shutil.copyfile(folder / "images" / nm, dst)
                     viewmat = np.eye(4)
                     cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
                     viewmat[:3] = np.asarray(cfw.matrix())
-                    fid = f"c{cam_id}_{i:05d}"
-                    dst = tmp / "rgb" / "1x" / f"{fid}.png"
-                    shutil.copyfile(work / "images" / nm, dst)
+                    held = cam_id == 1 or (holdout_every and i % holdout_every == holdout_every // 2)
                     frames.append(Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
                                         camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
-                                        exposure=exposure if cam_id == 0 else 0.0, split="train" if cam_id == 0 else "test",
+                                        exposure=exposure if cam_id == 0 else 0.0, split="test" if held else "train",
                                         camera_id=cam_id))
+            timings["write"] = time.perf_counter() - t0
+            timings["total"] = time.perf_counter() - t_start
+            report.seconds = {k: round(v, 2) for k, v in timings.items()}
             pts = list(rec.points3D.values())
-            scene = Scene(name=out.name, root=tmp, frames=sorted(frames, key=lambda f: (f.camera_id, f.time)),
-                          points=np.array([p.xyz for p in pts], float).reshape(-1, 3),
-                          point_colors=np.array([p.color for p in pts], float).reshape(-1, 3) / 255.0,
-                          source_format="video")
-            scene.normalize()
-            scene.extras = {"normalized": True, "normalization": scene.normalization.to_dict(),
-                            "ingest": {**asdict(report), "registered_fraction": report.registered_fraction,
-                                       "sharpness": {k: round(v, 2) for k, v in scores.items()}}}
-            write_nerfies(scene, tmp)
+            _write_scene(tmp, out.name, frames, np.array([p.xyz for p in pts], float).reshape(-1, 3),
+                         np.array([p.color for p in pts], float).reshape(-1, 3) / 255.0, report, scores)
             colmap_dir = tmp / "colmap" / "sparse" / "0"
             colmap_dir.mkdir(parents=True)
             rec.write(str(colmap_dir))
+    return report
+
+
+def _write_scene(root: Path, name: str, frames: list[Frame], points: np.ndarray, colors: np.ndarray,
+                 report: IngestReport, scores: dict) -> None:
+    scene = Scene(name=name, root=root, frames=sorted(frames, key=lambda f: (f.camera_id, f.time)),
+                  points=points, point_colors=colors, source_format="video")
+    scene.normalize()
+    scene.extras = {"normalized": True, "normalization": scene.normalization.to_dict(),
+                    "ingest": {**asdict(report), "registered_fraction": report.registered_fraction,
+                               "sharpness": scores}}
+    write_nerfies(scene, root)
+
+
+def _ingest_fixed_camera(video: Path, out: Path, eval_video: Path | None, stride: int, stride_reason: str,
+                         max_frames: int | None, max_size: int | None, exposure: float, holdout_every: int,
+                         overwrite: bool, progress: bool) -> IngestReport:
+    """A camera that does not move: every frame gets the same pinhole camera (a
+    FIXED_CAMERA_FOV_DEG field of view), and the first frame's pixels, back-projected to depths
+    between 2 and 4, are the starting points. No SfM runs, so nothing checks the assumption."""
+    if eval_video is not None:
+        raise SceneError("--fixed-camera takes one video (a second camera would need SfM to place it)")
+    t0 = time.perf_counter()
+    images = decode_video(video, stride, max_frames, max_size, progress)
+    h, w = images[0].shape[:2]
+    f = 0.5 * w / math.tan(math.radians(FIXED_CAMERA_FOV_DEG) / 2)
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
+    rng = np.random.default_rng(0)
+    ys, xs = rng.integers(0, h, 4000), rng.integers(0, w, 4000)
+    depth = rng.uniform(2.0, 4.0, 4000)
+    points = np.stack([(xs + 0.5 - K[0, 2]) / f * depth, (ys + 0.5 - K[1, 2]) / f * depth, depth], 1)
+    colors = images[0][ys, xs].astype(float) / 255.0
+    n = len(images)
+    report = IngestReport(video=str(video), eval_video=None, frames=n, eval_frames=0, registered=n, eval_registered=0,
+                          mean_reprojection_error_px=0.0, points=len(points), mapper="fixed-camera", stride=stride,
+                          stride_reason=stride_reason,
+                          holdout=f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none")
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        (tmp / "rgb" / "1x").mkdir(parents=True)
+        frames = []
+        for i, img in enumerate(images):
+            fid = f"c0_{i:05d}"
+            dst = tmp / "rgb" / "1x" / f"{fid}.png"
+            Image.fromarray(img).save(dst, compress_level=PNG_LEVEL)
+            held = bool(holdout_every) and i % holdout_every == holdout_every // 2
+            frames.append(Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
+                                camera=Camera(K=K, viewmat=np.eye(4), width=w, height=h), exposure=exposure,
+                                split="test" if held else "train", camera_id=0))
+        report.seconds = {"decode": round(time.perf_counter() - t0, 2), "total": round(time.perf_counter() - t0, 2)}
+        _write_scene(tmp, out.name, frames, points, colors, report, {})
     return report

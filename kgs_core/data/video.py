@@ -47,7 +47,6 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
     return frames
 
 
-
 def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, progress: bool = False) -> Path:
     """Writes RGB uint8 frames `(H, W, 3)` (even sizes are padded if needed) as H.264 mp4,
     to a temporary file renamed into place when complete."""
@@ -74,3 +73,27 @@ def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, pro
         for packet in stream.encode():
             container.mux(packet)
     return path
+
+
+def count_frames(path: Path) -> int:
+    """The number of frames in the video's first stream: from the container when it says, else
+    estimated from the duration and the frame rate, else counted by demuxing (no decoding)."""
+    import av
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"video not found: {path}")
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                raise SceneError(f"{path}: no video stream")
+            stream = container.streams.video[0]
+            if stream.frames:
+                return int(stream.frames)
+            if stream.duration and stream.time_base and stream.average_rate:
+                return int(round(float(stream.duration * stream.time_base * stream.average_rate)))
+            return sum(1 for packet in container.demux(stream) if packet.size)
+    except SceneError:
+        raise
+    except Exception as exc:
+        raise SceneError(f"cannot read video {path}: {exc}") from None

@@ -1,0 +1,314 @@
+"""Structure from motion for video frames, with pycolmap: features, sequential matching, and three
+mappers that trade speed for robustness.
+
+- `keyframes` (the default): incremental SfM on every k-th frame only, then every other frame
+  posed by absolute-pose RANSAC against that model's points (through its verified matches to the
+  keyframes), points triangulated from all frames, and one global bundle adjustment. Mapping cost
+  grows with the keyframes, not with every frame: the incremental mapper's repeated global
+  bundle adjustments are what made long clips slow.
+- `global`: GLOMAP (`pycolmap.global_mapping`): rotation averaging and global positioning, fast
+  and with the most self-consistent poses where it works, but it fails outright on some clips.
+- `incremental`: COLMAP's incremental mapper, started from the sharpest half of the frames and
+  then extended to all of them. The slowest, and the fallback when the others fail.
+
+`auto` tries keyframes, then incremental, and records every attempt. Frames are named so that the
+two synchronised videos interleave in time (`f00012_a`, `f00012_b`); sequential matching orders
+images by name and, with `quadratic_overlap`, pairs each image with the ones 1, 2, 4, 8, ...
+positions later. Keyframes therefore sit on a power-of-two grid: every keyframe pair at one grid
+step is a matched pair (sharpest-in-a-window keyframes left the keyframe graph disconnected).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+MAPPERS = ("auto", "keyframes", "global", "incremental")
+MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
+MAX_REPROJECTION_ERROR_PX = 4.0
+MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
+
+
+@dataclass
+class SfmResult:
+    """The reconstruction that was kept, which mapper made it, and every attempt on the way."""
+
+    rec: object  # pycolmap.Reconstruction: every registered image with its pose, and the points
+    mapper: str
+    attempts: list[dict] = field(default_factory=list)
+
+
+def quiet_colmap() -> None:
+    """COLMAP logs every registration and solver warning to stderr; the stages show their own
+    progress, so keep only errors unless KGS_SFM_LOG=1 asks for everything."""
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 0 if os.environ.get("KGS_SFM_LOG") == "1" else 2
+
+
+def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[str], progress: bool) -> dict:
+    """SIFT features (one camera per video) and sequential matching into `db`. Returns timings."""
+    import pycolmap
+
+    quiet_colmap()
+    timings = {}
+    t0 = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = 1600
+    extraction.use_gpu = False
+    chunk = 32  # extraction is called in chunks only so that the progress bar moves
+    with tqdm(total=len(names_a) + len(names_b), desc="features", unit="frame", disable=not progress) as bar:
+        for names in (names_a, names_b):  # one camera per video
+            reader = pycolmap.ImageReaderOptions()
+            for s in range(0, len(names), chunk):
+                pycolmap.extract_features(db, images, image_names=names[s:s + chunk],
+                                          camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                          extraction_options=extraction, device=pycolmap.Device.cpu)
+                if reader.existing_camera_id < 0:  # later chunks join the camera the first one made
+                    with _open_db(db) as d:
+                        reader.existing_camera_id = d.read_image_with_name(names[0]).camera_id
+                bar.update(len(names[s:s + chunk]))
+    timings["features"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = 12 if names_b else 8
+    pairing.quadratic_overlap = True
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    if progress:
+        print(f"matching {len(names_a) + len(names_b)} frames (sequential, quadratic overlap)", flush=True)
+    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    timings["matching"] = time.perf_counter() - t0
+    return timings
+
+
+class _open_db:
+    """`with _open_db(path) as db`: a pycolmap Database closed on exit."""
+
+    def __init__(self, path: Path):
+        import pycolmap
+
+        self.db = pycolmap.Database.open(str(path))
+
+    def __enter__(self):
+        return self.db
+
+    def __exit__(self, *exc):
+        self.db.close()
+
+
+def _largest(recs: dict):
+    return max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+
+
+def _pipeline_options(cls, names: list[str] | None = None):
+    opts = cls()
+    opts.num_threads = 2
+    opts.random_seed = 0
+    if names is not None:
+        opts.image_names = names
+    return opts
+
+
+def map_incremental(db: Path, images: Path, out: Path, scores: dict[str, float]):
+    """COLMAP's incremental mapper, seeded with the sharpest half of the frames (blurry frames are
+    where initialisation fails), then continued over every frame."""
+    import pycolmap
+
+    ranked = sorted(scores, key=scores.get, reverse=True)
+    first = sorted(ranked[: max(8, len(ranked) // 2)])
+    (out / "seed").mkdir(parents=True, exist_ok=True)
+    recs = pycolmap.incremental_mapping(db, images, out / "seed",
+                                        options=_pipeline_options(pycolmap.IncrementalPipelineOptions, first))
+    if not recs:
+        return None
+    best = max(recs, key=lambda k: recs[k].num_reg_images())
+    (out / "all").mkdir(parents=True, exist_ok=True)
+    recs2 = pycolmap.incremental_mapping(db, images, out / "all", input_path=out / "seed" / str(best),
+                                         options=_pipeline_options(pycolmap.IncrementalPipelineOptions))
+    return _largest(recs2) or recs[best]
+
+
+def map_global(db: Path, images: Path, out: Path):
+    """GLOMAP. It may write relative poses into the database: give it a copy."""
+    import pycolmap
+
+    local = out / "database.db"
+    shutil.copyfile(db, local)
+    recs = pycolmap.global_mapping(local, images, out, options=_pipeline_options(pycolmap.GlobalPipelineOptions))
+    return _largest(recs)
+
+
+def keyframe_names(names_a: list[str], names_b: list[str], step: int) -> list[str]:
+    """Every `step`-th training frame from the first, with its synchronised twin: a power-of-two
+    step keeps neighbouring keyframes among the pairs that sequential matching verified."""
+    twins = set(names_b)
+    picked = names_a[::step]
+    return sorted(picked + [n.replace("_a.", "_b.") for n in picked if n.replace("_a.", "_b.") in twins])
+
+
+def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b: list[str],
+                  step: int = 4, progress: bool = True, stages: dict | None = None, adjust: bool = True):
+    """Incremental SfM on the keyframes, absolute pose for every other frame, triangulation from
+    all frames and (with `adjust`) one global bundle adjustment. None when the keyframes do not
+    form a model. `stages` receives the seconds of each step."""
+    import pycolmap
+
+    stages = {} if stages is None else stages
+    t0 = time.perf_counter()
+    while step > 1 and len(names_a) / step < MIN_KEYFRAMES:  # a short clip: keyframes closer together
+        step //= 2
+    keyframes = keyframe_names(names_a, names_b, step)
+    (out / "keyframes").mkdir(parents=True, exist_ok=True)
+    opts = _pipeline_options(pycolmap.IncrementalPipelineOptions, keyframes)
+    # Small enough for a short clip's keyframes, large enough that the mapper discards a stray
+    # fragment and tries another start instead of keeping it (3 split kitchen into 3-image models).
+    opts.min_model_size = min(10, max(3, len(keyframes) // 2))
+    model = _largest(pycolmap.incremental_mapping(db, images, out / "keyframes", options=opts))
+    stages["keyframes"] = time.perf_counter() - t0
+    if model is None or model.num_reg_images() < max(3, len(keyframes) // 2):
+        return None
+    t0 = time.perf_counter()
+    posed = {im.name: (im.camera_id, _cam_from_world(im)) for im in model.images.values() if im.has_pose}
+    with _open_db(db) as d:
+        by_name = {im.name: im for im in d.read_all_images()}
+        keyframe_ids = [by_name[n].image_id for n in posed]
+        observed = {}  # (keyframe image id, keypoint index) -> 3D point id
+        for im in model.images.values():
+            if im.has_pose:
+                for j, p in enumerate(im.points2D):
+                    if p.has_point3D():
+                        observed[(im.image_id, j)] = p.point3D_id
+        rest = [n for n in names_a + names_b if n not in posed]
+        for name in tqdm(rest, desc="register", unit="frame", disable=not progress):
+            pose = _absolute_pose(d, model, by_name[name], keyframe_ids, observed)
+            if pose is not None:
+                posed[name] = (by_name[name].camera_id, pose)
+        stages["register"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        # A reconstruction of every posed frame, its keypoints and poses; points triangulated
+        # from all of them, then one bundle adjustment over everything.
+        rec = pycolmap.Reconstruction()
+        for cam in model.cameras.values():
+            rec.add_camera_with_trivial_rig(cam)
+        for name, (camera_id, pose) in sorted(posed.items()):
+            if camera_id not in rec.cameras:
+                continue  # the other video's camera never entered the keyframe model
+            im = by_name[name]
+            keypoints = np.asarray(d.read_keypoints(im.image_id))[:, :2].astype(np.float64)
+            rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=keypoints, camera_id=camera_id,
+                                                            image_id=im.image_id), pose)
+    (out / "all").mkdir(parents=True, exist_ok=True)
+    rec = pycolmap.triangulate_points(rec, db, images, out / "all",
+                                      options=_pipeline_options(pycolmap.IncrementalPipelineOptions))
+    drop_outlier_points(rec)  # before the adjustment too: a few wild points would drag it
+    stages["triangulate"] = time.perf_counter() - t0
+    if adjust:
+        t0 = time.perf_counter()
+        # pycolmap's bundle_adjustment logs its two INFO lines whatever the level, and leaves
+        # the level at 0 afterwards: quiet it again.
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.refine_focal_length = True
+        ba.refine_extra_params = True
+        ba.print_summary = False
+        # Ten iterations reach the reprojection error of 25 (1.01 px on a 672-frame clip) in a
+        # third of the time; without it, 1.07 px (docs/data.md, "Ingest speed").
+        ba.ceres.solver_options.max_num_iterations = 10
+        pycolmap.bundle_adjustment(rec, ba)
+        quiet_colmap()
+        drop_outlier_points(rec)
+        stages["adjust"] = time.perf_counter() - t0
+    return rec
+
+
+def drop_outlier_points(rec, max_error_px: float = MAX_REPROJECTION_ERROR_PX) -> int:
+    """Deletes the points whose mean reprojection error exceeds `max_error_px` (COLMAP's
+    mapper filters at the same 4 px); returns how many went."""
+    rec.update_point_3d_errors()
+    bad = [pid for pid, p in rec.points3D.items() if not np.isfinite(p.error) or p.error > max_error_px]
+    for pid in bad:
+        rec.delete_point3D(pid)
+    return len(bad)
+
+
+def _cam_from_world(im):
+    return im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+
+
+def _absolute_pose(d, model, image, keyframe_ids: list[int], observed: dict):
+    """The pose of one database image from its verified matches to the posed keyframes' 3D
+    points (LO-RANSAC PnP and refinement), or None."""
+    import pycolmap
+
+    corr = {}  # keypoint index -> 3D point id (first keyframe match wins)
+    for kid in keyframe_ids:
+        if not d.exists_two_view_geometry(image.image_id, kid):
+            continue
+        matches = d.read_two_view_geometry(image.image_id, kid).inlier_matches
+        if matches is None or len(matches) == 0:
+            continue
+        for a, b in np.asarray(matches):
+            pid = observed.get((kid, int(b)))
+            if pid is not None:
+                corr.setdefault(int(a), pid)
+    if len(corr) < MIN_CORRESPONDENCES:
+        return None
+    idx = np.fromiter(corr, int)
+    points2d = np.asarray(d.read_keypoints(image.image_id))[idx, :2].astype(np.float64)
+    points3d = np.stack([model.points3D[corr[i]].xyz for i in idx]).astype(np.float64)
+    camera = model.cameras[image.camera_id] if image.camera_id in model.cameras else None
+    if camera is None:
+        return None
+    found = pycolmap.estimate_and_refine_absolute_pose(points2d, points3d, camera)
+    if found is None or found["num_inliers"] < MIN_CORRESPONDENCES:
+        return None
+    return found["cam_from_world"]
+
+
+def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: list[str], scores: dict[str, float],
+            mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int = 4,
+            progress: bool = True) -> SfmResult | None:
+    """Maps the frames of `db` with `mapper`. `auto` tries keyframes and then incremental, and
+    keeps the first model that poses at least `min_registered` of the training frames (else the
+    one that posed the most). Returns None when no mapper produced a model."""
+    if mapper not in MAPPERS:
+        raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
+    quiet_colmap()
+    order = ["keyframes", "incremental"] if mapper == "auto" else [mapper]
+    attempts, best = [], None
+    for name in order:
+        out = work / f"sparse_{name}"
+        out.mkdir(parents=True, exist_ok=True)
+        if progress:
+            print(f"mapping with the {name} mapper", flush=True)
+        t0 = time.perf_counter()
+        error, stages = None, {}
+        try:
+            if name == "keyframes":
+                rec = map_keyframes(db, images, out, names_a, names_b, keyframe_step, progress, stages)
+            elif name == "global":
+                rec = map_global(db, images, out)
+            else:
+                rec = map_incremental(db, images, out, scores)
+        except RuntimeError as exc:  # pycolmap raises RuntimeError on a failed solve
+            rec, error = None, str(exc)
+        posed = {im.name for im in rec.images.values() if im.has_pose} if rec is not None else set()
+        fraction = sum(n in posed for n in names_a) / max(len(names_a), 1)
+        attempts.append({"mapper": name, "seconds": round(time.perf_counter() - t0, 2),
+                         "registered_fraction": round(fraction, 4),
+                         "outcome": error or ("no model" if rec is None else "ok"),
+                         **({"stages": {k: round(v, 2) for k, v in stages.items()}} if stages else {})})
+        if rec is not None and (best is None or fraction > best[1]):
+            best = (SfmResult(rec=rec, mapper=name), fraction)
+        if rec is not None and fraction >= min_registered:
+            break
+    if best is None:
+        return None
+    best[0].attempts = attempts
+    return best[0]
