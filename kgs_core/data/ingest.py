@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from tqdm import tqdm
 
 from ..io import atomic_directory
 from .formats import write_nerfies
@@ -268,10 +269,12 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
         with atomic_directory(out, overwrite=overwrite) as tmp:
             (tmp / "rgb" / "1x").mkdir(parents=True)
             frames = []
+            bar = tqdm(total=n_a + n_b, desc="undistort and write", unit="frame", disable=not progress)
             for names, cam_id in ((names_a, 0), (names_b, 1)):
                 for nm in names:
                     if nm not in reg:
                         continue
+                    bar.update()
                     im = reg[nm]
                     i = int(nm[1:6])
                     cam = rec.cameras[im.camera_id]
@@ -294,6 +297,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                                         camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
                                         exposure=exposure if cam_id == 0 else 0.0, split="test" if held else "train",
                                         camera_id=cam_id))
+            bar.close()
             timings["write"] = time.perf_counter() - t0
             timings["total"] = time.perf_counter() - t_start
             report.seconds = {k: round(v, 2) for k, v in timings.items()}

@@ -217,9 +217,9 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
         ba.refine_focal_length = True
         ba.refine_extra_params = True
         ba.print_summary = False
-        # Ten iterations reach the reprojection error of 25 (1.01 px on a 672-frame clip) in a
-        # third of the time; without it, 1.07 px (docs/data.md, "Ingest speed").
-        ba.ceres.solver_options.max_num_iterations = 10
+        # Five iterations reach the reprojection error of 10 and 25 (1.02 px on a 672-frame
+        # clip) in 10 s against 17 and 44; without it, 1.07 px (docs/data.md, "Ingest speed").
+        ba.ceres.solver_options.max_num_iterations = 5
         pycolmap.bundle_adjustment(rec, ba)
         quiet_colmap()
         drop_outlier_points(rec)
