@@ -1,0 +1,159 @@
+"""Our exports, opened in viewers other people use (in headless Chromium), look like our own
+render from the same camera: `.splat` and `.ply` in antimatter15/splat, `.splatv` in splaTV.
+
+The viewers are not part of the project: their unmodified copies live outside the repository
+(`../shared/thirdparty/`, or `$KGS_THIRDPARTY`), are copied into a temporary folder at test time
+and served from there with the exports. Without them, or without Chromium, these tests skip.
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import io
+import json
+import os
+import shutil
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+THIRDPARTY = Path(os.environ.get("KGS_THIRDPARTY") or ROOT.parent / "shared" / "thirdparty")
+CHROMIUM = Path("/usr/bin/chromium")
+if not (THIRDPARTY / "splat" / "main.js").is_file() or not (THIRDPARTY / "splaTV" / "hybrid.js").is_file():
+    pytest.skip(f"no third-party viewers at {THIRDPARTY} (set KGS_THIRDPARTY)", allow_module_level=True)
+if not CHROMIUM.exists():
+    pytest.skip("no /usr/bin/chromium (apt-get install chromium)", allow_module_level=True)
+playwright = pytest.importorskip("playwright.sync_api")
+
+# antimatter15/splat draws with its own first camera's focal lengths against the window size.
+SPLAT_FX, SPLAT_FY = 1159.5880733038064, 1164.6601287484507
+WIDTH, HEIGHT = 480, 360
+TIME = 0.5
+
+
+@pytest.fixture(scope="module")
+def site(tiny_run, tmp_path_factory):
+    """A folder with the viewer and our exports at TIME, served on a local port."""
+    from kgs_core.export import export_run
+
+    root = tmp_path_factory.mktemp("thirdparty")
+    for viewer in ("splat", "splaTV"):
+        shutil.copytree(THIRDPARTY / viewer, root / viewer)
+    for fmt, ext in (("splat", ".splat"), ("ply-seq", ".ply")):
+        res = export_run(tiny_run, fmt, out=root / f"export_{fmt}", times=str(TIME), progress=False)
+        shutil.copyfile(res.files[0], root / f"scene{ext}")
+    export_run(tiny_run, "splatv", out=root / "scene.splatv", progress=False)
+    handler = functools.partial(QuietHandler, directory=str(root))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+
+
+class QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM),
+                              args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
+        yield b
+        b.close()
+
+
+def viewer_camera(tiny_run, fx: float = SPLAT_FX, fy: float = SPLAT_FY) -> tuple[np.ndarray, np.ndarray]:
+    """(K, viewmat): the first training camera moved back along its axis until the scene
+    fills the viewer's field of view (focal lengths `fx`, `fy` against the window, as the
+    viewers draw) as it filled the training frame."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.run import load_run
+
+    scene = load_scene(load_run(tiny_run).scene_path())
+    frame = scene.train_frames[0]
+    vm = frame.camera.viewmat.copy()
+    depth = float(np.median(scene.points @ vm[2, :3] + vm[2, 3])) if len(scene.points) else 3.0
+    ratio = (frame.camera.K[0, 0] / frame.camera.width) / (fx / WIDTH)  # < 1: the viewer is narrower
+    vm[2, 3] += depth * (1 / ratio - 1)
+    K = np.array([[fx, 0, WIDTH / 2], [0, fy, HEIGHT / 2], [0, 0, 1.0]])
+    return K, vm
+
+
+def our_render(tiny_run, K, vm) -> np.ndarray:
+    """Our rasteriser from the same camera, with each Gaussian's view-independent colour (the SH
+    DC term): the only colour a `.splat` file holds, and what the viewer draws from a `.ply`."""
+    from kgs_core.data.scene import Camera
+    from kgs_core.model.render import render_model
+    from kgs_core.render.sh import C0
+    from kgs_core.run import load_run
+
+    run = load_run(tiny_run)
+    dc = (0.5 + C0 * run.model.params.sh0[:, 0, :]).clamp(0, 1)
+    with torch.no_grad():
+        out, _ = render_model(run.model, Camera(K=K, viewmat=vm, width=WIDTH, height=HEIGHT), TIME, 0.0,
+                              background=torch.zeros(3), colors=dc)
+    return out.image.clamp(0, 1).numpy() * 255
+
+
+def viewer_picture(browser, site: str, viewer: str, file: str, vm: np.ndarray, init_script: str = "") -> np.ndarray:
+    ctx = browser.new_context(viewport={"width": WIDTH, "height": HEIGHT}, device_scale_factor=1)
+    page = ctx.new_page()
+    if init_script:
+        page.add_init_script(init_script)
+    # The viewers' matrices are column-major: our row-major world-to-camera, transposed.
+    hash_ = json.dumps(vm.T.reshape(-1).tolist())
+    page.goto(f"{site}/{viewer}/index.html?url={site}/{file}#{hash_}")
+    page.add_style_tag(content="#info, #quality, #caminfo, #instructions, #progress, #message, #spinner "
+                               "{ display: none !important; }")
+    page.wait_for_function("document.getElementById('spinner').style.display === 'none'", timeout=60_000)
+    # The viewer sorts in a worker: wait until two pictures in a row agree.
+    last = None
+    for _ in range(20):
+        page.wait_for_timeout(500)
+        img = np.asarray(Image.open(io.BytesIO(page.locator("#canvas").screenshot())).convert("RGB"), np.float64)
+        if last is not None and np.abs(img - last).max() == 0:
+            break
+        last = img
+    ctx.close()
+    return img
+
+
+@pytest.mark.parametrize("file", ["scene.splat", "scene.ply"])
+def test_export_matches_our_render_in_antimatter15_splat(browser, site, tiny_run, file):
+    K, vm = viewer_camera(tiny_run)
+    ours = our_render(tiny_run, K, vm)
+    theirs = viewer_picture(browser, site, "splat", file, vm)
+    assert_close(ours, theirs, f"{file} in antimatter15/splat")
+
+
+def test_splatv_matches_our_render_in_splatv(browser, site, tiny_run):
+    """splaTV plays time itself (0.5 + sin(Date.now() / 1000) / 2): the page's clock is held at
+    0, which shows t = 0.5. It draws with the file's first camera's focal lengths."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.export.splatv import splatv_cameras
+    from kgs_core.run import load_run
+
+    cam = splatv_cameras(load_scene(load_run(tiny_run).scene_path()).train_frames)[0]
+    K, vm = viewer_camera(tiny_run, cam["fx"], cam["fy"])
+    ours = our_render(tiny_run, K, vm)
+    theirs = viewer_picture(browser, site, "splaTV", "scene.splatv", vm, init_script="Date.now = () => 0;")
+    assert_close(ours, theirs, "scene.splatv in splaTV")
+
+
+def assert_close(ours: np.ndarray, theirs: np.ndarray, what: str, limit: float = 3.0) -> None:
+    assert theirs.shape == ours.shape, (theirs.shape, ours.shape)
+    diff = np.abs(theirs - ours).mean()
+    if os.environ.get("KGS_DUMP"):  # a folder: ours | theirs | 8x the difference
+        Image.fromarray(np.concatenate([ours, theirs, np.abs(theirs - ours) * 8], 1).clip(0, 255).astype(np.uint8)).save(
+            Path(os.environ["KGS_DUMP"]) / (what.split()[0] + ".png"))
+    print(f"{what}: mean difference {diff:.2f}/255 (our mean {ours.mean():.1f}, theirs {theirs.mean():.1f})")
+    assert ours.std() > 5, "the test camera sees nothing"
+    assert diff < limit, f"{what} differs from our render by {diff:.2f}/255 on average"
