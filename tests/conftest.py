@@ -20,6 +20,19 @@ def ingest_cache(tmp_path_factory):
         os.environ["KGS_CACHE_DIR"] = old
 
 
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium (/usr/bin/chromium) with WebGL2 on SwiftShader, for the browser tests;
+    those modules skip themselves when Chromium or Playwright is missing."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path="/usr/bin/chromium",
+                              args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
+        yield b
+        b.close()
+
+
 @pytest.fixture(scope="session")
 def ext():
     """The compiled C++ rasteriser (built once per machine, then cached)."""

@@ -22,7 +22,7 @@ if not CHROMIUM.exists():
     if os.environ.get("KGS_REQUIRE_BROWSER") == "1":
         raise RuntimeError("KGS_REQUIRE_BROWSER=1 but /usr/bin/chromium is missing (apt-get install chromium)")
     pytest.skip("no /usr/bin/chromium (apt-get install chromium)", allow_module_level=True)
-playwright = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 
 # Mean absolute difference, in 8-bit levels, allowed between the browser's WebGL frame and the
 # CPU rasteriser's PNG of the same camera and time. The browser draws the SH DC colour only and
@@ -41,15 +41,6 @@ def server(tiny_run, tmp_path_factory):
     run = root / "data" / "runs" / tiny_run.name
     with ServerProcess([run], root / "ws") as srv:
         yield {"base": srv.base, "run_id": srv.runs[0]["id"], "run_dir": run}
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM),
-                              args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
-        yield b
-        b.close()
 
 
 @pytest.fixture

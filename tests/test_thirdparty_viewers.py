@@ -29,7 +29,7 @@ if not (THIRDPARTY / "splat" / "main.js").is_file() or not (THIRDPARTY / "splaTV
     pytest.skip(f"no third-party viewers at {THIRDPARTY} (set KGS_THIRDPARTY)", allow_module_level=True)
 if not CHROMIUM.exists():
     pytest.skip("no /usr/bin/chromium (apt-get install chromium)", allow_module_level=True)
-playwright = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 
 # antimatter15/splat draws with its own first camera's focal lengths against the window size.
 SPLAT_FX, SPLAT_FY = 1159.5880733038064, 1164.6601287484507
@@ -59,15 +59,6 @@ def site(tiny_run, tmp_path_factory):
 class QuietHandler(http.server.SimpleHTTPRequestHandler):
     def log_message(self, *args):
         pass
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with playwright.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM),
-                              args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
-        yield b
-        b.close()
 
 
 def viewer_camera(tiny_run, fx: float = SPLAT_FX, fy: float = SPLAT_FY) -> tuple[np.ndarray, np.ndarray]:
