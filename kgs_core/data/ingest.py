@@ -222,12 +222,12 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
     if progress and every is None and stride > 1:
         print(stride_reason, flush=True)
     cache = default_cache_dir() if cache_dir is True else (Path(cache_dir) if cache_dir else None)
+    if fixed_camera:
+        return _ingest_fixed_camera(video, Path(out), eval_video, stride, stride_reason, max_frames, max_size,
+                                    exposure, holdout_every, overwrite, progress)
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="kgs-sfm-") as tmpdir:
         work = Path(tmpdir)
-        if fixed_camera:
-            return _ingest_fixed_camera(video, Path(out), eval_video, stride, stride_reason, max_frames, max_size,
-                                        exposure, holdout_every, overwrite, progress)
         if progress:
             count = count_frames(video)
             kept = min(math.ceil(count / stride), max_frames or count) * (2 if eval_video else 1)
