@@ -117,7 +117,21 @@ class JobRunner:
             os.kill(row["pid"], signal.SIGTERM)
         except ProcessLookupError:
             pass
+        if table != "runs":
+            # A job without checkpoints stops where Python next runs: after the C++ call it is in
+            # (SfM can take minutes). Past the grace period it is killed outright.
+            threading.Timer(self.kill_after, self._kill_if_alive, args=(row["pid"],)).start()
         return True
+
+    kill_after = 15.0  # seconds a cancelled ingest, synthesis or export has to unwind
+
+    @staticmethod
+    def _kill_if_alive(pid: int) -> None:
+        if pid_alive(pid):
+            try:
+                os.killpg(pid, signal.SIGKILL)  # the job's session: SfM helpers with it
+            except (ProcessLookupError, PermissionError):
+                pass
 
     def recover(self) -> None:
         """After a server restart: jobs whose process survived keep running (watched by polling);

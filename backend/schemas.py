@@ -9,9 +9,10 @@ from pydantic import BaseModel, ConfigDict
 
 class StrictRequest(BaseModel):
     """NaN and ±Infinity are refused in every number field (JSON as Python parses it accepts
-    them, and `Infinity` passes a `gt=0` bound), with a 422 naming the field."""
+    them, and `Infinity` passes a `gt=0` bound), with a 422 naming the field; so is a field the
+    request does not have (a misspelt option would otherwise be dropped without a word)."""
 
-    model_config = ConfigDict(allow_inf_nan=False)
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
 
 
 def finite_json(value):

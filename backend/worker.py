@@ -3,8 +3,9 @@
 Every long job (synthesize, ingest, train, export) runs here, in its own process, so that a
 crash or a cancel never takes the server down and training survives a client (or server)
 restart. Progress goes to files the server polls: training writes `progress.json` in the run
-directory (plus the run's own log.csv/run.json); other jobs only succeed or fail. SIGTERM asks
-the job to stop: training then saves a checkpoint and the model as they are ("cancelled").
+directory (plus the run's own log.csv/run.json), ingest its current stage to the file its spec
+names; other jobs only succeed or fail. SIGTERM asks the job to stop: training then saves a
+checkpoint and the model as they are, ingest unwinds and leaves nothing ("cancelled").
 """
 
 from __future__ import annotations
@@ -71,15 +72,62 @@ def run_synth(spec: dict) -> None:
                overwrite=True)
 
 
+class Cancelled(Exception):
+    """SIGTERM during a job that has no checkpoint to save: unwind, so that temporary folders go."""
+
+
+def _raise_cancelled(signum, frame) -> None:
+    raise Cancelled("cancelled")
+
+
+def stage_writer(path: Path, min_interval: float = 0.5):
+    """A `kgs_core.progress` listener that keeps `path` (JSON) at the job's current stage: the
+    stage, its count and total, the seconds since the start, and the seconds each earlier stage
+    took. Written at each new stage and at most every `min_interval` s within one."""
+    from kgs_core.io import atomic_write_text
+
+    t0 = time.time()
+    state = {"stage": None, "since": t0, "last": 0.0, "done_stages": []}
+
+    def on_progress(stage: str, done: int, total: int | None) -> None:
+        if stage.startswith("decode "):  # "decode <file>": the uploaded copy's name is the server's own
+            stage = "decode"
+        now = time.time()
+        if stage != state["stage"]:
+            if state["stage"] is not None:
+                state["done_stages"].append([state["stage"], round(now - state["since"], 2)])
+            state["stage"], state["since"] = stage, now
+        elif now - state["last"] < min_interval and done != total:
+            return
+        state["last"] = now
+        atomic_write_text(path, json.dumps({"stage": stage, "done": done, "total": total,
+                                            "elapsed": round(now - t0, 2), "stages": state["done_stages"]}))
+
+    return on_progress
+
+
 def run_ingest(spec: dict) -> None:
     from kgs_core.data.ingest import ingest
+    from kgs_core.progress import listen
 
+    # Cancelling (SIGTERM) raises between SfM's steps: ingest writes into temporary folders and
+    # renames only a finished scene, so nothing half-made is left.
+    previous = signal.signal(signal.SIGTERM, _raise_cancelled)
+    options = {k: spec[k] for k in ("max_size", "mapper", "holdout_every", "fixed_camera", "exposure") if k in spec}
+    options.setdefault("max_size", 960)
+    listener = stage_writer(Path(spec["progress"])) if spec.get("progress") else (lambda *a: None)
     try:
-        # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
-        ingest(spec["video"], spec["out"], max_size=int(spec.get("max_size", 960)), cache_dir=False, overwrite=True)
+        with listen(listener):
+            # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
+            ingest(spec["video"], spec["out"], eval_video=spec.get("eval_video"), cache_dir=False, overwrite=True,
+                   **options)
     finally:
-        if spec.get("delete_video"):  # the uploaded copy: its frames are in the scene now, or it failed
-            Path(spec["video"]).unlink(missing_ok=True)
+        signal.signal(signal.SIGTERM, previous)
+    # The uploaded copies go once their frames are in the scene; after a failure or a cancel they
+    # stay, so that the ingest can be retried with other options (deleting the scene removes them).
+    for key in ("video", "eval_video"):
+        if spec.get("delete_video") and spec.get(key):
+            Path(spec[key]).unlink(missing_ok=True)
 
 
 def run_export(spec: dict) -> None:

@@ -71,3 +71,20 @@ def copy_run(tiny_run, tmp_path):
     dst = tmp_path / "ws"
     shutil.copytree(tiny_run.parent.parent, dst)
     return dst / "runs" / tiny_run.name
+
+
+@pytest.fixture(scope="session")
+def room_video(tmp_path_factory):
+    """A 16-frame, 160 px H.264 video of the synthetic textured 'room' (a moving camera, known
+    poses), and that scene: what SfM can pose in seconds."""
+    import numpy as np
+
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.synth.generate import synthesize
+    from kgs_core.data.video import encode_video
+
+    root = tmp_path_factory.mktemp("sfm")
+    syn = synthesize("room", root / "room", blur="none", size=160, frames=16, progress=False)
+    gt = load_scene(syn)
+    frames = [(f.image() * 255).round().astype(np.uint8) for f in gt.train_frames]
+    return encode_video(frames, root / "room.mp4", fps=12), gt

@@ -13,15 +13,6 @@ from kgs_core.data.video import decode_video, encode_video
 from kgs_app.bench.ingest import umeyama
 
 
-@pytest.fixture(scope="module")
-def room_video(tmp_path_factory):
-    root = tmp_path_factory.mktemp("sfm")
-    syn = synthesize("room", root / "room", blur="none", size=160, frames=16, progress=False)
-    gt = load_scene(syn)
-    frames = [(f.image() * 255).round().astype(np.uint8) for f in gt.train_frames]
-    return encode_video(frames, root / "room.mp4", fps=12), gt
-
-
 def test_video_round_trip(room_video):
     video, gt = room_video
     frames = decode_video(video, progress=False)

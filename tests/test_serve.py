@@ -518,14 +518,55 @@ def test_scene_with_runs_cannot_be_deleted_and_uploads_are_cleaned(client, tmp_p
     video = ws.root / "scenes" / f".{row['id']}.video"
     video.write_bytes(b"\0" * 100)
     assert client.delete(f"/api/scenes/{row['id']}").status_code == 204 and not video.exists()
-    # The ingest job deletes its uploaded copy, when it fails too.
+    # A failed ingest leaves no scene folder and keeps its uploaded copy for a retry.
     from kgs_backend.worker import run_ingest
 
     bogus = tmp_path / ".x.video"
     bogus.write_bytes(b"not a video")
-    with pytest.raises(Exception):
+    with pytest.raises(Exception, match="x.video"):
         run_ingest({"video": str(bogus), "out": str(tmp_path / "out"), "delete_video": True})
-    assert not bogus.exists() and not (tmp_path / "out").exists()
+    assert bogus.exists() and not (tmp_path / "out").exists()
+
+
+def test_video_upload_second_camera_stages_cancel_and_retry(client, room_video):
+    """The UI's video flow through the API: upload held, a second camera's video, ingest with
+    options, its stages as it runs, cancel (nothing half-made, the videos kept), retry to the end."""
+    video, _ = room_video
+    data, vt = Path(video).read_bytes(), {"content-type": "video/mp4"}
+    up = client.post("/api/scenes/upload", params={"name": "room clip", "kind": "video", "hold": "true"}, content=data,
+                     headers=vt)
+    assert up.status_code == 201, up.text
+    assert up.json()["status"] == "uploaded" and up.json()["videos"] == 1
+    sid = up.json()["id"]
+    assert client.post(f"/api/scenes/{sid}/video", params={"role": "sharp"}, content=b"junk", headers=vt).status_code == 415
+    r = client.post(f"/api/scenes/{sid}/video", params={"role": "sharp"}, content=data, headers=vt)
+    assert r.status_code == 201 and r.json()["videos"] == 2
+    for bad in ({"max_size": 10}, {"holdout_every": 1}, {"mapper": "magic"}, {"exposure": 2}, {"extra": 1}):
+        assert client.post(f"/api/scenes/{sid}/ingest", json=bad).status_code == 422, bad
+    assert client.post(f"/api/scenes/{sid}/cancel").status_code == 409  # nothing running yet
+    # Start, see a stage reported, cancel: the scene is cancelled with nothing written.
+    assert client.post(f"/api/scenes/{sid}/ingest", json={"max_size": 160}).status_code == 202
+    deadline = time.time() + 60
+    while not (client.get(f"/api/scenes/{sid}").json().get("progress") or {}).get("stage"):
+        assert time.time() < deadline, "the ingest reported no stage"
+        time.sleep(0.1)
+    assert client.post(f"/api/scenes/{sid}/ingest", json={}).status_code == 409  # already running
+    assert client.delete(f"/api/scenes/{sid}").status_code == 409
+    assert client.post(f"/api/scenes/{sid}/cancel").status_code == 202
+    st = wait_status(client, f"/api/scenes/{sid}", timeout=60)
+    assert st["status"] == "cancelled" and st["videos"] == 2, st
+    ws = client.app_.state.ws
+    assert not Path(ws.get("scenes", sid)["path"]).exists()
+    assert not [p.name for p in (ws.root / "scenes").iterdir() if p.name.startswith(f".{sid}.") and p.is_dir()]
+    # Retry with the same videos, to the end: both cameras posed, every stage with its time.
+    assert client.post(f"/api/scenes/{sid}/ingest", json={"max_size": 160}).status_code == 202
+    done = wait_status(client, f"/api/scenes/{sid}", timeout=180)
+    assert done["status"] == "done", done
+    assert done["train_frames"] >= 14 and done["test_frames"] >= 14 and done["videos"] == 0
+    stages = [name for name, _ in done["progress"]["stages"]] + [done["progress"]["stage"]]
+    assert stages[0].startswith("decode") and "features" in stages and "matching" in stages, stages
+    assert any(s.startswith("mapping") for s in stages) and stages[-1] == "undistort and write", stages
+    assert client.post(f"/api/scenes/{sid}/ingest", json={}).status_code == 409  # no video waits any more
 
 
 def test_registry_closes_its_connections(tmp_path, monkeypatch):

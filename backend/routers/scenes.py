@@ -1,8 +1,9 @@
-"""Scenes: list, create (synthesize, ingest an uploaded video, upload a dataset zip), inspect, delete."""
+"""Scenes: list, create (synthesize, upload and ingest videos, upload a dataset zip), inspect, cancel, delete."""
 
 from __future__ import annotations
 
 import fnmatch
+import json
 import shutil
 import tempfile
 import zipfile
@@ -49,8 +50,19 @@ class SynthRequest(StrictRequest):
         return self
 
 
-def public(row: dict) -> dict:
-    return {k: row[k] for k in ("id", "name", "source", "status", "error", "created")}
+# Scene states from which an uploaded video can be ingested (again).
+INGESTABLE = ("uploaded", "failed", "cancelled", "interrupted")
+
+
+def public(row: dict, ws: Workspace) -> dict:
+    out = {k: row[k] for k in ("id", "name", "source", "status", "error", "created")}
+    if row["source"] == "ingest":
+        out["videos"] = sum(video_path(ws, row["id"], r).is_file() for r in ("video", "sharp"))
+        try:  # the ingest's stages: the current one, and those done with their seconds (worker.stage_writer)
+            out["progress"] = json.loads(progress_path(ws, row["id"]).read_text())
+        except (OSError, ValueError):
+            out["progress"] = None
+    return out
 
 
 def scene_summary(path: Path) -> dict:
@@ -64,7 +76,7 @@ def scene_summary(path: Path) -> dict:
 
 @router.get("")
 def list_scenes(ws: Workspace = Depends(workspace)) -> list[dict]:
-    return [public(r) for r in ws.list("scenes")]
+    return [public(r, ws) for r in ws.list("scenes")]
 
 
 @router.post("", status_code=202)
@@ -78,15 +90,38 @@ def create_scene(req: SynthRequest, ws: Workspace = Depends(workspace), jr: JobR
     row = ws.insert("scenes", id=sid, name=req.name, path=str(out), source="synth", status="queued")
     jr.start("scenes", sid, "synth", {"name": req.name, "out": str(out), "size": req.size, "frames": req.frames,
                                        "subframes": req.subframes, "blur": req.blur})
-    return public(ws.get("scenes", row["id"]))
+    return public(ws.get("scenes", row["id"]), ws)
 
 
-@router.post("/upload", status_code=201)
-async def upload_scene(request: Request, name: str = Query(..., min_length=1, max_length=80, pattern=r"^[\w.\- ]+$"),
-                       kind: Literal["zip", "video"] = Query(...), ws: Workspace = Depends(workspace),
-                       jr: JobRunner = Depends(jobs)) -> dict:
-    """Raw request body: a dataset folder as .zip (Nerfies, D-NeRF or COLMAP layout) or a video
-    (ingested with SfM as a job). Size-limited while streaming; nothing is kept on failure."""
+class IngestRequest(StrictRequest):
+    """How an uploaded video becomes a scene (`kgs_core.data.ingest.ingest`)."""
+
+    max_size: int = Field(320, ge=64, le=4096, description="long side of the frames, in pixels")
+    mapper: Literal["auto", "keyframes", "global", "incremental"] = "auto"
+    holdout_every: int | None = Field(None, ge=0, le=1000,
+                                      description="with one video, every n-th frame is a test view (0: none; default 8)")
+    fixed_camera: bool = Field(False, description="the camera does not move: skip SfM, one pose for every frame")
+    exposure: float = Field(0.5, ge=0, le=1, description="the training video's exposure, a fraction of the frame interval")
+
+    @model_validator(mode="after")
+    def holdout_not_one(self) -> "IngestRequest":
+        if self.holdout_every == 1:
+            raise ValueError("holdout_every must be 0 (none) or at least 2")
+        return self
+
+
+def video_path(ws: Workspace, scene_id: str, role: str = "video") -> Path:
+    """Where an uploaded video waits for its ingest (outside the scene folder, which ingest replaces)."""
+    return ws.root / "scenes" / (f".{scene_id}.video" if role == "video" else f".{scene_id}.{role}.video")
+
+
+def progress_path(ws: Workspace, scene_id: str) -> Path:
+    return ws.root / "jobs" / f"{scene_id}.progress.json"
+
+
+async def receive_upload(request: Request, kind: str, tmp_dir: Path) -> Path:
+    """The raw request body, streamed into `tmp_dir` under the upload limit, with the declared
+    Content-Type checked against `kind` first."""
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if not any(fnmatch.fnmatchcase(ctype, t) for t in UPLOAD_TYPES[kind]):
         raise HTTPException(415, f"kind={kind} uploads need Content-Type {' or '.join(UPLOAD_TYPES[kind])}, "
@@ -95,52 +130,120 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise HTTPException(413, f"upload of {int(declared)} bytes exceeds the limit of {limit} bytes")
+    blob = tmp_dir / ("upload.zip" if kind == "zip" else "upload.video")
+    size = 0
+    with open(blob, "wb") as f:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > limit:
+                raise HTTPException(413, f"upload exceeds the limit of {limit} bytes")
+            f.write(chunk)
+    if size == 0:
+        raise HTTPException(422, "empty upload")
+    return blob
+
+
+def check_video(blob: Path) -> None:
+    """415 unless PyAV opens `blob` and finds a video stream in it."""
+    import av
+
+    try:
+        with av.open(str(blob)) as c:
+            if not c.streams.video:
+                raise HTTPException(415, "the upload has no video stream")
+    except HTTPException:
+        raise
+    except Exception as exc:
+        raise HTTPException(415, f"kind=video but the body is not a readable video ({type(exc).__name__})") from None
+
+
+def start_ingest(ws: Workspace, jr: JobRunner, row: dict, req: IngestRequest) -> None:
+    sharp = video_path(ws, row["id"], "sharp")
+    progress_path(ws, row["id"]).unlink(missing_ok=True)
+    ws.update("scenes", row["id"], status="queued", error=None)
+    jr.start("scenes", row["id"], "ingest", {
+        "video": str(video_path(ws, row["id"])), "eval_video": str(sharp) if sharp.is_file() else None,
+        "out": row["path"], "delete_video": True, "progress": str(progress_path(ws, row["id"])),
+        **req.model_dump(exclude_none=True)})
+
+
+@router.post("/upload", status_code=201)
+async def upload_scene(request: Request, name: str = Query(..., min_length=1, max_length=80, pattern=r"^[\w.\- ]+$"),
+                       kind: Literal["zip", "video"] = Query(...),
+                       hold: bool = Query(False, description="video: keep it as 'uploaded' (a second camera's video "
+                                                             "may follow) until POST /api/scenes/{id}/ingest"),
+                       ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
+    """Raw request body: a dataset folder as .zip (Nerfies, D-NeRF or COLMAP layout) or a video
+    (ingested with SfM as a job, at once with the default options, or when asked with `hold`).
+    Size-limited while streaming; nothing is kept on failure."""
     from ..registry import new_id
 
     sid = new_id()
     tmp_dir = Path(tempfile.mkdtemp(dir=ws.root / "scenes", prefix=f".upload-{sid}-"))
     try:
-        blob = tmp_dir / ("upload.zip" if kind == "zip" else "upload.video")
-        size = 0
-        with open(blob, "wb") as f:
-            async for chunk in request.stream():
-                size += len(chunk)
-                if size > limit:
-                    raise HTTPException(413, f"upload exceeds the limit of {limit} bytes")
-                f.write(chunk)
-        if size == 0:
-            raise HTTPException(422, "empty upload")
-        head = blob.read_bytes()[:16]
-        out = ws.new_dir("scenes", sid)
+        blob = await receive_upload(request, kind, tmp_dir)
         if kind == "zip":
-            if not head.startswith(b"PK\x03\x04"):
+            if not blob.read_bytes()[:4].startswith(b"PK\x03\x04"):
                 raise HTTPException(415, "kind=zip but the body is not a zip archive")
-            root = _safe_extract(blob, tmp_dir / "x", limit * 4)
+            root = _safe_extract(blob, tmp_dir / "x", request.app.state.settings.max_upload_mb * 1024 * 1024 * 4)
             try:
                 summary = scene_summary(root)
             except ValueError as exc:
                 raise HTTPException(422, f"the zip is not a readable dataset: {exc}") from None
+            out = ws.new_dir("scenes", sid)
             shutil.move(str(root), out)
             row = ws.insert("scenes", id=sid, name=name, path=str(out), source="upload", status="done")
-            return {**public(row), **summary}
-        # a video: sniff the container, then ingest as a job
-        import av
-
-        try:
-            with av.open(str(blob)) as c:
-                if not c.streams.video:
-                    raise HTTPException(415, "the upload has no video stream")
-        except HTTPException:
-            raise
-        except Exception as exc:
-            raise HTTPException(415, f"kind=video but the body is not a readable video ({type(exc).__name__})") from None
-        video = ws.root / "scenes" / f".{sid}.video"
-        shutil.move(str(blob), video)
-        row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status="queued")
-        jr.start("scenes", sid, "ingest", {"video": str(video), "out": str(out), "delete_video": True})
-        return public(ws.get("scenes", row["id"]))
+            return {**public(row, ws), **summary}
+        check_video(blob)
+        out = ws.new_dir("scenes", sid)
+        shutil.move(str(blob), video_path(ws, sid))
+        row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status="uploaded")
+        if not hold:
+            start_ingest(ws, jr, row, IngestRequest(max_size=960))
+        return public(ws.get("scenes", sid), ws)
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
+def waiting_video(ws: Workspace, scene_id: str) -> dict:
+    """The row of a scene whose uploaded video can be (re-)ingested: 409 otherwise."""
+    row = get_or_404(ws, "scenes", scene_id)
+    if row["source"] != "ingest" or row["status"] not in INGESTABLE or not video_path(ws, scene_id).is_file():
+        raise HTTPException(409, f"scene {scene_id} has no uploaded video waiting for ingest (status: {row['status']})")
+    return row
+
+
+@router.post("/{scene_id}/video", status_code=201)
+async def upload_second_video(scene_id: str, request: Request, role: Literal["sharp"] = Query(...),
+                              ws: Workspace = Depends(workspace)) -> dict:
+    """A second camera's video of the same moment (raw body), synchronised with the first and with
+    as many frames: ingest poses both, trains on the first, and keeps the second for evaluation."""
+    waiting_video(ws, scene_id)
+    tmp_dir = Path(tempfile.mkdtemp(dir=ws.root / "scenes", prefix=f".upload-{scene_id}-"))
+    try:
+        blob = await receive_upload(request, "video", tmp_dir)
+        check_video(blob)
+        shutil.move(str(blob), video_path(ws, scene_id, role))
+    finally:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+    return public(ws.get("scenes", scene_id), ws)
+
+
+@router.post("/{scene_id}/ingest", status_code=202)
+def ingest_scene(scene_id: str, req: IngestRequest, ws: Workspace = Depends(workspace),
+                 jr: JobRunner = Depends(jobs)) -> dict:
+    """Starts (or, after a failure or a cancel, retries) the ingest of an uploaded video."""
+    start_ingest(ws, jr, waiting_video(ws, scene_id), req)
+    return public(ws.get("scenes", scene_id), ws)
+
+
+@router.post("/{scene_id}/cancel", status_code=202)
+def cancel_scene(scene_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
+    """Stops a scene's job (an ingest or a synthesis); its uploaded video stays for a retry."""
+    get_or_404(ws, "scenes", scene_id)
+    if not jr.cancel("scenes", scene_id):
+        raise HTTPException(409, f"scene {scene_id} has no job running")
+    return public(ws.get("scenes", scene_id), ws)
 
 
 def _safe_extract(zip_path: Path, dest: Path, max_bytes: int) -> Path:
@@ -172,7 +275,7 @@ def _safe_extract(zip_path: Path, dest: Path, max_bytes: int) -> Path:
 @router.get("/{scene_id}")
 def get_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> dict:
     row = get_or_404(ws, "scenes", scene_id)
-    out = public(row)
+    out = public(row, ws)
     if row["status"] == "done":
         try:
             out.update(scene_summary(Path(row["path"])))
@@ -184,8 +287,8 @@ def get_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> dict:
 @router.delete("/{scene_id}", status_code=204)
 def delete_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "scenes", scene_id)
-    if row["status"] in ("queued", "running"):
-        raise HTTPException(409, "the scene is still being created")
+    if row["status"] in ("queued", "running", "cancelling"):
+        raise HTTPException(409, "the scene is still being created (cancel it first)")
     runs = ws.list("runs", scene_id=scene_id)
     if runs:  # their renders, input frames and fine-tuning read the scene
         raise HTTPException(409, f"{len(runs)} run(s) use this scene ({', '.join(r['id'] for r in runs[:5])}): "
@@ -193,5 +296,7 @@ def delete_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> None:
     path = Path(row["path"])
     if path.is_relative_to(ws.root):  # never delete data the user registered from elsewhere
         shutil.rmtree(path, ignore_errors=True)
-    (ws.root / "scenes" / f".{scene_id}.video").unlink(missing_ok=True)  # an upload whose ingest never ran
+    for role in ("video", "sharp"):  # uploads whose ingest never ran or failed
+        video_path(ws, scene_id, role).unlink(missing_ok=True)
+    progress_path(ws, scene_id).unlink(missing_ok=True)
     ws.delete("scenes", scene_id)

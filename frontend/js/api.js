@@ -29,3 +29,26 @@ export function openStream(runId) {
   ws.binaryType = "arraybuffer";
   return ws;
 }
+
+// POSTs a File as the raw request body, reporting the fraction sent to `onProgress` (fetch
+// cannot report upload progress). Returns { done: Promise<JSON>, abort() }.
+export function upload(path, file, onProgress) {
+  const xhr = new XMLHttpRequest();
+  const done = new Promise((resolve, reject) => {
+    xhr.open("POST", path);
+    if (token) xhr.setRequestHeader("Authorization", `Bearer ${token}`);
+    xhr.setRequestHeader("Content-Type", file.type || "application/octet-stream");
+    xhr.upload.onprogress = (e) => { if (e.lengthComputable) onProgress(e.loaded / e.total); };
+    xhr.onload = () => {
+      let body = null;
+      try { body = JSON.parse(xhr.responseText); } catch (e) { /* not JSON */ }
+      if (xhr.status < 300) return resolve(body);
+      const detail = body && body.detail !== undefined ? body.detail : xhr.statusText;
+      reject(new Error(`POST ${path}: ${xhr.status} ${typeof detail === "string" ? detail : JSON.stringify(detail)}`));
+    };
+    xhr.onerror = () => reject(new Error(`POST ${path}: the connection failed`));
+    xhr.onabort = () => reject(new Error("upload cancelled"));
+    xhr.send(file);
+  });
+  return { done, abort: () => xhr.abort() };
+}

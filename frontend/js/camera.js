@@ -92,6 +92,35 @@ export class OrbitCamera {
   }
 }
 
+// Radians the orbit turns per pixel dragged, either way: 200 px turn the view about 20 degrees,
+// whatever the canvas's size.
+export const ORBIT_RADIANS_PER_PIXEL = 0.0017;
+
+// A depth quantile, along the camera's optical axis, of the points in front of it: where the
+// scene's content starts, and so where an orbit should pivot to keep it in frame. null when no
+// point is in front. `positions` holds x, y, z per point; at most `sample` points are read.
+// The lower quartile, not the median: in a corridor or a room filmed from inside, turning about
+// the median depth swings the camera through the near walls.
+export function focusDepth(viewmat, positions, count, quantile = 0.25, sample = 20000) {
+  const step = Math.max(1, Math.floor(count / sample));
+  const depths = [];
+  for (let i = 0; i < count; i += step) {
+    const z = viewmat[8] * positions[3 * i] + viewmat[9] * positions[3 * i + 1] + viewmat[10] * positions[3 * i + 2]
+      + viewmat[11];
+    if (z > 1e-6) depths.push(z);
+  }
+  if (!depths.length) return null;
+  depths.sort((a, b) => a - b);
+  return depths[Math.min(depths.length - 1, Math.floor(quantile * depths.length))];
+}
+
+// The same view, orbiting about the point `depth` ahead of the camera.
+export function orbitAtDepth(viewmat, depth, up) {
+  const c = cameraCenter(viewmat);
+  const target = [0, 1, 2].map((i) => c[i] + depth * viewmat[8 + i]);
+  return OrbitCamera.fromViewmat(viewmat, target, up);
+}
+
 // Fly: WASD moves along the camera axes; mouse turns.
 export function flyMove(viewmat, forward, right, upward) {
   const inv = invertRigid(viewmat);

@@ -1,7 +1,7 @@
 // Entry point: `#/run/<id>` opens the viewer, anything else the runs page.
 
 import { Viewer } from "./viewer.js";
-import { makeDemoScene, showRuns } from "./train.js";
+import { makeDemoScene, showRuns, uploadVideos } from "./train.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -21,6 +21,7 @@ async function route() {
     }
   } else {
     $("demo").onclick = makeDemoScene;
+    $("video-go").onclick = uploadVideos;
     await showRuns();
     document.body.dataset.ready = "1";
   }

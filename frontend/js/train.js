@@ -1,17 +1,58 @@
-// The runs page: scenes (make the demo scene), start a run, live loss/PSNR chart, cancel, resume, open.
+// The runs page: scenes (make the demo scene, upload and ingest a video with its stages shown),
+// start a run with a preset, live loss/PSNR chart, cancel, resume, open.
 
-import { api, openStream } from "./api.js";
+import { api, openStream, upload } from "./api.js";
 import { drawChart } from "./chart.js";
 import { esc } from "./dom.js";
 
 const $ = (id) => document.getElementById(id);
 
+const ACTIVE = ["queued", "running", "cancelling"];
+const RETRYABLE = ["uploaded", "failed", "cancelled", "interrupted"];
+
+// One line for an ingest's progress: the stage, its count, the seconds so far, and the stages
+// already done with their seconds (backend/worker.py: stage_writer).
+function ingestProgress(p) {
+  if (!p) return "starting…";
+  const count = p.total ? ` ${p.done}/${p.total}` : "";
+  const past = (p.stages || []).map(([name, s]) => `${name} ${Number(s).toFixed(0)} s`).join(" · ");
+  return `${p.stage}${count} · ${Number(p.elapsed).toFixed(0)} s${past ? ` <span class="muted">(${esc(past)})</span>` : ""}`;
+}
+
+function sceneItem(s) {
+  const id = esc(s.id);
+  const head = `<b>${esc(s.name)}</b> <span class="status">${esc(s.status)}</span>`;
+  if (ACTIVE.includes(s.status)) {
+    const line = s.source === "ingest" ? ingestProgress(s.progress) : "synthesizing (about two minutes)…";
+    return `<li data-scene="${id}">${head} <span class="ingest-progress">${line}</span>
+      ${s.status !== "cancelling" ? `<button data-scene-cancel="${id}">cancel</button>` : ""}</li>`;
+  }
+  const error = s.error ? `<div class="error">${esc(s.error)}</div>` : "";
+  const retry = s.source === "ingest" && RETRYABLE.includes(s.status) && s.videos
+    ? `<button data-ingest="${id}" title="Ingest the uploaded video again with the options above">ingest again</button>` : "";
+  const train = s.status === "done" ? `<button data-train="${id}">Train</button>` : "";
+  const took = s.status === "done" && s.progress ? ` <span class="muted">ingested in ${Number(s.progress.elapsed).toFixed(0)} s</span>` : "";
+  return `<li data-scene="${id}">${head}${took} ${train} ${retry}
+    <button data-scene-delete="${id}" title="Delete the scene (refused while runs use it)">delete</button>${error}</li>`;
+}
+
+function ingestOptions() {
+  return { max_size: parseInt($("video-size").value, 10), fixed_camera: $("video-fixed").checked };
+}
+
+let polling = null;
+
 export async function showRuns() {
   const [scenes, runs] = await Promise.all([api("/api/scenes"), api("/api/runs")]);
-  $("scene-list").innerHTML = scenes.length
-    ? scenes.map((s) => `<li>${esc(s.name)} <span class="muted">${esc(s.status)}</span>
-        ${s.status === "done" ? `<button data-train="${esc(s.id)}">Train (fast)</button>` : ""}</li>`).join("")
-    : `<li class="muted">no scenes yet</li>`;
+  $("scene-list").innerHTML = scenes.length ? scenes.map(sceneItem).join("") : `<li class="muted">no scenes yet</li>`;
+  // Keep the list current while a scene is being made.
+  clearTimeout(polling);
+  if (scenes.some((s) => ACTIVE.includes(s.status))) polling = setTimeout(showRuns, 1000);
+  const act = (sel, fn) => document.querySelectorAll(sel).forEach((b) => (b.onclick = () => fn(b).catch(report)));
+  act("[data-scene-cancel]", (b) => api(`/api/scenes/${b.dataset.sceneCancel}/cancel`, { method: "POST" }).then(showRuns));
+  act("[data-scene-delete]", (b) => api(`/api/scenes/${b.dataset.sceneDelete}`, { method: "DELETE" }).then(showRuns));
+  act("[data-ingest]", (b) => api(`/api/scenes/${b.dataset.ingest}/ingest`, { method: "POST", body: ingestOptions() })
+    .then(showRuns));
   $("run-list").innerHTML = runs.length
     ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(r.status)}</span>
         <span class="muted run-where">${esc(r.scene_name || "?")} · ${esc(new Date(r.created * 1000).toLocaleString())} · ${esc(r.folder)}</span>
@@ -21,7 +62,7 @@ export async function showRuns() {
         ${r.resumable ? `<button data-resume="${esc(r.id)}" title="${esc(r.error || "")}">resume</button>` : ""}</li>`).join("")
     : `<li class="muted">no runs yet: make the demo scene, then train it</li>`;
   document.querySelectorAll("[data-train]").forEach((b) => (b.onclick = async () => {
-    const run = await api("/api/runs", { method: "POST", body: { scene_id: b.dataset.train, preset: "fast",
+    const run = await api("/api/runs", { method: "POST", body: { scene_id: b.dataset.train, preset: $("train-preset").value,
       iterations: parseInt($("train-iterations").value, 10) || null } });
     await showRuns();
     watch(run.id);
@@ -35,19 +76,51 @@ export async function showRuns() {
     await showRuns();
     watch(b.dataset.resume);
   }));
-    document.querySelectorAll("[data-watch]").forEach((b) => (b.onclick = () => watch(b.dataset.watch)));
+  document.querySelectorAll("[data-watch]").forEach((b) => (b.onclick = () => watch(b.dataset.watch)));
+}
+
+function report(e) {
+  $("ingest-status").textContent = e.message;
+}
+
+// A scene name from a file name, within what the server accepts (letters, digits, . _ - space).
+function sceneName(file) {
+  return file.name.replace(/\.[^.]*$/, "").replace(/[^\w.\- ]/g, "_").slice(0, 80) || "video";
+}
+
+// Upload the video (held, so that a second camera's video can follow), then that one, then
+// start the ingest; the scene list shows its stages from there.
+export async function uploadVideos() {
+  const file = $("video-file").files[0];
+  const sharp = $("sharp-file").files[0];
+  if (!file) { $("ingest-status").textContent = "choose a video first"; return; }
+  const name = $("video-name").value.trim() || sceneName(file);
+  const status = $("ingest-status");
+  const send = async (path, f) => {
+    const job = upload(path, f, (x) => { $("upload-pct").textContent = `${(100 * x).toFixed(0)}%`; });
+    status.innerHTML = `uploading ${esc(f.name)} <span id="upload-pct">0%</span> <button id="upload-cancel">cancel</button>`;
+    $("upload-cancel").onclick = job.abort;
+    return job.done;
+  };
+  try {
+    const scene = await send(`/api/scenes/upload?kind=video&hold=true&name=${encodeURIComponent(name)}`, file);
+    try {
+      if (sharp) await send(`/api/scenes/${scene.id}/video?role=sharp`, sharp);
+      await api(`/api/scenes/${scene.id}/ingest`, { method: "POST", body: ingestOptions() });
+    } catch (e) {
+      await api(`/api/scenes/${scene.id}`, { method: "DELETE" }).catch(() => {});  // nothing half-made stays
+      throw e;
+    }
+    status.textContent = "";
+  } catch (e) {
+    status.textContent = e.message;
+  }
+  await showRuns();
 }
 
 export async function makeDemoScene() {
   await api("/api/scenes", { method: "POST", body: { source: "synth", name: "sheet" } });
-  $("train-status").textContent = "synthesizing the demo scene (about two minutes)…";
-  const poll = async () => {
-    const scenes = await api("/api/scenes");
-    await showRuns();
-    if (scenes.some((s) => ["queued", "running"].includes(s.status))) setTimeout(poll, 2000);
-    else $("train-status").textContent = "";
-  };
-  poll();
+  await showRuns();
 }
 
 let watching = null;

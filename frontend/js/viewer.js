@@ -5,7 +5,8 @@ import { api, openStream, withToken } from "./api.js";
 import { parseBuffer } from "./buffers.js";
 import { FLAG_DYNAMIC, packSet, textureRows, TEX_WIDTH, SPLATS_PER_ROW } from "./pack.js";
 import { SplatRenderer } from "./renderer.js";
-import { OrbitCamera, cameraCenter, flyMove, flyTurn, intrinsics, project } from "./camera.js";
+import { ORBIT_RADIANS_PER_PIXEL, OrbitCamera, cameraCenter, flyMove, flyTurn, focusDepth, intrinsics, orbitAtDepth,
+  project } from "./camera.js";
 import { drawHistogram } from "./chart.js";
 import { esc } from "./dom.js";
 import { frontOf } from "./pick.js";
@@ -68,11 +69,34 @@ export class Viewer {
     const c = cameraCenter(vm);
     const fwd = [vm[8], vm[9], vm[10]];
     const up = f ? [-vm[4], -vm[5], -vm[6]] : [0, -1, 0];
+    // A first guess at the pivot (the origin's distance ahead); `pivotOnContent` moves it onto
+    // the Gaussians once they arrive.
     const dist = Math.hypot(...c) || 3;
     const target = [c[0] + dist * fwd[0], c[1] + dist * fwd[1], c[2] + dist * fwd[2]];
     this.orbit = OrbitCamera.fromViewmat(vm, target, up);
+    this.up = up;
     this.mode = "orbit";
     this.fovFrame = f;
+    this.pivotSet = false;
+    // How far the training cameras travelled (the largest side of their centres' bounding box):
+    // views much further from their path than this show what no input saw.
+    const centres = frames.map((fr) => cameraCenter(fr.viewmat.flat()));
+    this.cameraSpan = centres.length > 1
+      ? Math.max(...[0, 1, 2].map((k) => Math.max(...centres.map((p) => p[k])) - Math.min(...centres.map((p) => p[k]))))
+      : Infinity;
+  }
+
+  // Open on the first training camera's view, orbiting about the median depth of what it
+  // sees, so that turning keeps the scene in frame. Once, before the user moves the view.
+  pivotOnContent(set) {
+    if (this.pivotSet || !set || !set.count) return;
+    this.pivotSet = true;
+    const vm = this.orbit.viewmat();
+    const depth = focusDepth(vm, set.positions, set.count);
+    // A camera that filmed from inside the scene (a corridor, a room) has content close beside
+    // it: pivoting at the content's depth would swing it through the walls. The pivot stays
+    // within twice the distance the input cameras travelled, so turning keeps near their path.
+    if (depth !== null) this.orbit = orbitAtDepth(vm, Math.min(depth, 2 * this.cameraSpan), this.up);
   }
 
   intrinsics() {
@@ -158,6 +182,7 @@ export class Viewer {
     const set = parseBuffer(data);
     if (set.header.kind === "static") {
       this.static = set;
+      this.pivotOnContent(set);
     } else {
       if (set.header.version !== (this.static && this.static.header.version)) {
         // arrived before the matching static set: keep it, it will be drawn with it
@@ -394,8 +419,11 @@ export class Viewer {
       if (!drag) return;
       const dx = (e.clientX - drag.x) / c.clientWidth, dy = (e.clientY - drag.y) / c.clientHeight;
       drag.x = e.clientX; drag.y = e.clientY;
+      this.pivotSet = true;  // the user's view from here on
       if (this.mode === "orbit") {
-        if (drag.button === 2 || e.shiftKey) this.orbit.pan(dx, dy); else this.orbit.rotate(-4 * dx, 4 * dy);
+        const turn = ORBIT_RADIANS_PER_PIXEL;
+        if (drag.button === 2 || e.shiftKey) this.orbit.pan(dx, dy);
+        else this.orbit.rotate(-turn * dx * c.clientWidth, turn * dy * c.clientHeight);
       } else {
         this.viewmat = flyTurn(this.viewmat, 2 * dx, -2 * dy);
       }
@@ -408,6 +436,7 @@ export class Viewer {
     });
     c.addEventListener("wheel", (e) => {
       e.preventDefault();
+      this.pivotSet = true;
       if (this.mode === "orbit") this.orbit.zoom(Math.exp(e.deltaY * 0.001));
       else this.viewmat = flyMove(this.viewmat, -e.deltaY * 0.002, 0, 0);
       this.dirty = true;

@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from tqdm import tqdm
 
 from ..io import atomic_directory
+from ..progress import progress_bar
 from .formats import write_nerfies
 from .formats.colmap import camera_from_colmap
 from .scene import Camera, Frame, Scene, SceneError
@@ -269,7 +269,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
         with atomic_directory(out, overwrite=overwrite) as tmp:
             (tmp / "rgb" / "1x").mkdir(parents=True)
             frames = []
-            bar = tqdm(total=n_a + n_b, desc="undistort and write", unit="frame", disable=not progress)
+            bar = progress_bar(total=n_a + n_b, desc="undistort and write", show=progress)
             for names, cam_id in ((names_a, 0), (names_b, 1)):
                 for nm in names:
                     if nm not in reg:

@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
+
+from ..progress import announce, progress_bar
 
 MAPPERS = ("auto", "keyframes", "global", "incremental")
 MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
@@ -63,7 +64,7 @@ def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[
     extraction.max_image_size = 1600
     extraction.use_gpu = False
     chunk = 32  # extraction is called in chunks only so that the progress bar moves
-    with tqdm(total=len(names_a) + len(names_b), desc="features", unit="frame", disable=not progress) as bar:
+    with progress_bar(total=len(names_a) + len(names_b), desc="features", show=progress) as bar:
         for names in (names_a, names_b):  # one camera per video
             reader = pycolmap.ImageReaderOptions()
             for s in range(0, len(names), chunk):
@@ -81,6 +82,7 @@ def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[
     pairing.quadratic_overlap = True
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
+    announce("matching")
     if progress:
         print(f"matching {len(names_a) + len(names_b)} frames (sequential, quadratic overlap)", flush=True)
     pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
@@ -186,7 +188,7 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
                     if p.has_point3D():
                         observed[(im.image_id, j)] = p.point3D_id
         rest = [n for n in names_a + names_b if n not in posed]
-        for name in tqdm(rest, desc="register", unit="frame", disable=not progress):
+        for name in progress_bar(rest, desc="register", show=progress):
             pose = _absolute_pose(d, model, by_name[name], keyframe_ids, observed)
             if pose is not None:
                 posed[name] = (by_name[name].camera_id, pose)
@@ -285,6 +287,7 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
     for name in order:
         out = work / f"sparse_{name}"
         out.mkdir(parents=True, exist_ok=True)
+        announce(f"mapping ({name})")
         if progress:
             print(f"mapping with the {name} mapper", flush=True)
         t0 = time.perf_counter()

@@ -6,9 +6,8 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from tqdm import tqdm
-
 from ..io import atomic_file
+from ..progress import progress_bar
 from .scene import SceneError
 
 
@@ -27,8 +26,8 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
                 raise SceneError(f"{path}: no video stream")
             stream = container.streams.video[0]
             total = stream.frames or None
-            for k, fr in enumerate(tqdm(container.decode(stream), total=total, desc=f"decode {path.name}",
-                                        disable=not progress, unit="frame")):
+            for k, fr in enumerate(progress_bar(container.decode(stream), total=total, desc=f"decode {path.name}",
+                                                show=progress)):
                 if k % every:
                     continue
                 img = fr.to_ndarray(format="rgb24")
@@ -65,7 +64,7 @@ def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, pro
         stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
         if codec == "libx264":
             stream.options = {"crf": str(crf)}
-        for img in tqdm(frames, desc=f"encode {path.name}", disable=not progress, unit="frame"):
+        for img in progress_bar(frames, desc=f"encode {path.name}", show=progress):
             if img.shape[:2] != (H, W):
                 img = np.pad(img, ((0, H - img.shape[0]), (0, W - img.shape[1]), (0, 0)), mode="edge")
             for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")):
