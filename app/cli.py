@@ -273,7 +273,7 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("raster", "step", "quality", "real", "ingest", "stability", "serve", "threads")  # modules of kgs_app.bench
+BENCHMARKS = ("raster", "step", "quality", "real", "ingest", "stability", "serve", "threads", "open")  # modules of kgs_app.bench
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

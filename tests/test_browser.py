@@ -270,3 +270,11 @@ def test_orbit_opens_framed_and_keeps_the_scene_in_frame(browser, server):
     assert 10 < turned < 25, turned
     assert before > 0.05 and after > 0.6 * before, (before, after)
     ctx.close()
+
+
+def test_bench_open_times_the_first_full_frame(server, capsys):
+    from kgs_app.bench.open import main
+
+    assert main([str(server["run_dir"]), "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "first full frame, cold server: median" in out and "receiving Gaussians" in out, out
