@@ -73,8 +73,8 @@ def test_unregistrable_video(tmp_path):
 
 def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch):
     """When the keyframes form no model (here: a keyframe step longer than the clip, kept from
-    shrinking, leaves one keyframe), auto goes on to the incremental mapper and records both
-    attempts."""
+    shrinking, leaves one keyframe), auto tries keyframes twice as dense, then goes on to the
+    incremental mapper, and records every attempt."""
     from kgs_core.data import sfm
     from kgs_core.data.ingest import frame_set
     from kgs_core.data.sfm import run_sfm
@@ -85,8 +85,18 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
     result = run_sfm(folder / "database.db", folder / "images", tmp_path / "work", meta["names_a"], [],
                      meta["sharpness"], "auto", keyframe_step=64, progress=False)
     assert result.mapper == "incremental"
-    assert [a["mapper"] for a in result.attempts] == ["keyframes", "incremental"]
-    assert result.attempts[0]["outcome"] == "no model" and result.attempts[1]["registered_fraction"] >= 0.9
+    assert [(a["mapper"], a.get("keyframe_step")) for a in result.attempts] == [
+        ("keyframes", 64), ("keyframes", 32), ("incremental", None)]
+    assert [a["outcome"] for a in result.attempts[:2]] == ["no model", "no model"]
+    assert result.attempts[2]["registered_fraction"] >= 0.9
+    # Keyframes every 4th frame (4 of 16) pose 15 of the 16 frames, short of the 95 % asked for;
+    # every 2nd frame poses them all: the retry, without the incremental mapper.
+    result = run_sfm(folder / "database.db", folder / "images", tmp_path / "work2", meta["names_a"], [],
+                     meta["sharpness"], "auto", keyframe_step=4, progress=False)
+    steps = [(a["mapper"], a.get("keyframe_step")) for a in result.attempts]
+    assert steps == [("keyframes", 4), ("keyframes", 2)], result.attempts
+    assert result.attempts[0]["registered_fraction"] < 0.95 <= result.attempts[1]["registered_fraction"]
+    assert result.mapper == "keyframes"
 
 
 def test_frame_set_is_cached_and_reused(room_video, tmp_path):

@@ -113,6 +113,9 @@ def _pipeline_options(cls, names: list[str] | None = None):
     opts = cls()
     opts.num_threads = 2
     opts.random_seed = 0
+    if hasattr(opts, "mapper"):  # the pipeline's seed does not reach its mapper and triangulator
+        opts.mapper.random_seed = 0
+        opts.triangulation.random_seed = 0
     if names is not None:
         opts.image_names = names
     return opts
@@ -147,6 +150,11 @@ def map_global(db: Path, images: Path, out: Path):
     return _largest(recs)
 
 
+def keyframe_time_budget(keyframes: int) -> int:
+    """Seconds the keyframe model may take: a healthy one takes 10-30 s for 150 keyframes here."""
+    return int(30 + keyframes // 4)
+
+
 def keyframe_names(names_a: list[str], names_b: list[str], step: int) -> list[str]:
     """Every `step`-th training frame from the first, with its synchronised twin: a power-of-two
     step keeps neighbouring keyframes among the pairs that sequential matching verified."""
@@ -172,6 +180,10 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     # Small enough for a short clip's keyframes, large enough that the mapper discards a stray
     # fragment and tries another start instead of keeping it (3 split kitchen into 3-image models).
     opts.min_model_size = min(10, max(3, len(keyframes) // 2))
+    # A keyframe graph that falls apart makes the mapper start model after model from new initial
+    # pairs (196 discarded models in one 336 + 336 frame ingest, minutes instead of seconds).
+    # Bounded: what it has by then is kept or, when too small, mapped again more densely.
+    opts.max_runtime_seconds = keyframe_time_budget(len(keyframes))
     model = _largest(pycolmap.incremental_mapping(db, images, out / "keyframes", options=opts))
     stages["keyframes"] = time.perf_counter() - t0
     if model is None or model.num_reg_images() < max(3, len(keyframes) // 2):
@@ -276,25 +288,29 @@ def _absolute_pose(d, model, image, keyframe_ids: list[int], observed: dict):
 def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: list[str], scores: dict[str, float],
             mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int = 4,
             progress: bool = True) -> SfmResult | None:
-    """Maps the frames of `db` with `mapper`. `auto` tries keyframes and then incremental, and
-    keeps the first model that poses at least `min_registered` of the training frames (else the
-    one that posed the most). Returns None when no mapper produced a model."""
+    """Maps the frames of `db` with `mapper`. `auto` tries keyframes, keyframes twice as dense, then
+    incremental, and keeps the first model that poses at least `min_registered` of the training
+    frames (else the one that posed the most). Returns None when no mapper produced a model."""
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
     quiet_colmap()
-    order = ["keyframes", "incremental"] if mapper == "auto" else [mapper]
+    # auto: keyframes; when their model falls short, keyframes twice as dense (more overlap between
+    # neighbours, still far cheaper than mapping every frame); then every frame incrementally.
+    order = ([("keyframes", keyframe_step)] + ([("keyframes", keyframe_step // 2)] if keyframe_step > 1 else [])
+             + [("incremental", None)]) if mapper == "auto" else [(mapper, keyframe_step)]
     attempts, best = [], None
-    for name in order:
-        out = work / f"sparse_{name}"
+    for name, step in order:
+        out = work / (f"sparse_{name}" + (f"_{step}" if name == "keyframes" else ""))
         out.mkdir(parents=True, exist_ok=True)
         announce(f"mapping ({name})")
         if progress:
-            print(f"mapping with the {name} mapper", flush=True)
+            print(f"mapping with the {name} mapper" + (f" (every {step} frames)" if name == "keyframes" else ""),
+                  flush=True)
         t0 = time.perf_counter()
         error, stages = None, {}
         try:
             if name == "keyframes":
-                rec = map_keyframes(db, images, out, names_a, names_b, keyframe_step, progress, stages)
+                rec = map_keyframes(db, images, out, names_a, names_b, step, progress, stages)
             elif name == "global":
                 rec = map_global(db, images, out)
             else:
@@ -303,7 +319,8 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
             rec, error = None, str(exc)
         posed = {im.name for im in rec.images.values() if im.has_pose} if rec is not None else set()
         fraction = sum(n in posed for n in names_a) / max(len(names_a), 1)
-        attempts.append({"mapper": name, "seconds": round(time.perf_counter() - t0, 2),
+        attempts.append({"mapper": name, **({"keyframe_step": step} if name == "keyframes" else {}),
+                         "seconds": round(time.perf_counter() - t0, 2),
                          "registered_fraction": round(fraction, 4),
                          "outcome": error or ("no model" if rec is None else "ok"),
                          **({"stages": {k: round(v, 2) for k, v in stages.items()}} if stages else {})})
