@@ -44,6 +44,36 @@ def time_open(page, navigate, timeout_ms: int = 120_000) -> tuple[float, list]:
     return seconds, [(round(ms / 1000, 2), text) for ms, text in steps]
 
 
+def launch_chromium(pw):
+    return pw.chromium.launch(executable_path=CHROMIUM, args=[
+        "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
+
+
+def measure(run: Path, repeats: int, browser, log=print) -> tuple[list[float], list[float]]:
+    """(cold seconds, reload seconds) per repeat, each on a fresh server for `run`."""
+    from kgs_backend.launch import ServerProcess
+
+    cold, warm = [], []
+    for r in range(repeats):
+        root = Path(tempfile.mkdtemp(prefix="kgs-bench-open-"))
+        try:
+            with ServerProcess([run.resolve()], root / "ws") as srv:
+                ctx = browser.new_context(viewport={"width": 1100, "height": 700})
+                page = ctx.new_page()
+                page.add_init_script(WATCH_STEPS)
+                url = f"{srv.base}/#/run/{srv.runs[0]['id']}"
+                s_cold, steps = time_open(page, lambda: page.goto(url))
+                s_warm, _ = time_open(page, page.reload)
+                cold.append(s_cold)
+                warm.append(s_warm)
+                log(f"repeat {r + 1}: cold {s_cold:.2f} s, reload {s_warm:.2f} s; cold steps: "
+                    + json.dumps(steps, ensure_ascii=False))
+                ctx.close()
+        finally:
+            shutil.rmtree(root, ignore_errors=True)
+    return cold, warm
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="kgs-app bench open", description=__doc__.split("\n\n")[0])
     p.add_argument("run", type=Path, help="a run directory (e.g. workspace/runs/sheet-fast from `kgs-app demo`)")
@@ -55,30 +85,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"{CHROMIUM} is missing (apt-get install chromium)")
     from playwright.sync_api import sync_playwright
 
-    from kgs_backend.launch import ServerProcess
-
     print(f"machine: {machine()}")
-    cold, warm = [], []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=[
-            "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
-        for r in range(args.repeats):
-            root = Path(tempfile.mkdtemp(prefix="kgs-bench-open-"))
-            try:
-                with ServerProcess([args.run.resolve()], root / "ws") as srv:
-                    ctx = browser.new_context(viewport={"width": 1100, "height": 700})
-                    page = ctx.new_page()
-                    page.add_init_script(WATCH_STEPS)
-                    url = f"{srv.base}/#/run/{srv.runs[0]['id']}"
-                    s_cold, steps = time_open(page, lambda: page.goto(url))
-                    s_warm, _ = time_open(page, page.reload)
-                    cold.append(s_cold)
-                    warm.append(s_warm)
-                    print(f"repeat {r + 1}: cold {s_cold:.2f} s, reload {s_warm:.2f} s; cold steps: "
-                          + json.dumps(steps, ensure_ascii=False))
-                    ctx.close()
-            finally:
-                shutil.rmtree(root, ignore_errors=True)
+        browser = launch_chromium(pw)
+        cold, warm = measure(args.run, args.repeats, browser)
         browser.close()
     print(f"first full frame, cold server: median {statistics.median(cold):.2f} s (min {min(cold):.2f}, max {max(cold):.2f})")
     print(f"first full frame, reload:      median {statistics.median(warm):.2f} s (min {min(warm):.2f}, max {max(warm):.2f})")
