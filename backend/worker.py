@@ -90,8 +90,6 @@ def stage_writer(path: Path, min_interval: float = 0.5):
     state = {"stage": None, "since": t0, "last": 0.0, "done_stages": []}
 
     def on_progress(stage: str, done: int, total: int | None) -> None:
-        if stage.startswith("decode "):  # "decode <file>": the uploaded copy's name is the server's own
-            stage = "decode"
         now = time.time()
         if stage != state["stage"]:
             if state["stage"] is not None:

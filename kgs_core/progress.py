@@ -33,18 +33,18 @@ def announce(stage: str, done: int = 0, total: int | None = None) -> None:
 
 
 class ProgressBar:
-    """A tqdm bar whose counts also go to the listeners. Iterate over it (each item counts one)
-    or call `update(n)`; use it as a context manager or `close()` it."""
+    """A tqdm bar whose counts also go to the listeners, under the name `stage`. Iterate over it
+    (each item counts one) or call `update(n)`; use it as a context manager or `close()` it."""
 
-    def __init__(self, iterable: Iterable | None, total: int | None, desc: str, unit: str, show: bool):
-        self.iterable, self.total, self.desc, self.n = iterable, total, desc, 0
+    def __init__(self, iterable: Iterable | None, total: int | None, desc: str, unit: str, show: bool, stage: str):
+        self.iterable, self.total, self.stage, self.n = iterable, total, stage, 0
         self._bar = tqdm(total=total, desc=desc, unit=unit, disable=not show)
-        announce(desc, 0, total)
+        announce(stage, 0, total)
 
     def update(self, n: int = 1) -> None:
         self.n += n
         self._bar.update(n)
-        announce(self.desc, self.n, self.total)
+        announce(self.stage, self.n, self.total)
 
     def __iter__(self):
         for item in self.iterable:
@@ -62,7 +62,9 @@ class ProgressBar:
 
 
 def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str, unit: str = "frame",
-                 show: bool = True) -> ProgressBar:
+                 show: bool = True, stage: str | None = None) -> ProgressBar:
+    """`desc` labels the terminal's bar; `stage` (default: `desc`) is what listeners hear, for
+    when the bar names something a listener should not see, such as a file path."""
     if total is None and iterable is not None and hasattr(iterable, "__len__"):
         total = len(iterable)
-    return ProgressBar(iterable, total, desc, unit, show)
+    return ProgressBar(iterable, total, desc, unit, show, stage or desc)

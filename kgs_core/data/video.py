@@ -27,7 +27,7 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
             stream = container.streams.video[0]
             total = stream.frames or None
             for k, fr in enumerate(progress_bar(container.decode(stream), total=total, desc=f"decode {path.name}",
-                                                show=progress)):
+                                                stage="decode", show=progress)):
                 if k % every:
                     continue
                 img = fr.to_ndarray(format="rgb24")
