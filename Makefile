@@ -2,7 +2,7 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: demo test bench setup
+.PHONY: demo test lint wheel-check bench setup
 
 setup:
 	@bash scripts/bootstrap.sh
@@ -13,6 +13,14 @@ demo: setup
 test: setup
 	@if command -v node >/dev/null; then node --test frontend/tests/; else echo "node not found: JS unit tests skipped"; fi
 	$(PY) -m pytest -q tests
+
+# Style and import order (configuration in pyproject.toml); run by .ci/run.
+lint: setup
+	$(VENV)/bin/ruff check .
+
+# The built wheel, installed into a fresh venv, trains the demo and serves the viewer.
+wheel-check: setup
+	PYTHON=$(PY) bash scripts/check_wheel.sh
 
 bench: setup
 	$(VENV)/bin/kgs-app bench raster

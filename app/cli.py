@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import get_args
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -88,6 +89,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite,
                                kr_form=args.kr_form, camera_blur=args.camera_blur, exposure=args.exposure,
                                pose_refine=None if args.pose_refine is None else args.pose_refine == "on")
+    overrides.update(dict(args.set or ()))  # --set KEY=VALUE: any setting of the schema, applied last
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
     make_config(args.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
     scene = load_scene(args.scene)
@@ -292,6 +294,16 @@ def unit_float(text: str) -> float:
     return v
 
 
+def setting(text: str) -> tuple[str, object]:
+    """argparse type: KEY=VALUE of a training setting (`parse_setting`)."""
+    from kgs_core.train.config import parse_setting
+
+    try:
+        return parse_setting(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1 (an iteration count)."""
     try:
@@ -355,6 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)
 
+    from kgs_core.model.dynamic import Basis, KRForm, Velocity
     from kgs_core.train.config import ABLATIONS, CAMERA_BLUR, PRESETS
 
     p = sub.add_parser("train", help="train Kinematics-GS on a scene folder")
@@ -366,10 +379,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "units^2; default: fitted to the scene, an RMS image motion of 0.62 px)")
     p.add_argument("--exposure", type=unit_float, help="the training video's exposure, a fraction of the frame interval "
                    "(default: the scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off")
-    p.add_argument("--velocity", choices=["paper", "physical"], help="velocity estimate of the kinematic basis")
-    p.add_argument("--basis", choices=["paper", "duff", "principal"],
+    p.add_argument("--velocity", choices=get_args(Velocity), help="velocity estimate of the kinematic basis")
+    p.add_argument("--basis", choices=get_args(Basis),
                    help="kinematic frame: the paper's (reference-axis switch), branch-free, or continuous (principal)")
-    p.add_argument("--kr-form", choices=["paper", "convolve"],
+    p.add_argument("--kr-form", choices=get_args(KRForm),
                    help="kinematic refinement: the paper's projection onto the velocity frame, or the predicted "
                         "covariance convolved with the motion during the exposure (docs/method.md)")
     p.add_argument("--camera-blur", choices=list(CAMERA_BLUR),
@@ -384,6 +397,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=positive_int, help="override the preset's iteration count (its schedule scales with it)")
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
+    p.add_argument("--set", action="append", type=setting, metavar="KEY=VALUE",
+                   help="any training setting (a TrainConfig field, or model.FIELD), checked against the schema; "
+                        "repeatable, applied after the options above. E.g. --set lambda_reg=0.02 --set model.knn=16")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("train-many", help="train scenes x presets x configurations x seeds, in turn or as Ray tasks "

@@ -6,9 +6,11 @@ from pathlib import Path
 
 from fastapi import HTTPException, Request
 
+from kgs_core.run_view import RunView
+
 from .jobs import JobRunner
 from .registry import Workspace
-from .splats import RunView, RunViews
+from .splats import RunViews
 
 
 def workspace(request: Request) -> Workspace:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from kgs_core.threads import cores_available, placement_env, placement_off, requested_cores
 
-from .registry import Workspace
+from .registry import ACTIVE, CANCELLABLE, JobStatus, Workspace
 
 
 def pid_alive(pid: int | None) -> bool:
@@ -57,7 +57,7 @@ class JobRunner:
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         log.close()
         self.procs[id_] = proc
-        self.ws.update(table, id_, status="running", pid=proc.pid, error=None)
+        self.ws.update(table, id_, status=JobStatus.RUNNING, pid=proc.pid, error=None)
         threading.Thread(target=self._watch, args=(table, id_, proc, on_done), daemon=True).start()
 
     def live(self) -> list[str]:
@@ -79,17 +79,17 @@ class JobRunner:
         row = self.ws.get(table, id_)
         if row is None:  # deleted meanwhile
             return
-        if row["status"] == "cancelling":
-            status, error = "cancelled", None
+        if row["status"] == JobStatus.CANCELLING:
+            status, error = JobStatus.CANCELLED, None
         elif rc == 0:
-            status, error = "done", None
+            status, error = JobStatus.DONE, None
         elif rc < 0 and table == "runs" and (kept := last_checkpoint(Path(row["path"]))) is not None:
             # Killed by a signal (the OOM killer, a kill -9): not a failure of the run, which
             # can continue from its last checkpoint (POST /api/runs/{id}/resume).
-            status = "interrupted"
+            status = JobStatus.INTERRUPTED
             error = f"the training process was killed (signal {-rc}); its last checkpoint (iteration {kept}) is kept: resume it"
         else:
-            status, error = "failed", self.last_error(id_) or f"job process exited with code {rc}"
+            status, error = JobStatus.FAILED, self.last_error(id_) or f"job process exited with code {rc}"
         self.ws.update(table, id_, status=status, error=error, pid=None)
         if on_done:
             on_done(status)
@@ -110,9 +110,9 @@ class JobRunner:
 
     def cancel(self, table: str, id_: str) -> bool:
         row = self.ws.get(table, id_)
-        if row is None or row["status"] not in ("queued", "running") or not pid_alive(row["pid"]):
+        if row is None or row["status"] not in CANCELLABLE or not pid_alive(row["pid"]):
             return False
-        self.ws.update(table, id_, status="cancelling")
+        self.ws.update(table, id_, status=JobStatus.CANCELLING)
         try:
             os.kill(row["pid"], signal.SIGTERM)
         except ProcessLookupError:
@@ -138,13 +138,13 @@ class JobRunner:
         the others are marked interrupted."""
         for table in ("scenes", "runs", "exports"):
             for row in self.ws.list(table):
-                if row["status"] in ("queued", "running", "cancelling"):
+                if row["status"] in ACTIVE:
                     if pid_alive(row["pid"]):
                         threading.Thread(target=self._poll_foreign, args=(table, row["id"], row["pid"]),
                                          daemon=True).start()
                     else:
                         kept = table == "runs" and last_checkpoint(Path(row["path"])) is not None
-                        self.ws.update(table, row["id"], status="interrupted", pid=None,
+                        self.ws.update(table, row["id"], status=JobStatus.INTERRUPTED, pid=None,
                                        error="the server stopped while this job ran"
                                        + ("; its last checkpoint is kept" if kept else "; it left no checkpoint"))
 
@@ -159,7 +159,7 @@ class JobRunner:
             status = json.loads(info_path.read_text()).get("status") if info_path.is_file() else "failed"
             self.ws.update(table, id_, status={"training": "interrupted"}.get(status, status), pid=None)
         elif row:
-            self.ws.update(table, id_, status="interrupted", pid=None)
+            self.ws.update(table, id_, status=JobStatus.INTERRUPTED, pid=None)
 
     def shutdown(self) -> None:
         """Leave training jobs running (they survive a server restart); nothing to do."""

@@ -19,15 +19,15 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from kgs_frontend import ROOT as FRONTEND
+
 from .jobs import JobRunner
-from .registry import Workspace
+from .registry import JobStatus, Workspace
 from .routers import exports, renders, runs, scenes, stream, system
 from .schemas import finite_json
 from .security import BodyLimit, HostOriginGuard, require_token
 from .settings import Settings
 from .splats import RunViews
-
-FRONTEND = Path(__file__).resolve().parent.parent / "frontend"
 
 
 def register_existing(ws: Workspace, extra: list[Path]) -> list[str]:
@@ -48,7 +48,7 @@ def register_existing(ws: Workspace, extra: list[Path]) -> list[str]:
         except ValueError:
             return None
         return ws.insert("scenes", name=scene.name or path.name, path=str(path.resolve()), source="path",
-                         status="done")["id"]
+                         status=JobStatus.DONE)["id"]
 
     def add_run(path: Path) -> str | None:
         row = ws.find_path("runs", path)

@@ -28,6 +28,7 @@ import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Iterator
 
@@ -44,7 +45,29 @@ CREATE TABLE IF NOT EXISTS exports (
 """
 
 TABLES = ("scenes", "runs", "exports")
-ACTIVE = ("queued", "running")
+
+
+class JobStatus(str, Enum):
+    """The `status` of a scene, run or export in the registry. A `str` enum: rows read back from
+    SQLite are plain strings and compare equal to its members."""
+
+    UPLOADED = "uploaded"  # scenes: a video kept for an ingest not started yet
+    QUEUED = "queued"
+    RUNNING = "running"
+    CANCELLING = "cancelling"  # asked to stop; its process has not exited yet
+    CANCELLED = "cancelled"
+    DONE = "done"
+    FAILED = "failed"
+    INTERRUPTED = "interrupted"  # the server stopped while it ran (a run resumes from its checkpoint)
+
+    def __str__(self) -> str:
+        return self.value
+
+
+# A process is, or is about to be, working on the row: it cannot be deleted or started again.
+ACTIVE = frozenset({JobStatus.QUEUED, JobStatus.RUNNING, JobStatus.CANCELLING})
+# What a cancel can still stop.
+CANCELLABLE = frozenset({JobStatus.QUEUED, JobStatus.RUNNING})
 
 
 def new_id() -> str:

@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kgs_app.bench.ingest import umeyama
 from kgs_core.data.formats import load_scene
 from kgs_core.data.ingest import ingest
 from kgs_core.data.scene import SceneError
-from kgs_core.data.synth.generate import synthesize
 from kgs_core.data.video import decode_video, encode_video
-from kgs_app.bench.ingest import umeyama
 
 
 def test_video_round_trip(room_video):

@@ -10,7 +10,7 @@ import torch
 
 from kgs_core.model.dynamic import KinematicsGS, ModelConfig
 from kgs_core.model.gaussians import init_from_points
-from kgs_core.render import look_at, intrinsics, packed_covariance, rasterize
+from kgs_core.render import intrinsics, look_at, packed_covariance, rasterize
 from kgs_core.render.covariance import covariance_from_quat_scale, pack_covariance, unpack_covariance
 
 

@@ -22,8 +22,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from kgs_backend.main import create_app
 from kgs_backend.settings import Settings
-from kgs_backend.splats import unpack_buffer
-
+from kgs_core.splat_buffer import unpack_buffer
 
 BASE = "http://127.0.0.1:8000"  # what a browser on the default loopback bind sends as Host
 WS = BASE.replace("http", "ws", 1)
@@ -139,7 +138,11 @@ def test_stream_static_once_then_dynamic_and_coalescing(client):
         w.send_text("{not json")
         assert "JSON" in recv_json_until(w, "error")["message"]
         w.send_json({"type": "time", "t": 7})
-        assert "[0, 1]" in recv_json_until(w, "error")["message"]
+        assert "time.t: Input should be less than or equal to 1" in recv_json_until(w, "error")["message"]
+        w.send_json({"type": "time", "t": 0.5, "colour": "red"})  # an unknown field is named
+        assert "colour" in recv_json_until(w, "error")["message"]
+        w.send_json({"type": "teleport"})
+        assert "teleport" in recv_json_until(w, "error")["message"]
         w.send_json({"type": "ping"})
         recv_json_until(w, "pong")
 
@@ -298,11 +301,13 @@ def test_uploads_limits_and_types(client, tiny_run, tmp_path):
     evil = io.BytesIO()
     with zipfile.ZipFile(evil, "w") as z:
         z.writestr("../../escape.txt", "x")
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue(), headers=zip_type).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue(),
+                       headers=zip_type).status_code == 422
     junk = io.BytesIO()
     with zipfile.ZipFile(junk, "w") as z:
         z.writestr("readme.txt", "no dataset here")
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue(), headers=zip_type).status_code == 422
+    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue(),
+                       headers=zip_type).status_code == 422
     # Nothing half-written stays behind.
     ws_root = client.app_.state.ws.root
     assert not [p for p in (ws_root / "scenes").iterdir() if p.name.startswith(".upload")]
@@ -315,10 +320,16 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     assert client.post("/api/runs", json={"scene_id": scene_id, "ablate": ["everything"]}).status_code == 422
     bad_blur = client.post("/api/runs", json={"scene_id": scene_id, "camera_blur": "yes"})
     assert bad_blur.status_code == 422 and "camera_blur" in bad_blur.text
-    r = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 40})
+    for settings, needle in ((["lambda_regg=0.1"], "lambda_regg"), (["model.knn=1.5"], "model.knn takes a whole number"),
+                             (["frame_sampling=often"], "frame_sampling must be one of")):
+        bad = client.post("/api/runs", json={"scene_id": scene_id, "settings": settings})
+        assert bad.status_code == 422 and needle in bad.text, bad.text
+    r = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 40, "settings": ["model.knn=4", "lambda_reg=0.02"]})
     assert r.status_code == 202
     done = wait_status(client, f"/api/runs/{r.json()['id']}")
     assert done["status"] == "done" and done["has_model"] and done["iteration"] == 40
+    config = json.loads((ws_dir / "runs" / done["folder"].split("/")[-1] / "run.json").read_text())["config"]
+    assert config["model"]["knn"] == 4 and config["lambda_reg"] == 0.02  # the settings reached the training
     assert done["progress"]["iteration"] == 40 and done["progress"]["gaussians"] > 0
     assert len(client.get(f"/api/runs/{done['id']}/log").json()) >= 2
     # A long run: progress streams, cancel keeps a model.
@@ -382,7 +393,7 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
 def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
     """A client that does not show velocities gets the same dynamic splats from the exact
     path (which then skips the velocity's field samples at exposure 0), without the block."""
-    from kgs_backend.splats import RunView
+    from kgs_core.run_view import RunView
 
     view = RunView(copy_run)
     h_v, rec_v, vel = unpack_buffer(view.dynamic_buffer(0.3, velocity=True, exact=True))

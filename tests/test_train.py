@@ -392,3 +392,24 @@ def test_time_noise_jitters_each_gaussian_or_shifts_the_frame_once(scene, tmp_pa
         assert 0.5 * sigma < float(shift.std()) < 2 * sigma
     else:
         assert float(shift.std()) == 0.0 and 0 < abs(float(shift[0])) < 6 * sigma
+
+
+def test_time_window_grows_from_the_middle_to_the_whole_clip_by_the_first_split(scene, tmp_path):
+    """The warm-up sees the clip's middle first; from three quarters of it on, every frame."""
+    cfg = tiny_config(iterations=100, decompose_at=40, time_window_start=0.2)  # whole clip at 30
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    times = np.array([f.time for f in scene.train_frames])
+    mid, span = 0.5 * (times.min() + times.max()), times.max() - times.min()
+
+    def seen(it, draws=200):
+        return {i for _ in range(draws) for i in tr.pick_frames(1, it)}
+
+    first = seen(0)
+    assert first and all(abs(times[i] - mid) <= 0.1 * span + 1e-9 for i in first)
+    assert len(first) < len(times)
+    half_way = seen(15)  # half way: the window is 0.6 of the clip
+    assert first <= half_way and all(abs(times[i] - mid) <= 0.3 * span + 1e-9 for i in half_way)
+    assert seen(30) == set(range(len(times)))
+    # Off by default (1.0): the whole clip from the first step.
+    whole = Trainer(scene, tmp_path / "run2", tiny_config(iterations=100, decompose_at=40), progress=False)
+    assert {i for _ in range(200) for i in whole.pick_frames(1, 0)} == set(range(len(times)))

@@ -80,36 +80,13 @@ def config_slug(name: str) -> str:
 
 
 def _override(text: str, spec: str) -> tuple[str, object]:
-    """`key=value` of a `--configs` entry: a TrainConfig field or `model.<ModelConfig field>`;
-    the value as JSON when it parses (numbers, true/false, lists), else the plain string."""
-    from dataclasses import fields
+    """`key=value` of a `--configs` entry (`parse_setting`)."""
+    from kgs_core.train.config import parse_setting
 
-    from kgs_core.model.dynamic import ModelConfig
-    from kgs_core.train.config import TrainConfig
-
-    key, eq, raw = text.partition("=")
-    defaults = {f.name: getattr(TrainConfig(), f.name) for f in fields(TrainConfig) if f.name not in ("model", "ablate")}
-    defaults |= {"model." + f.name: getattr(ModelConfig(), f.name) for f in fields(ModelConfig)}
-    if not eq or key not in defaults:
-        raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {text!r} is not KEY=VALUE with KEY a "
-                         f"training setting (e.g. noise_init_frames, model.tau)")
     try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    value = tuple(value) if isinstance(value, list) else value
-    # The default's type, so that a mistyped value fails here and not minutes into training
-    # (an integer stands for a float; true/false only for a switch).
-    want = type(defaults[key])
-    ok = (isinstance(value, bool) if want is bool else
-          isinstance(value, (int, float)) and not isinstance(value, bool) if want is float else
-          isinstance(value, want) and not isinstance(value, bool))
-    if not ok:
-        kind = {bool: "true or false", float: "a number", int: "a whole number", str: "a word",
-                tuple: "a JSON list"}.get(want, want.__name__)
-        raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {key} takes {kind} "
-                         f"(default {defaults[key]!r}), got {raw!r}")
-    return key, float(value) if want is float else value
+        return parse_setting(text)
+    except ValueError as exc:
+        raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {exc}") from None
 
 
 def config_overrides(name: str) -> dict:
@@ -176,7 +153,7 @@ def main(argv: list[str]) -> int:
                     help="with --budget time: train each re-timed configuration at this many iteration counts "
                          "spread over ±5%% of the equal-time one, and report their mean too (default 1)")
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
-    ap.add_argument("--plot", default="docs/quality_psnr_vs_time.png")
+    ap.add_argument("--plot", default="bench-results/quality/psnr_vs_time.png")
     ap.add_argument("--out", help="keep the runs here (default: a temporary folder; with --ray on a cluster, a "
                     "folder every node mounts)")
     add_ray_options(ap)
@@ -194,8 +171,10 @@ def main(argv: list[str]) -> int:
     print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
           f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
           f"{machine()}")
-    print("| configuration | held-out PSNR | in dynamic mask | deblur PSNR | deblur in mask | split IoU | velocity EPE px | dynamic | iterations | train s |")
-    print("| ------------- | ------------: | --------------: | ----------: | -------------: | --------: | --------------: | ------: | ---------: | ------: |")
+    columns = ["held-out PSNR", "in dynamic mask", "deblur PSNR", "deblur in mask", "split IoU", "velocity EPE px",
+               "dynamic", "iterations", "train s"]
+    print("| configuration | " + " | ".join(columns) + " |")
+    print("| --- |" + " ---: |" * len(columns))
     curves, dashed = {}, set()
 
     def trainer_for(name: str, iterations: int, suffix: str = "") -> Trainer:

@@ -55,7 +55,8 @@ def make_run(root: Path, n: int, dynamic_share: float, seed: int = 0) -> Path:
 
 
 def bench_in_process(run: Path, repeats: int) -> dict:
-    from kgs_backend.splats import RunView, unpack_buffer
+    from kgs_core.run_view import RunView
+    from kgs_core.splat_buffer import unpack_buffer
 
     view = RunView(run)
     view.dynamic_buffer(0.5, exact=True)  # warm-up (kNN, allocations)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import random
 import tempfile
 import time
 from pathlib import Path
@@ -22,32 +21,40 @@ from .machine import machine
 
 
 def time_steps(trainer, steps: int, start: int) -> dict:
-    """Mean milliseconds per step of each phase of `Trainer.train_step` (batch 1), the same
-    calls in the same order."""
-    tr, scene = trainer, trainer.scene
+    """Mean milliseconds per step of each phase of the real `Trainer.train_step`: the model's
+    evaluation (`KinematicsGS.at`, timed by wrapping it), render + loss (the rest of the
+    forward), backward, and the optimisers. `after_step` runs between steps, as in training,
+    untimed."""
+    tr = trainer
     phases = dict.fromkeys(["model", "render + loss", "backward", "optimiser"], 0.0)
-    for it in range(start, start + steps):
+    model_seconds = [0.0]
+    at = tr.model.at
+
+    def timed_at(*args, **kwargs):
         t0 = time.perf_counter()
-        tr.set_learning_rates(it)
-        frame = random.choice(scene.train_frames)
-        g = tr.model.at(frame.time, scene.exposure, scene.dt, noise=tr.noise.sigma(it), velocity=False)  # as loss_for
-        t1 = time.perf_counter()
-        del g
-        loss, out = tr.loss_for(frame, it)  # evaluates the model again: subtract the first timing
-        t2 = time.perf_counter()
-        loss.backward()
-        tr.check_gradients(it)
-        t3 = time.perf_counter()
-        tr.strategy.accumulate(out, frame.camera.width, frame.camera.height)
-        tr.opt.step()
-        tr.net_opt.step()
-        tr.opt.zero_grad(set_to_none=True)
-        tr.net_opt.zero_grad(set_to_none=True)
-        t4 = time.perf_counter()
-        phases["model"] += t1 - t0
-        phases["render + loss"] += (t2 - t1) - (t1 - t0)
-        phases["backward"] += t3 - t2
-        phases["optimiser"] += t4 - t3
+        try:
+            return at(*args, **kwargs)
+        finally:
+            model_seconds[0] += time.perf_counter() - t0
+
+    last = [0.0]
+
+    def on_phase(name: str) -> None:
+        now = time.perf_counter()
+        phases["render + loss" if name == "forward" else name] += now - last[0]
+        last[0] = now
+
+    tr.model.at, tr.on_phase = timed_at, on_phase
+    try:
+        for it in range(start, start + steps):
+            last[0] = time.perf_counter()
+            tr.train_step(it)
+            tr.after_step(it)
+    finally:
+        del tr.model.at
+        tr.on_phase = None
+    phases["render + loss"] -= model_seconds[0]
+    phases["model"] = model_seconds[0]
     out = {k: 1000 * v / steps for k, v in phases.items()}
     out["step"] = sum(out.values())
     return out

@@ -5,14 +5,14 @@ min(0.99, o exp(-1/2 d^T S^-1 d)), skipped below 1/255, 0.3 px^2 low-pass; SH DC
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import moderngl
 import numpy as np
 
+from kgs_frontend import ROOT as FRONTEND_ROOT
+
 from .source import SplatSet
 
-SHADERS = Path(__file__).resolve().parents[2] / "frontend" / "shaders"  # shared with the browser
+SHADERS = FRONTEND_ROOT / "shaders"  # shared with the browser
 
 VERT_MAIN = """
 uniform mat4 u_view;      // world-to-camera (OpenCV), column-major

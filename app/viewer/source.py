@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kgs_backend.splats import unpack_buffer
+from kgs_core.splat_buffer import unpack_buffer
 
 
 @dataclass
@@ -40,7 +40,7 @@ class LocalSource:
     """A run directory, evaluated in this process (the server's RunView, without the server)."""
 
     def __init__(self, run_dir: str | Path):
-        from kgs_backend.splats import RunView
+        from kgs_core.run_view import RunView
 
         self.view = RunView(Path(run_dir))
         self.frames = self.view.frames()

@@ -14,11 +14,11 @@ from .model import ViewerModel
 
 
 def save_png(path: str | Path, rgb: np.ndarray) -> Path:
+    import io
+
     from PIL import Image
 
     from kgs_core.io import atomic_write_bytes
-
-    import io
 
     buf = io.BytesIO()
     Image.fromarray(rgb).save(buf, format="PNG")

@@ -17,7 +17,7 @@ from kgs_core.export.bake import parse_times
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
-from ..registry import Workspace, new_id
+from ..registry import ACTIVE, JobStatus, Workspace, new_id
 from ..schemas import StrictRequest
 
 router = APIRouter(tags=["exports"])
@@ -51,7 +51,7 @@ def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(worksp
         raise HTTPException(409, f"run {run_id} has no model yet (status: {run['status']})")
     eid = new_id()
     out = ws.new_dir("exports", eid) / (f"{req.format}{SUFFIX.get(req.format, '')}")
-    ws.insert("exports", id=eid, run_id=run_id, format=req.format, path=str(out), status="queued",
+    ws.insert("exports", id=eid, run_id=run_id, format=req.format, path=str(out), status=JobStatus.QUEUED,
               params=req.model_dump())
     jr.start("exports", eid, "export", {"run_dir": run["path"], "out": str(out), **req.model_dump()})
     return public(ws.get("exports", eid))
@@ -71,7 +71,7 @@ def get_export(export_id: str, ws: Workspace = Depends(workspace)) -> dict:
 @router.get("/api/exports/{export_id}/download")
 def download(export_id: str, ws: Workspace = Depends(workspace)) -> FileResponse:
     row = get_or_404(ws, "exports", export_id)
-    if row["status"] != "done":
+    if row["status"] != JobStatus.DONE:
         raise HTTPException(409, f"export {export_id} is {row['status']}")
     path = Path(row["path"])
     if path.is_dir():
@@ -102,7 +102,7 @@ def zipped(folder: Path) -> Path:
 @router.delete("/api/exports/{export_id}", status_code=204)
 def delete_export(export_id: str, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "exports", export_id)
-    if row["status"] in ("queued", "running"):
+    if row["status"] in ACTIVE:
         raise HTTPException(409, "the export is still running")
     shutil.rmtree(Path(row["path"]).parent, ignore_errors=True)
     ws.delete("exports", export_id)

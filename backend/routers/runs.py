@@ -9,14 +9,15 @@ from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
-from pydantic import Field
+from pydantic import Field, field_validator
 
+from kgs_core.model.dynamic import Basis, KRForm, Velocity
 from kgs_core.run import RunError, read_log
-from kgs_core.train.config import ABLATIONS, PRESETS, overrides_from
+from kgs_core.train.config import ABLATIONS, PRESETS, make_config, overrides_from, parse_setting
 
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
-from ..registry import Workspace, new_id
+from ..registry import ACTIVE, JobStatus, Workspace, new_id
 from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
@@ -28,14 +29,23 @@ class TrainRequest(StrictRequest):
     preset: str = "fast"
     iterations: int | None = Field(None, ge=1, le=1_000_000)
     tau: float | None = Field(None, gt=0)
-    velocity: Literal["paper", "physical"] | None = None
-    basis: Literal["paper", "duff", "principal"] | None = None
-    kr_form: Literal["paper", "convolve"] | None = None
+    velocity: Velocity | None = None
+    basis: Basis | None = None
+    kr_form: KRForm | None = None
     camera_blur: Literal["off", "poses", "learned"] | None = None
     pose_refine: bool | None = None  # fit each training camera's pose correction (default off)
     ablate: list[str] = []
     seed: int | None = Field(None, ge=0, le=2**31 - 1)
     exposure: float | None = Field(None, ge=0, le=1, description="the training video's exposure (default: the scene's)")
+    settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig field "
+                                "or model.FIELD), checked against the schema and applied last, as `kgs-app train --set`")
+
+    @field_validator("settings")
+    @classmethod
+    def _settings_in_schema(cls, value: list[str]) -> list[str]:
+        for text in value:
+            parse_setting(text)  # a ValueError naming the key becomes a 422
+        return value
 
 
 class TauRequest(StrictRequest):
@@ -83,7 +93,7 @@ def resumable(row: dict, info: dict) -> bool:
     a checkpoint to continue from."""
     last = last_checkpoint(Path(row["path"]))
     total = (info.get("config") or {}).get("iterations")
-    return (row["status"] in ("interrupted", "cancelled", "failed") and last is not None
+    return (row["status"] in (JobStatus.INTERRUPTED, JobStatus.CANCELLED, JobStatus.FAILED) and last is not None
             and isinstance(total, int) and last < total)
 
 
@@ -95,7 +105,7 @@ def list_runs(ws: Workspace = Depends(workspace)) -> list[dict]:
 @router.post("", status_code=202)
 def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     scene = get_or_404(ws, "scenes", req.scene_id)
-    if scene["status"] != "done":
+    if scene["status"] != JobStatus.DONE:
         raise HTTPException(409, f"scene {req.scene_id} is not ready (status: {scene['status']})")
     if req.preset not in PRESETS:
         raise HTTPException(422, f"unknown preset {req.preset!r}; one of {sorted(PRESETS)}")
@@ -104,10 +114,15 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
     overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form,
                                camera_blur=req.camera_blur, exposure=req.exposure, pose_refine=req.pose_refine)
+    overrides.update(parse_setting(text) for text in req.settings)
+    try:
+        make_config(req.preset, ablate=tuple(req.ablate), **overrides)  # refused here, not in the job
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",
-                    path=str(run_dir), status="queued", params=req.model_dump())
+                    path=str(run_dir), status=JobStatus.QUEUED, params=req.model_dump())
     jr.start("runs", rid, "train", {"scene_dir": scene["path"], "run_dir": str(run_dir), "preset": req.preset,
                                      "ablate": req.ablate, "overrides": overrides})
     return public(ws.get("runs", row["id"]))
@@ -161,7 +176,7 @@ def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
     scene = ws.get("scenes", row["scene_id"]) if row["scene_id"] else None
     if scene is None:
         raise HTTPException(409, "the run's scene is no longer in the workspace")
-    ws.update("runs", run_id, status="queued", error=None)
+    ws.update("runs", run_id, status=JobStatus.QUEUED, error=None)
     jr.start("runs", run_id, "train", {"scene_dir": scene["path"], "run_dir": row["path"], "config": info["config"],
                                        "resume": True})
     return public(ws.get("runs", run_id))
@@ -170,10 +185,10 @@ def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
 @router.delete("/{run_id}", status_code=204)
 def delete_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "runs", run_id)
-    if row["status"] in ("queued", "running", "cancelling"):
+    if row["status"] in ACTIVE:
         raise HTTPException(409, "the run is training: cancel it first")
     exports = ws.list("exports", run_id=run_id)
-    if any(e["status"] in ("queued", "running", "cancelling") for e in exports):
+    if any(e["status"] in ACTIVE for e in exports):
         raise HTTPException(409, "an export of this run is running: wait for it or cancel it first")
     request.app.state.views.drop(run_id)
     # Its exports go with it: a deleted run's files must not stay downloadable.
@@ -224,7 +239,7 @@ def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace 
         except RunError:
             raise HTTPException(409, f"run {run_id}: its scene is no longer there") from None
     ws.insert("runs", id=rid, scene_id=parent["scene_id"], name=f"{parent['name']}-ft", path=str(run_dir),
-              status="queued", params={"finetune_of": run_id, "tau": tau, "iterations": req.iterations})
+              status=JobStatus.QUEUED, params={"finetune_of": run_id, "tau": tau, "iterations": req.iterations})
     jr.start("runs", rid, "train", {"scene_dir": scene_dir, "run_dir": str(run_dir), "config": cfg.to_dict()})
     return public(ws.get("runs", rid))
 

@@ -17,7 +17,7 @@ from kgs_core.data.synth.scenes import SCENES
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
-from ..registry import Workspace
+from ..registry import ACTIVE, JobStatus, Workspace
 from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/scenes", tags=["scenes"])
@@ -51,7 +51,7 @@ class SynthRequest(StrictRequest):
 
 
 # Scene states from which an uploaded video can be ingested (again).
-INGESTABLE = ("uploaded", "failed", "cancelled", "interrupted")
+INGESTABLE = (JobStatus.UPLOADED, JobStatus.FAILED, JobStatus.CANCELLED, JobStatus.INTERRUPTED)
 
 
 def public(row: dict, ws: Workspace) -> dict:
@@ -87,7 +87,7 @@ def create_scene(req: SynthRequest, ws: Workspace = Depends(workspace), jr: JobR
 
     sid = new_id()
     out = ws.new_dir("scenes", sid)
-    row = ws.insert("scenes", id=sid, name=req.name, path=str(out), source="synth", status="queued")
+    row = ws.insert("scenes", id=sid, name=req.name, path=str(out), source="synth", status=JobStatus.QUEUED)
     jr.start("scenes", sid, "synth", {"name": req.name, "out": str(out), "size": req.size, "frames": req.frames,
                                        "subframes": req.subframes, "blur": req.blur})
     return public(ws.get("scenes", row["id"]), ws)
@@ -160,7 +160,7 @@ def check_video(blob: Path) -> None:
 def start_ingest(ws: Workspace, jr: JobRunner, row: dict, req: IngestRequest) -> None:
     sharp = video_path(ws, row["id"], "sharp")
     progress_path(ws, row["id"]).unlink(missing_ok=True)
-    ws.update("scenes", row["id"], status="queued", error=None)
+    ws.update("scenes", row["id"], status=JobStatus.QUEUED, error=None)
     jr.start("scenes", row["id"], "ingest", {
         "video": str(video_path(ws, row["id"])), "eval_video": str(sharp) if sharp.is_file() else None,
         "out": row["path"], "delete_video": True, "progress": str(progress_path(ws, row["id"])),
@@ -192,12 +192,12 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
                 raise HTTPException(422, f"the zip is not a readable dataset: {exc}") from None
             out = ws.new_dir("scenes", sid)
             shutil.move(str(root), out)
-            row = ws.insert("scenes", id=sid, name=name, path=str(out), source="upload", status="done")
+            row = ws.insert("scenes", id=sid, name=name, path=str(out), source="upload", status=JobStatus.DONE)
             return {**public(row, ws), **summary}
         check_video(blob)
         out = ws.new_dir("scenes", sid)
         shutil.move(str(blob), video_path(ws, sid))
-        row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status="uploaded")
+        row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status=JobStatus.UPLOADED)
         if not hold:
             start_ingest(ws, jr, row, IngestRequest(max_size=960))
         return public(ws.get("scenes", sid), ws)
@@ -276,7 +276,7 @@ def _safe_extract(zip_path: Path, dest: Path, max_bytes: int) -> Path:
 def get_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> dict:
     row = get_or_404(ws, "scenes", scene_id)
     out = public(row, ws)
-    if row["status"] == "done":
+    if row["status"] == JobStatus.DONE:
         try:
             out.update(scene_summary(Path(row["path"])))
         except ValueError as exc:
@@ -287,7 +287,7 @@ def get_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> dict:
 @router.delete("/{scene_id}", status_code=204)
 def delete_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "scenes", scene_id)
-    if row["status"] in ("queued", "running", "cancelling"):
+    if row["status"] in ACTIVE:
         raise HTTPException(409, "the scene is still being created (cancel it first)")
     runs = ws.list("runs", scene_id=scene_id)
     if runs:  # their renders, input frames and fine-tuning read the scene

@@ -1,13 +1,14 @@
 """WebSocket `/api/runs/{id}/stream`: splat buffers for scrubbing, live τ, training progress.
 
-Client → server (JSON text):
+Client → server (JSON text; the models, with their bounds, in `backend/messages.py`):
 * `{"type": "subscribe", "lod": L | null, "velocity": true}`: send the static set (once), then
   answer time requests with dynamic sets.
 * `{"type": "time", "t": 0.42, "exposure": 0, "seq": 17}`: the dynamic set at `t`. Requests that
   arrive while one is being computed coalesce: only the latest is answered (its `seq` is echoed).
 * `{"type": "tau", "tau": 2e-5}`: recompute the split (every subscriber gets the new sets).
+* `{"type": "ping"}`: answered with `{"type": "pong"}`.
 
-Server → client: binary buffers (layout in `kgs_backend.splats`), and JSON text messages
+Server → client: binary buffers (layout in `kgs_core.splat_buffer`), and JSON text messages
 `{"type": "progress", …}` (while the run trains, once a second), `{"type": "status", …}`,
 `{"type": "split", …}` (after τ changes and edits) and `{"type": "error", "message": …}`.
 """
@@ -16,12 +17,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 from collections import defaultdict
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
 
+from ..messages import Ping, SetTau, Subscribe, TimeRequest, parse_client_message
+from ..registry import ACTIVE
 from ..security import websocket_token_ok
 
 router = APIRouter(tags=["stream"])
@@ -86,37 +88,29 @@ async def receiver(conn: Connection, app) -> None:
             conn.notify(_error(f"message larger than {MAX_MESSAGE} bytes ignored"))
             continue
         try:
-            msg = json.loads(text)
-            kind = msg["type"]
-        except (json.JSONDecodeError, KeyError, TypeError):
-            conn.notify(_error("expected a JSON object with a 'type'"))
+            msg = parse_client_message(text)
+        except ValueError as exc:
+            conn.notify(_error(f"bad message: {exc}"))
             continue
         try:
-            if kind == "subscribe":
-                lod = msg.get("lod")
-                conn.lod = None if lod is None else int(lod)
-                conn.velocity = bool(msg.get("velocity", True))
+            if isinstance(msg, Subscribe):
+                conn.lod, conn.velocity = msg.lod, msg.velocity
                 conn.subscribed = True
                 conn.static_version = -1
                 conn.wake.set()
-            elif kind == "time":
-                t, exposure = float(msg["t"]), float(msg.get("exposure", 0.0))
-                if not (0 <= t <= 1 and 0 <= exposure <= 1) or math.isnan(t) or math.isnan(exposure):
-                    raise ValueError("t and exposure must lie in [0, 1]")
-                conn.pending = {"t": t, "exposure": exposure, "seq": msg.get("seq")}
+            elif isinstance(msg, TimeRequest):
+                conn.pending = {"t": msg.t, "exposure": msg.exposure, "seq": msg.seq}  # the latest wins
                 conn.wake.set()
-            elif kind == "tau":
+            elif isinstance(msg, SetTau):
                 from ..deps import run_view
 
                 view = run_view(app, conn.run_id)
-                split = await run_in_threadpool(view.set_tau, float(msg["tau"]))
+                split = await run_in_threadpool(view.set_tau, msg.tau)
                 await app.state.hub.broadcast(conn.run_id, {"type": "split", **split})
-            elif kind == "ping":
+            elif isinstance(msg, Ping):
                 conn.notify({"type": "pong"})
-            else:
-                conn.notify(_error(f"unknown message type {kind!r}"))
         except (KeyError, TypeError, ValueError) as exc:
-            conn.notify(_error(f"bad {kind!r} message: {exc}"))
+            conn.notify(_error(f"bad {msg.type!r} message: {exc}"))
         except Exception as exc:  # HTTPException from run_view (no model yet, ...)
             conn.notify(_error(getattr(exc, "detail", str(exc))))
 
@@ -175,7 +169,7 @@ async def progress(conn: Connection, app) -> None:
             conn.notify(_error("the run was deleted"))
             return
         info = public(row)
-        if info["status"] in ("queued", "running", "cancelling"):
+        if info["status"] in ACTIVE:
             if info["progress"] and info["progress"] != last:
                 last = info["progress"]
                 conn.notify({"type": "progress", **info["progress"]})

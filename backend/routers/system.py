@@ -8,7 +8,7 @@ from kgs_core.data.synth.generate import DEFAULT_SCENE
 
 from ..deps import jobs, workspace
 from ..jobs import JobRunner
-from ..registry import Workspace
+from ..registry import JobStatus, Workspace
 
 router = APIRouter(prefix="/api", tags=["system"])
 
@@ -36,15 +36,15 @@ def start_demo(ws: Workspace, jr: JobRunner) -> dict:
 
     sid, rid = new_id(), new_id()
     scene_dir, run_dir = ws.new_dir("scenes", sid), ws.new_dir("runs", rid)
-    ws.insert("scenes", id=sid, name=DEFAULT_SCENE, path=str(scene_dir), source="synth", status="queued")
-    ws.insert("runs", id=rid, scene_id=sid, name=f"{DEFAULT_SCENE}-fast", path=str(run_dir), status="queued",
+    ws.insert("scenes", id=sid, name=DEFAULT_SCENE, path=str(scene_dir), source="synth", status=JobStatus.QUEUED)
+    ws.insert("runs", id=rid, scene_id=sid, name=f"{DEFAULT_SCENE}-fast", path=str(run_dir), status=JobStatus.QUEUED,
               params={"preset": "fast"})
 
     def then_train(status: str) -> None:
-        if status == "done":
+        if status == JobStatus.DONE:
             jr.start("runs", rid, "train", {"scene_dir": str(scene_dir), "run_dir": str(run_dir), "preset": "fast"})
         else:
-            ws.update("runs", rid, status="failed", error=f"the demo scene could not be made ({status})")
+            ws.update("runs", rid, status=JobStatus.FAILED, error=f"the demo scene could not be made ({status})")
 
     jr.start("scenes", sid, "synth", {"name": DEFAULT_SCENE, "out": str(scene_dir)}, on_done=then_train)
     return {"scene_id": sid, "run_id": rid}

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
 from ..io import atomic_file
 from ..progress import progress_bar
 from .scene import SceneError

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import asdict, dataclass, field
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, get_args
 
 import numpy as np
 import torch
@@ -20,10 +20,11 @@ from ..render import packed_covariance
 from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
 from .deformation import DeformationField, FineResidual, Offsets
 from .gaussians import GaussianParams
-from .kinematics import (motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm,
-                         so3_exp)
+from .kinematics import motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm, so3_exp
 
 Velocity = Literal["paper", "physical"]
+Basis = Literal["paper", "duff", "principal"]
+KRForm = Literal["convolve", "paper"]
 
 
 @dataclass
@@ -39,11 +40,11 @@ class ModelConfig:
     # False: the physical velocity's two extra field samples are taken without gradients, so
     # the blur's sweep does not train the field (its positions still do); saves their backward.
     velocity_grad: bool = True
-    basis: str = "paper"  # kinematic frame: paper (e_x reference, switch at 0.99), duff, principal
+    basis: Basis = "paper"  # kinematic frame: paper (e_x reference, switch at 0.99), duff, principal
     # K.R. form: "convolve" (sigma + (|v| dt e)^2 / 12 u u^T on the D3DGS-style residual
     # covariance) or "paper" (eqs. 9-14: projection onto the kinematic frame, sigma_z + eta |v| dt e).
     # convolve is the default because it measured better on every scene (docs/method.md).
-    kr_form: str = "convolve"
+    kr_form: KRForm = "convolve"
     lambda_s: float = 0.1
     still_len: float = 1e-3  # per-frame motion below which the kinematic frame fades out
     kappa_init: float = -2.0  # sigmoid(-2) = 0.12: the lower bound of eta
@@ -56,8 +57,8 @@ class ModelConfig:
     bound: float = 1.5  # K-Planes domain, normalised scene units
 
     def __post_init__(self):
-        for name, allowed in (("kr_form", ("convolve", "paper")), ("velocity", ("physical", "paper")),
-                              ("basis", ("paper", "duff", "principal"))):
+        for name, literal in (("kr_form", KRForm), ("velocity", Velocity), ("basis", Basis)):
+            allowed = get_args(literal)
             if getattr(self, name) not in allowed:
                 raise ValueError(f"model.{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
 
@@ -124,6 +125,7 @@ class KinematicsGS(nn.Module):
         self.dynamic = torch.zeros(n, dtype=torch.bool)
         self.variance = torch.zeros(n)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
+        self.time_scale = 1.0  # see offsets_at
         self._knn: Tensor | None = None
         self._knn_mean: tuple | None = None  # (knn it was built from, W, W^T): see neighbour_mean
 
@@ -230,7 +232,10 @@ class KinematicsGS(nn.Module):
         at three times cost a sixth of a training step."""
         x = self.params.means[idx]
         n = len(x)
-        tt = [torch.full((n,), float(t)) for t in times]
+        # (time_scale < 1 during training's warm-up only: the field's time axis compressed
+        # about the clip's middle, TrainConfig.time_coarse_start.)
+        s = self.time_scale
+        tt = [torch.full((n,), float(t) if s == 1.0 else 0.5 + (float(t) - 0.5) * s) for t in times]
         if noise > 0:
             tt[0] = tt[0] + noise * torch.randn(n)
         raws = self.deform.at_times(x, tt)

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from ..model.dynamic import ModelConfig
 
 CAMERA_BLUR = ("off", "poses", "learned")
+FRAME_SAMPLING = ("uniform", "loss")
 
 ABLATIONS = {
     "cf": "no coarse-to-fine (dynamic Gaussians use the field's own offsets)",
@@ -73,6 +74,18 @@ class TrainConfig:
     # True: each Gaussian draws its own time jitter; False: one shift of the frame's time for
     # all of them in a step (D3DGS's annealed smooth training).
     noise_per_gaussian: bool = True
+    # Which training frame each step sees: "uniform", or "loss" (a mix of uniform and each
+    # frame's running photometric loss, so that frames the model fits worst are seen more).
+    frame_sampling: str = "uniform"  # one of FRAME_SAMPLING
+    frame_sampling_mix: float = 0.5  # "loss": the share of draws weighted by the loss
+    # The warm-up sees a time window that grows from the clip's middle: at iteration 0 the frames
+    # within `time_window_start` / 2 of the middle (as a fraction of the clip), the whole clip
+    # from three quarters of the warm-up (`decompose_at`) on. 1.0: the whole clip from the start.
+    time_window_start: float = 1.0
+    # The warm-up's field sees time compressed about the clip's middle to this fraction of the
+    # clip at iteration 0 (every frame still trains), the whole axis from three quarters of the
+    # warm-up on: motion is learned coarse in time first. 1.0: off.
+    time_coarse_start: float = 1.0
     # FLoD
     lod_levels: int = 5
     lod_lambda: float = 0.02  # s_min of level 1, normalised scene units
@@ -181,7 +194,8 @@ def finetune_config(parent: dict, iterations: int, tau: float | None = None) -> 
     cfg = TrainConfig.from_dict(parent)
     cfg = replace(cfg, iterations=iterations, densify_from=iterations + 1, densify_until=0, opacity_reset_at=(),
                   decompose_at=iterations + 1, decompose_every=0, lod_levels=1, lod_fractions=(1.0,),
-                  lr_means=cfg.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations)
+                  lr_means=cfg.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations,
+                  time_window_start=1.0)  # the parent has seen the whole clip
     if tau is not None:
         cfg.model.tau = tau
     return cfg
@@ -260,11 +274,46 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     return cfg
 
 
+def parse_setting(text: str) -> tuple[str, object]:
+    """`KEY=VALUE` of one training setting, checked against the schema: KEY a `TrainConfig`
+    field or `model.<ModelConfig field>`; VALUE as JSON when it parses (numbers, true/false,
+    lists), else the plain string, and of the default's type, so that a mistyped value fails
+    here and not minutes into training (an integer stands for a float; true/false only for a
+    switch). Raises ValueError naming the key. What `kgs-app train --set` and `bench quality`'s
+    `@KEY=VALUE` read."""
+    import json
+
+    key, eq, raw = text.partition("=")
+    defaults = {f.name: getattr(TrainConfig(), f.name) for f in fields(TrainConfig) if f.name not in ("model", "ablate", "fitted")}
+    defaults |= {"model." + f.name: getattr(ModelConfig(), f.name) for f in fields(ModelConfig)}
+    if not eq or key not in defaults:
+        raise ValueError(f"{text!r} is not KEY=VALUE with KEY a training setting (e.g. noise_init_frames, model.tau)")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    value = tuple(value) if isinstance(value, list) else value
+    default = defaults[key]
+    want = float if default is None else type(default)  # (the None defaults are optional numbers)
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    ok = (value is None and default is None) or (
+        isinstance(value, bool) if want is bool else
+        number if want is float else
+        isinstance(value, want) and not isinstance(value, bool))
+    if not ok:
+        kind = {bool: "true or false", float: "a number", int: "a whole number", str: "a word",
+                tuple: "a JSON list"}.get(want, want.__name__)
+        raise ValueError(f"{key} takes {kind} (default {default!r}), got {raw!r}")
+    return key, float(value) if want is float and value is not None else value
+
+
 def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     if overrides.get("camera_blur", "off") not in CAMERA_BLUR:
         raise ValueError(f"camera_blur must be one of {', '.join(CAMERA_BLUR)}, got {overrides['camera_blur']!r}")
+    if overrides.get("frame_sampling", "uniform") not in FRAME_SAMPLING:
+        raise ValueError(f"frame_sampling must be one of {', '.join(FRAME_SAMPLING)}, got {overrides['frame_sampling']!r}")
     if overrides.get("exposure") is not None and not 0 <= overrides["exposure"] <= 1:
         raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {overrides['exposure']!r}")
     bad = [a for a in ablate if a not in ABLATIONS]

@@ -21,7 +21,6 @@ import numpy as np
 import torch
 
 from ...render.camera import look_at as render_look_at
-
 from .raytrace import Box, DieTexture, Ellipsoid, Object, Plane, Sheet, Texture, World
 
 
@@ -140,7 +139,8 @@ def cross(seed: int) -> list[Object]:
         return rigid(rot_z(-2 * t), (1.3 - 2.6 * t, 0.5, 0.22))
 
     return [
-        Object("ball", Ellipsoid(lambda _t: np.array([0.25, 0.25, 0.25])), Texture(seed + 80, (0.9, 0.3, 0.3), checker=6), ball_pose, dynamic=True),
+        Object("ball", Ellipsoid(lambda _t: np.array([0.25, 0.25, 0.25])), Texture(seed + 80, (0.9, 0.3, 0.3), checker=6),
+               ball_pose, dynamic=True),
         Object("box", Box((0.22, 0.22, 0.22)), Texture(seed + 90, (0.3, 0.8, 0.4), checker=4), box_pose, dynamic=True),
     ]
 

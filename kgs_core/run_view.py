@@ -1,0 +1,290 @@
+"""A run loaded for viewing (`RunView`): the model at each LoD, the live τ, the edit layer, and
+the static and dynamic sets packed as splat buffers (`splat_buffer`). Used by the server and
+the desktop viewer alike.
+
+The static set is packed once per LoD (and again after a τ change or an edit); a time change
+packs only the dynamic set, interpolated from `Trajectories` once they are built."""
+
+from __future__ import annotations
+
+import atexit
+import copy
+import threading
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .edits import EditLayer, load_edits, save_edits
+from .export.bake import Baked, baked_from
+from .model.dynamic import split_counts, variance_histogram
+from .run import LoadedRun, load_run
+from .splat_buffer import pack_buffer, rgba_of
+
+_STOP = threading.Event()  # set at interpreter exit: builders stop between samples
+_BUILDERS: set[threading.Thread] = set()
+
+
+@atexit.register
+def _stop_builders() -> None:
+    """A daemon thread still inside torch when the interpreter tears down aborts the process
+    ("terminate called without an active exception"): stop the builders and wait for them."""
+    _STOP.set()
+    for th in list(_BUILDERS):
+        th.join(timeout=10)
+
+
+class Trajectories:
+    """The dynamic set sampled once per frame interval (positions, covariances, velocities), so
+    that a time change is a linear interpolation between two samples instead of three
+    deformation-field evaluations. Built in a background thread; exact evaluation answers until
+    it is ready. Covariances interpolate linearly (a convex combination of SPD matrices stays
+    SPD). The interpolation error is measured by `kgs-app bench serve` (docs/serve.md)."""
+
+    def __init__(self, view: "RunView", model, lod: int, version: int, exposure: float):
+        self.key = (lod, version, exposure)
+        self.view = view
+        self.model = model
+        self.ready = threading.Event()
+        self.failed: str | None = None
+        self.times = None
+        th = threading.Thread(target=self._build, daemon=True)
+        _BUILDERS.add(th)
+        th.start()
+
+    @torch.no_grad()
+    def _build(self) -> None:
+        lod, version, exposure = self.key
+        try:
+            m = self.model
+            n = max(2, int(round(1.0 / max(self.view.dt, 1e-3))) + 1)
+            times = np.linspace(0.0, 1.0, n)
+            means, covs, vels = [], [], []
+            for t in times:
+                if self.view.version != version or _STOP.is_set():
+                    return  # superseded by a tau change or an edit, or shutting down
+                # Not under `compute`: the build must not queue behind every client's exact
+                # evaluation, or it never finishes while many clients scrub.
+                idx, g = m.at_dynamic(float(t), exposure, self.view.dt)
+                means.append(g.means.numpy())
+                covs.append(g.covars.numpy())
+                vels.append(g.velocity.numpy())
+            self.idx = idx.numpy()
+            self.means, self.covs, self.vels = np.stack(means), np.stack(covs), np.stack(vels)
+            self.rgba = rgba_of(g.sh, g.opacities)
+            self.times = times
+            self.ready.set()
+        except Exception as exc:  # keep serving exact evaluations
+            self.failed = f"{type(exc).__name__}: {exc}"
+        finally:
+            _BUILDERS.discard(threading.current_thread())
+
+    def at(self, t: float):
+        """(idx, means, covars, velocity, rgba) at `t` by linear interpolation."""
+        times = self.times
+        k = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
+        w = float((t - times[k]) / (times[k + 1] - times[k]))
+        lerp = lambda a: (1 - w) * a[k] + w * a[k + 1]  # noqa: E731
+        return self.idx, lerp(self.means), lerp(self.covs), lerp(self.vels), self.rgba
+
+
+def _with_tau(model, tau: float):
+    """A shallow copy of `model` split at `tau` (networks and Gaussians shared). Readers keep
+    whichever snapshot they started with, so a τ change never mutates a model in use."""
+    m = copy.copy(model)
+    m.config = copy.copy(model.config)
+    if m.decomposed:
+        m.decompose(tau, recompute=False)
+    return m
+
+
+class RunView:
+    """One run loaded for viewing: the model at each LoD, the live τ and the edit layer.
+
+    Thread-safe: `lock` guards the bookkeeping only (which snapshot, which version); model
+    evaluation runs outside it on immutable snapshots, one at a time (`compute`), so 50
+    clients scrubbing do not oversubscribe two cores."""
+
+    def __init__(self, run_dir: Path):
+        self.run: LoadedRun = load_run(run_dir)
+        self.lock = threading.RLock()
+        self.compute = threading.Lock()
+        self.edits: EditLayer = load_edits(run_dir)
+        self.tau = float(self.run.model.config.tau)
+        self._models: dict[int, object] = {}
+        self._static: dict[tuple, bytes] = {}
+        self._trajectories: dict[tuple, Trajectories] = {}
+        self.use_trajectories = True  # False: always evaluate the deformation field exactly
+        self.version = 0  # bumped by τ changes and edits: clients re-request the static set
+        self._frames: list[dict] | None = None
+
+    @property
+    def dt(self) -> float:
+        return float(self.run.info.get("dt", 1.0))
+
+    def frames(self) -> list[dict]:
+        """The run's scene frames as the viewers need them (index, id, time, split, camera);
+        empty when the scene is gone. Loaded once."""
+        if self._frames is None:
+            from kgs_core.data.formats import load_scene
+
+            try:
+                frames = load_scene(self.run.scene_path()).frames
+            except ValueError:
+                frames = []
+            self._frames = [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
+                             "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
+                            for i, f in enumerate(frames)]
+        return self._frames
+
+    def model(self, lod: int | None):
+        """(lod, model snapshot) for the current τ."""
+        with self.lock:
+            lod = self.run.n_levels if lod is None else int(lod)
+            if not 1 <= lod <= self.run.n_levels:
+                raise ValueError(f"lod must be in 1..{self.run.n_levels}, got {lod}")
+            if lod not in self._models:
+                self._models[lod] = _with_tau(self.run.level(lod), self.tau)
+            return lod, self._models[lod]
+
+    def state(self, lod: int | None):
+        """(lod, model, keep mask, version), consistent with each other."""
+        with self.lock:
+            lod, m = self.model(lod)
+            return lod, m, self.keep(lod, m), self.version
+
+    def keep(self, lod: int, model) -> np.ndarray:
+        return self.edits.keep_mask(lod, model.params.means.detach().numpy())
+
+    def _dynamic_mask(self, model) -> np.ndarray:
+        if self.run.static_only:
+            return np.zeros(len(model), dtype=bool)
+        return model.dynamic.numpy() if model.decomposed else np.ones(len(model), dtype=bool)
+
+    # ------------------------------------------------------------ buffers
+
+    @torch.no_grad()
+    def static_buffer(self, lod: int | None = None) -> bytes:
+        lod, m, keep, version = self.state(lod)
+        key = (lod, version)
+        buf = self._static.get(key)
+        if buf is None:
+            sel = ~self._dynamic_mask(m) & keep
+            with self.compute:
+                g = m.at_static()
+            idx = torch.from_numpy(np.nonzero(sel)[0])
+            buf = pack_buffer({"kind": "static", "lod": lod, "version": version},
+                              g.means[idx].numpy(), g.covars[idx].double().numpy(),
+                              rgba_of(g.sh[idx], g.opacities[idx]), idx.numpy().astype(np.uint32))
+            with self.lock:
+                if version == self.version:
+                    self._static[key] = buf
+        if self.use_trajectories:
+            self.trajectories(lod, 0.0)  # start building the cache as soon as someone watches
+        return buf
+
+    def trajectories(self, lod: int, exposure: float) -> Trajectories | None:
+        """The ready trajectory cache for (lod, exposure), starting its build if needed."""
+        with self.lock:
+            lod, m = self.model(lod)
+            if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
+                return None
+            key = (lod, self.version, round(float(exposure), 6))
+            tr = self._trajectories.get(key)
+            if tr is None:
+                self._trajectories = {k: v for k, v in self._trajectories.items() if k[1] == self.version}
+                tr = self._trajectories[key] = Trajectories(self, m, lod, self.version, key[2])
+        return tr if tr.ready.is_set() else None
+
+    @torch.no_grad()
+    def dynamic_buffer(self, t: float, exposure: float = 0.0, lod: int | None = None, velocity: bool = True,
+                       exact: bool = False) -> bytes:
+        """The dynamic set at `t`: interpolated from the trajectory cache when it is ready (and
+        `exact` is not asked for), else evaluated exactly."""
+        lod, m, keep, version = self.state(lod)
+        header = {"kind": "dynamic", "lod": lod, "t": t, "exposure": exposure, "version": version}
+        if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
+            return pack_buffer(header, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 4)), np.zeros(0),
+                               np.zeros((0, 3)) if velocity else None)
+        tr = None if (exact or not self.use_trajectories) else self.trajectories(lod, exposure)
+        if tr is not None and tr.key[1] == version:
+            idx, means, covs, vels, rgba = tr.at(float(t))
+            header["interpolated"] = True
+        else:
+            with self.compute:  # without velocities a sharp frame skips their field samples
+                idx_t, g = m.at_dynamic(float(t), exposure, self.dt, velocity=velocity)
+            idx, means, covs = idx_t.numpy(), g.means.numpy(), g.covars.numpy()
+            vels = g.velocity.numpy() if g.velocity is not None else None
+            rgba = rgba_of(g.sh, g.opacities)
+            header["interpolated"] = False
+        sel = keep[idx]
+        return pack_buffer(header, means[sel], covs[sel], rgba[sel], idx[sel].astype(np.uint32),
+                           vels[sel] if velocity else None)
+
+    @torch.no_grad()
+    def baked(self, t: float, exposure: float = 0.0, lod: int | None = None, subset: str = "all") -> tuple[Baked, int]:
+        """All kept Gaussians at `t` (for server-side renders), optionally only one set."""
+        lod, m, keep, _ = self.state(lod)
+        with self.compute:
+            g = m.at_static() if self.run.static_only else m.at(float(t), exposure=exposure, dt=self.dt)
+        dyn = self._dynamic_mask(m)
+        sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
+        return baked_from(g, sel, dynamic=dyn), lod
+
+    # ------------------------------------------------------------ live decomposition and edits
+
+    def set_tau(self, tau: float) -> dict:
+        if not (tau > 0 and np.isfinite(tau)):
+            raise ValueError(f"tau must be a positive number, got {tau}")
+        with self.lock:
+            self.tau = float(tau)
+            self._models = {lod: _with_tau(m, self.tau) for lod, m in self._models.items()}
+            self._invalidate()
+        return self.split()
+
+    def split(self, lod: int | None = None) -> dict:
+        lod, m, keep, version = self.state(lod)
+        counts = split_counts(m, self.run.static_only)
+        dyn = self._dynamic_mask(m)
+        return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()), "dynamic_kept": int((dyn & keep).sum()),
+                "static_kept": int((~dyn & keep).sum()), "version": version}
+
+    def histogram(self, lod: int | None = None) -> dict:
+        _, m = self.model(lod)
+        return variance_histogram(m.variance.numpy())
+
+    def apply_edit(self, op: str, lod: int | None, indices: list[int] | None = None,
+                   crop: dict | None = None) -> dict:
+        with self.lock:
+            lod, m = self.model(lod)
+            n = len(m)
+            ids = [int(i) for i in (indices or [])]
+            bad = [i for i in ids if not 0 <= i < n]
+            if bad:
+                raise ValueError(f"indices {bad[:5]} outside 0..{n - 1} for LoD {lod}")
+            edits = EditLayer.from_dict(self.edits.to_dict())  # edit a copy: readers keep theirs
+            e = edits.level(lod)
+            if op == "delete":
+                e.deleted.update(ids)
+            elif op == "hide":
+                e.hidden.update(ids)
+            elif op == "unhide":
+                e.hidden.difference_update(ids) if ids else e.hidden.clear()
+            elif op == "restore":
+                e.deleted.difference_update(ids) if ids else e.deleted.clear()
+            elif op == "crop":
+                layer = EditLayer.from_dict({"crop": crop}, "crop")
+                edits.crop_min, edits.crop_max = layer.crop_min, layer.crop_max
+            elif op == "clear":
+                edits = EditLayer()
+            else:
+                raise ValueError(f"unknown edit op {op!r} (delete, hide, unhide, restore, crop, clear)")
+            save_edits(self.run.path, edits)
+            self.edits = edits
+            self._invalidate()
+        return self.split(lod)
+
+    def _invalidate(self) -> None:
+        self.version += 1
+        self._static.clear()
+        self._trajectories.clear()
