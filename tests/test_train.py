@@ -413,3 +413,33 @@ def test_time_window_grows_from_the_middle_to_the_whole_clip_by_the_first_split(
     # Off by default (1.0): the whole clip from the first step.
     whole = Trainer(scene, tmp_path / "run2", tiny_config(iterations=100, decompose_at=40), progress=False)
     assert {i for _ in range(200) for i in whole.pick_frames(1, 0)} == set(range(len(times)))
+
+
+def test_loss_weighted_frames_favour_the_worst_fitted_frame(scene, tmp_path):
+    tr = Trainer(scene, tmp_path / "run", tiny_config(frame_sampling="loss"), progress=False)
+    n = len(scene.train_frames)
+    assert {i for _ in range(100) for i in tr.pick_frames(1, 0)} == set(range(n))  # uniform until every frame is seen
+    tr.frame_loss = torch.ones(n)
+    tr.frame_loss[2] = 20.0
+    draws = [tr.pick_frames(1, 50)[0] for _ in range(2000)]
+    share = draws.count(2) / len(draws)
+    # Half the draws uniform, half by loss: 0.5 / n + 0.5 * 20 / (n - 1 + 20).
+    expected = 0.5 / n + 0.5 * 20 / (n - 1 + 20)
+    assert abs(share - expected) < 0.05 and share > 3 / n
+
+
+def test_coarse_time_compresses_the_fields_time_axis_in_the_warm_up(scene, tmp_path):
+    cfg = tiny_config(iterations=100, decompose_at=40, time_coarse_start=0.2)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    tr.init_model()
+    seen = []
+    field_at_times = tr.model.deform.at_times
+    tr.model.deform.at_times = lambda x, times: (seen.append(float(times[0][0])), field_at_times(x, times))[1]
+    tr.noise.sigma = lambda it: 0.0  # no time jitter: the field's time is the frame's, compressed
+    for it, scale in ((0, 0.2), (15, 0.6), (30, 1.0), (60, 1.0)):
+        seen.clear()
+        frame = scene.train_frames[-1]
+        tr.pick_frames = lambda k, it, i=len(scene.train_frames) - 1: [i]
+        tr.train_step(it)
+        assert tr.model.time_scale == pytest.approx(scale)
+        assert seen[0] == pytest.approx(0.5 + (frame.time - 0.5) * scale, abs=1e-6)
