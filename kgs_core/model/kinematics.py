@@ -1,7 +1,8 @@
 """Kinematic basis and kinematics-guided covariance refinement (paper §4.3-4.4, appendix A.1).
 
 Everything here is batched over Gaussians and differentiable with finite gradients at the
-degenerate inputs (zero velocity, zero rotation vector): see tests/test_kinematics.py.
+degenerate inputs (zero velocity, zero rotation vector): see tests/test_stability.py (the basis,
+the refined covariance and its gradients at stiff and extreme inputs) and tests/test_model.py.
 """
 
 from __future__ import annotations
