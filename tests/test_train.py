@@ -443,3 +443,25 @@ def test_coarse_time_compresses_the_fields_time_axis_in_the_warm_up(scene, tmp_p
         tr.train_step(it)
         assert tr.model.time_scale == pytest.approx(scale)
         assert seen[0] == pytest.approx(0.5 + (frame.time - 0.5) * scale, abs=1e-6)
+
+
+def test_time_noise_follows_the_appendix_schedule(scene, tmp_path):
+    """Appendix B, written out: sigma(k) = w(k) [s_init (1 - kappa) + s_final kappa], kappa =
+    clip(k / K_max, 0, 1), w(k) = w_delay + (1 - w_delay) sin(pi/2 k / K_delay) below K_delay and
+    1 after; here with the trainer's own numbers (frame intervals times the scene's dt)."""
+    import math
+
+    cfg = tiny_config(iterations=200, noise_init_frames=1.0, noise_final_frames=0.25, noise_until=0.75,
+                      noise_delay=0.1, noise_w_delay=0.2)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    s_init, s_final, k_max, k_delay, w_delay = scene.dt, 0.25 * scene.dt, 150, 20, 0.2
+
+    def appendix(k):
+        kappa = min(max(k / k_max, 0.0), 1.0)
+        w = w_delay + (1 - w_delay) * math.sin(math.pi / 2 * k / k_delay) if k < k_delay else 1.0
+        return w * (s_init * (1 - kappa) + s_final * kappa)
+
+    for k in (0, 1, 10, 19, 20, 21, 75, 149, 150, 151, 199):
+        assert tr.noise.sigma(k) == pytest.approx(appendix(k), rel=1e-12), k
+    assert tr.noise.sigma(0) == pytest.approx(w_delay * s_init)  # attenuated at the start
+    assert tr.noise.sigma(199) == pytest.approx(s_final)  # the final level after K_max
