@@ -129,7 +129,7 @@ class JobRunner:
     def _kill_if_alive(pid: int) -> None:
         if pid_alive(pid):
             try:
-                os.killpg(pid, signal.SIGKILL)  # the job's session: SfM helpers with it
+                os.killpg(pid, signal.SIGKILL)  # the job's process group: SfM helpers with it
             except (ProcessLookupError, PermissionError):
                 pass
 

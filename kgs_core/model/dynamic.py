@@ -125,7 +125,6 @@ class KinematicsGS(nn.Module):
         self.dynamic = torch.zeros(n, dtype=torch.bool)
         self.variance = torch.zeros(n)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
-        self.time_scale = 1.0  # see offsets_at
         self._knn: Tensor | None = None
         self._knn_mean: tuple | None = None  # (knn it was built from, W, W^T): see neighbour_mean
 
@@ -232,10 +231,7 @@ class KinematicsGS(nn.Module):
         at three times cost a sixth of a training step."""
         x = self.params.means[idx]
         n = len(x)
-        # (time_scale < 1 during training's warm-up only: the field's time axis compressed
-        # about the clip's middle, TrainConfig.time_coarse_start.)
-        s = self.time_scale
-        tt = [torch.full((n,), float(t) if s == 1.0 else 0.5 + (float(t) - 0.5) * s) for t in times]
+        tt = [torch.full((n,), float(t)) for t in times]
         if noise > 0:
             tt[0] = tt[0] + noise * torch.randn(n)
         raws = self.deform.at_times(x, tt)

@@ -82,10 +82,6 @@ class TrainConfig:
     # within `time_window_start` / 2 of the middle (as a fraction of the clip), the whole clip
     # from three quarters of the warm-up (`decompose_at`) on. 1.0: the whole clip from the start.
     time_window_start: float = 1.0
-    # The warm-up's field sees time compressed about the clip's middle to this fraction of the
-    # clip at iteration 0 (every frame still trains), the whole axis from three quarters of the
-    # warm-up on: motion is learned coarse in time first. 1.0: off.
-    time_coarse_start: float = 1.0
     # FLoD
     lod_levels: int = 5
     lod_lambda: float = 0.02  # s_min of level 1, normalised scene units

@@ -25,7 +25,7 @@ from ..model.render import render_model
 from ..render.types import Rendered
 from ..run import save_decomposition, save_torch, write_run_json
 from .camera_motion import CameraMotion
-from .config import TrainConfig
+from .config import FRAME_SAMPLING, TrainConfig
 from .densify import DensifyStrategy
 from .pose_refine import PoseCorrection
 
@@ -142,6 +142,8 @@ class Trainer:
         self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
                               if cfg.camera_blur != "off" else None)
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
+        if cfg.frame_sampling not in FRAME_SAMPLING:  # (a config read back from a run.json skips make_config)
+            raise ValueError(f"frame_sampling must be one of {', '.join(FRAME_SAMPLING)}, got {cfg.frame_sampling!r}")
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
 
@@ -258,31 +260,28 @@ class Trainer:
         return None if self.pose_correction is None else self.pose_correction.world_transform(frame)
 
     def pick_frames(self, k: int, it: int = 0) -> list[int]:
-        """Indices of the training frames this step sees (`frame_sampling`, `time_window_*`)."""
+        """Indices of the `k` training frames step `it` sees: within the warm-up's time window
+        (`time_window_start`) when one is set, else all frames, uniformly or weighted by their
+        running loss (`frame_sampling`)."""
         c = self.cfg
         frames = self.scene.train_frames
         n = len(frames)
         if c.time_window_start < 1.0:
             grow = min(1.0, it / max(1.0, WINDOW_FULL_AT * c.decompose_at))
-            half = 0.5 * (c.time_window_start + (1.0 - c.time_window_start) * grow)
-            times = torch.tensor([f.time for f in frames])
-            t0, t1 = float(times.min()), float(times.max())
+            half = 0.5 * (c.time_window_start + (1.0 - c.time_window_start) * grow)  # of the clip
+            t0, t1 = min(f.time for f in frames), max(f.time for f in frames)
             mid, span = 0.5 * (t0 + t1), max(t1 - t0, 1e-9)
-            inside = [i for i in range(n) if abs(frames[i].time - mid) <= half * span + 1e-9]
-            if len(inside) >= k and len(inside) < n:
+            inside = [i for i, f in enumerate(frames) if abs(f.time - mid) <= half * span + 1e-9]
+            if k <= len(inside) < n:
                 return random.sample(inside, k)
-        if self.cfg.frame_sampling == "uniform" or torch.isnan(self.frame_loss).any():
+        if c.frame_sampling == "uniform" or torch.isnan(self.frame_loss).any():
             return random.sample(range(n), k)
-        w = self.frame_loss / self.frame_loss.sum()
-        p = (1 - self.cfg.frame_sampling_mix) / n + self.cfg.frame_sampling_mix * w
+        p = (1 - c.frame_sampling_mix) / n + c.frame_sampling_mix * self.frame_loss / self.frame_loss.sum()
         return [int(i) for i in torch.multinomial(p, k, replacement=False)]
 
     def train_step(self, it: int) -> float:
         c = self.cfg
         self.set_learning_rates(it)
-        if c.time_coarse_start < 1.0:
-            grow = min(1.0, it / max(1.0, WINDOW_FULL_AT * c.decompose_at))
-            self.model.time_scale = c.time_coarse_start + (1.0 - c.time_coarse_start) * grow
         picks = self.pick_frames(min(c.batch_size, len(self.scene.train_frames)), it)
         total = 0.0
         outs = []
