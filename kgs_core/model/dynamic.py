@@ -249,7 +249,7 @@ class KinematicsGS(nn.Module):
         off = self.offsets(idx, t, noise)
         return self.params.means[idx] + off.dx, off
 
-    def at(self, t: float, exposure: float = 0.0, dt: float = 1.0, noise: float = 0.0,
+    def at(self, t: float, exposure: float | Tensor = 0.0, dt: float = 1.0, noise: float = 0.0,
            camera_motion: tuple[Tensor, Tensor] | None = None, velocity: bool = True) -> GaussiansAt:
         """Gaussians at time `t`. `exposure` (fraction of the frame interval `dt`) sets the
         kinematic elongation: 0 renders sharp. `noise` is the training-time jitter of `t`.
@@ -311,7 +311,7 @@ class KinematicsGS(nn.Module):
                                 velocity=None if d.velocity is None else d.velocity.detach(), offsets_dx=d.dx,
                                 sweep=None if d.sweep is None else (None, d.sweep))
 
-    def _deform(self, idx: Tensor, t: float, exposure: float, dt: float, noise: float, scales: Tensor,
+    def _deform(self, idx: Tensor, t: float, exposure: float | Tensor, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
                 velocity: bool = True) -> "Deformed":
         """The Gaussians `idx` deformed to time `t` (`Deformed`); `cov6_pred` is their packed
@@ -323,7 +323,8 @@ class KinematicsGS(nn.Module):
         skip_velocity = not velocity and exposure == 0 and cfg.kr_form == "convolve"
         kinematic = cfg.kinematic and self.decomposed and not skip_velocity
         # The physical velocity's two samples around t share one batched field evaluation with t.
-        h = 0.5 * dt * max(exposure, 0.5)
+        # (`exposure` may be a learned 0-d tensor, train/exposure.py: the step needs no gradient.)
+        h = 0.5 * dt * max(float(exposure.detach() if isinstance(exposure, Tensor) else exposure), 0.5)
         physical = kinematic and cfg.velocity == "physical"
         if physical and not cfg.velocity_grad:
             off = self.offsets_at(idx, [t], noise)[0]

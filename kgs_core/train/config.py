@@ -113,6 +113,10 @@ class TrainConfig:
     init_from: str = ""  # a run directory: start from its final model (fine-tuning), not from points
     # The training camera's exposure (fraction of the frame interval); None: the scene's own.
     exposure: float | None = None
+    # Learn the exposure from the footage, starting from the one above (train/exposure.py):
+    # one scalar fitted with the rest once K.R. acts (after the split), at lr_exposure.
+    fit_exposure: bool = False
+    lr_exposure: float = 2e-2
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).
     fitted: dict = field(default_factory=dict)

@@ -27,6 +27,7 @@ from ..run import save_decomposition, save_torch, write_run_json
 from .camera_motion import CameraMotion
 from .config import FRAME_SAMPLING, TrainConfig
 from .densify import DensifyStrategy
+from .exposure import FittedExposure
 from .pose_refine import PoseCorrection
 
 
@@ -135,6 +136,10 @@ class Trainer:
                                int(cfg.noise_until * cfg.iterations), int(cfg.noise_delay * cfg.iterations), cfg.noise_w_delay)
         # The exposure K.R. models: the config's when given (`--exposure`), else the scene's.
         self.exposure = scene.exposure if cfg.exposure is None else float(cfg.exposure)
+        # fit_exposure: learned from there (`self.exposure` follows it after each step).
+        self.fitted_exposure = FittedExposure(self.exposure) if cfg.fit_exposure else None
+        if self.fitted_exposure is not None:
+            self.exposure = float(self.fitted_exposure)  # (a start of 0 or 1 is clipped: START_RANGE)
         # The configured τ, before any split writes its own into the model's config.
         self.tau_floor = cfg.model.tau
         self.static_only = "deform" in cfg.ablate
@@ -207,7 +212,9 @@ class Trainer:
         ] + ([{"params": [self.camera_motion.motion], "lr": c.lr_camera_motion, "name": "camera_motion"}]
              if c.camera_blur == "learned" else [])
           + ([{"params": [self.pose_correction.delta], "lr": c.lr_pose, "name": "pose"}]
-             if self.pose_correction is not None else []), eps=1e-15, fused=True)
+             if self.pose_correction is not None else [])
+          + ([{"params": [self.fitted_exposure.logit], "lr": c.lr_exposure, "name": "exposure"}]
+             if self.fitted_exposure is not None else []), eps=1e-15, fused=True)
 
     def set_learning_rates(self, it: int) -> None:
         """Schedules (exponential decay) times `lr_scale` (lowered by each NaN recovery)."""
@@ -231,7 +238,8 @@ class Trainer:
         if noise > 0 and not c.noise_per_gaussian:  # one shift for every Gaussian
             t, noise = t + noise * float(torch.randn(())), 0.0
         camera_motion = None if self.camera_motion is None else self.camera_motion.get(frame.id)
-        out, g = render_model(model, frame.camera, t, self.exposure, scene.dt, self.background,
+        exposure = self.exposure if self.fitted_exposure is None else self.fitted_exposure.value()
+        out, g = render_model(model, frame.camera, t, exposure, scene.dt, self.background,
                               noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False,
                               world_transform=self.world_transform(frame))
         gt = self.cache.get(frame)
@@ -308,6 +316,8 @@ class Trainer:
         self.net_opt.step()
         self.opt.zero_grad(set_to_none=True)
         self.net_opt.zero_grad(set_to_none=True)
+        if self.fitted_exposure is not None:
+            self.exposure = float(self.fitted_exposure)
         if phase:
             phase("optimiser")
         return total
@@ -388,7 +398,7 @@ class Trainer:
         counts = split_counts(self.model, self.static_only)
         row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(time.time() - wall0, 3),
                "loss": loss, "psnr_heldout": p, "psnr_heldout_dynamic": p_dyn, "gaussians": counts["gaussians"],
-               "dynamic_share": counts["dynamic_share"]}
+               "dynamic_share": counts["dynamic_share"], "exposure": round(self.exposure, 5)}
         self.log_rows.append(row)
         head = list(row)
         # (.get: rows read back from a log written before a column existed, on resume)
@@ -437,6 +447,7 @@ class Trainer:
             "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
             "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
             "frame_loss": self.frame_loss.clone(),
+            "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
         })
         return path
 
@@ -447,6 +458,9 @@ class Trainer:
             self.camera_motion.load_state_dict(state["camera_motion"])
         if self.pose_correction is not None and state.get("pose_correction") is not None:
             self.pose_correction.load_state_dict(state["pose_correction"])
+        if self.fitted_exposure is not None and state.get("fitted_exposure") is not None:
+            self.fitted_exposure.load_state_dict(state["fitted_exposure"])
+            self.exposure = float(self.fitted_exposure)
         self.make_optimizers()
         self.opt.load_state_dict(state["opt"])
         self.net_opt.load_state_dict(state["net_opt"])
@@ -559,6 +573,10 @@ class Trainer:
                                   if self.cfg.tau_auto and tau > self.tau_floor else f"the configured {tau:.3g}")
         if self.pose_correction is not None:
             info["pose_refine"] = self.pose_correction.summary()
+        if self.fitted_exposure is not None:
+            info["exposure"] = self.exposure
+            info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
+
         if self.events:
             info["guard_events"] = self.events
         write_run_json(self.run_dir, info)
