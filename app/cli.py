@@ -387,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "covariance convolved with the motion during the exposure (docs/method.md)")
     p.add_argument("--camera-blur", choices=list(CAMERA_BLUR),
                    help="also blur every Gaussian along the camera's own motion during the exposure (hand-held shake): "
-                        "from the poses' differences, or learned per frame from there (default off; docs/quality.md)")
+                        "from the poses' differences, or learned per frame from there (default off; docs/method.md)")
     p.add_argument("--pose-refine", choices=["on", "off"],
                    help="fit a rigid correction of each training camera's pose, for footage whose structure-from-motion "
                         "poses are poor (default off; docs/real-footage.md)")
@@ -398,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.add_argument("--set", action="append", type=setting, metavar="KEY=VALUE",
-                   help="any training setting (a TrainConfig field, or model.FIELD), checked against the schema; "
+                   help="any training setting (a TrainConfig field, model.FIELD or densify.FIELD), checked against the schema; "
                         "repeatable, applied after the options above. E.g. --set lambda_reg=0.02 --set model.knn=16")
     p.set_defaults(func=cmd_train)
 
@@ -467,7 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--verbose", action="store_true")
     p.set_defaults(func=cmd_build_ext)
 
-    p = sub.add_parser("bench", help="benchmarks that print numbers (see docs/performance.md)")
+    p = sub.add_parser("bench", help="benchmarks that print numbers (results: docs/results.md)")
     p.add_argument("what", choices=BENCHMARKS,
                    help="raster: rasteriser timings and a raster-only training step; step: the whole model's "
                         "training step at the demo scale, by phase; serve: scrubbing latency, 50 clients; "

@@ -20,7 +20,8 @@ def sweep(scene_dir, root, seeds=(0, 1), iterations=40):
 
     scene = load_scene(scene_dir)
     return [Trainer(scene, root / f"s{seed}", make_config("fast", iterations=iterations, eval_every=20, seed=seed,
-                                                          checkpoint_every=1000, densify_from=10, decompose_at=20),
+                                                          checkpoint_every=1000, decompose_at=20,
+                                                          **{"densify.start": 10}),
                     progress=False)
             for seed in seeds]
 

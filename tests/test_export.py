@@ -135,7 +135,18 @@ def test_splatv_container_and_fit(tiny_run, tmp_path):
     assert err.max() <= fit["position_max"] * 1.001 + 1e-7
     extent = np.linalg.norm(g.means.max(0) - g.means.min(0))
     assert fit["position_rms_rel"] < 0.05 and np.sqrt((err**2).mean()) < 0.05 * extent
-    assert 0 <= fit["covariance_rel_mean"] < 1
+    # The covariances the player evaluates at t = 0.25, against the field's, independently of the
+    # exporter's own report (which checks at the fitted times and between them).
+    from kgs_core.export.splatv import decode_splatv_words, evaluate_splatv
+
+    _, cov, _ = evaluate_splatv(decode_splatv_words(words[:count]), t)
+    ref_cov = bake(src, t).covars
+    rel = (np.linalg.norm(cov - ref_cov, axis=(1, 2)) / np.linalg.norm(ref_cov, axis=(1, 2)))[g.dynamic]
+    # Measured: 0.6 % mean, 2.1 % worst; a wrong axis order, quaternion layout or half-float
+    # packing errs by tens of percent. (In this small run the covariances turn little, so this
+    # checks the layout; the fit itself is checked exactly by test_covariance_fit_is_exact.)
+    assert rel.mean() < 0.02 and rel.max() < 0.1
+    assert fit["covariance_rel_mean"] < 0.02 and fit["covariance_rel_max"] < 0.1
     assert json.loads(out.with_name(out.name + ".json").read_text())["fit"] == fit
 
 

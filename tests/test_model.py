@@ -4,6 +4,8 @@ model to the rasteriser."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -357,3 +359,38 @@ def test_temporal_variance_is_the_papers_k_of_the_fields_offsets():
     # The split: dynamic exactly where K exceeds tau.
     tau = float(expected.median())
     assert torch.equal(m.decompose(tau, recompute=True), expected > tau)
+
+
+def test_paper_form_of_kr_matches_eqs_9_to_14_worked_by_hand():
+    """`refine_covariance` (`--kr-form paper`) on cases worked out by hand from the paper's
+    eqs. 9-14: velocity along z, so the basis is u_x = e_y, u_y = -e_x, u_z = e_z (appendix A.1
+    with the reference e_x); a diagonal covariance; then each term on its own."""
+    from kgs_core.model.kinematics import kinematic_basis, refine_covariance
+
+    f64 = torch.float64
+    v = torch.tensor([[0.0, 0.0, 2.0]], dtype=f64)
+    assert torch.allclose(kinematic_basis(v), torch.tensor([[[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]], dtype=f64))
+    sigma = torch.diag(torch.tensor([0.1, 0.2, 0.3], dtype=f64) ** 2)[None]
+    zero = torch.zeros(1, 3, dtype=f64)
+    far = torch.tensor([1e3], dtype=f64)  # per-frame motion far above still_len: no blend toward sigma
+
+    def refine(blur, ds=zero, dr=zero, r_z=(0.0, 0.0, 1.0), kappa=-2.0, frame_len=far):
+        return refine_covariance(sigma, v, torch.tensor([blur], dtype=f64), ds, dr, torch.tensor([r_z], dtype=f64),
+                                 torch.tensor(kappa, dtype=f64), frame_len)[0]
+
+    # Eq. 9-10: s' = (sigma along u_x, along u_y, along u_z + eta |v| dt e) = (0.2, 0.1, 0.3 + 0.4),
+    # with eta = |r_z . u_z| = 1 (eq. 11); rebuilt in the world frame, x takes u_y's scale.
+    assert torch.allclose(refine(0.4), torch.diag(torch.tensor([0.1, 0.2, 0.7], dtype=f64) ** 2), atol=1e-9)
+    # Eq. 11's lower bound: r_z across the motion gives eta = sigmoid(kappa) = 0.5.
+    assert torch.allclose(refine(0.4, r_z=(1.0, 0.0, 0.0), kappa=0.0),
+                          torch.diag(torch.tensor([0.1, 0.2, 0.5], dtype=f64) ** 2), atol=1e-9)
+    # Eq. 12-13: log s = log s' + lambda_s ds, lambda_s = 0.1.
+    ds = torch.tensor([[0.5, -0.5, 1.0]], dtype=f64)
+    s = torch.tensor([0.2, 0.1, 0.7], dtype=f64) * torch.exp(0.1 * ds[0])  # along (u_x, u_y, u_z)
+    assert torch.allclose(refine(0.4, ds=ds), torch.diag(torch.stack([s[1], s[0], s[2]]) ** 2), atol=1e-9)
+    # Eq. 14: R = R_kin exp(dr); a quarter turn about u_z swaps which world axis gets which scale.
+    dr = torch.tensor([[0.0, 0.0, math.pi / 2]], dtype=f64)
+    assert torch.allclose(refine(0.4, dr=dr), torch.diag(torch.tensor([0.2, 0.1, 0.7], dtype=f64) ** 2), atol=1e-9)
+    # A Gaussian moving by still_len per frame is halfway blended toward its predicted covariance.
+    half = refine(0.4, frame_len=torch.tensor([1e-3], dtype=f64))
+    assert torch.allclose(half, 0.5 * (sigma[0] + refine(0.4)), atol=1e-12)

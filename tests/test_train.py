@@ -27,9 +27,10 @@ def scene(tmp_path_factory):
 
 
 def tiny_config(**over):
-    base = dict(iterations=120, eval_every=40, checkpoint_every=60, densify_from=30, densify_every=30,
-                densify_until=100, decompose_at=60, decompose_every=0, opacity_reset_at=(),
-                lod_fractions=(0.5, 1.0), lod_levels=2, lod_importance_views=2, init_points=2000, max_gaussians=6000)
+    base = {"iterations": 120, "eval_every": 40, "checkpoint_every": 60, "decompose_at": 60, "decompose_every": 0,
+            "lod_fractions": (0.5, 1.0), "lod_levels": 2, "lod_importance_views": 2, "init_points": 2000,
+            "densify.start": 30, "densify.every": 30, "densify.stop": 100, "densify.opacity_reset_at": (),
+            "densify.max_gaussians": 6000}
     base.update(over)
     ablate = base.pop("ablate", ())
     return make_config("fast", ablate=ablate, **base)
@@ -220,7 +221,7 @@ def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):
     import shutil
 
-    cfg = tiny_config(iterations=22, checkpoint_every=1, densify_from=1000)
+    cfg = tiny_config(iterations=22, checkpoint_every=1, **{"densify.start": 1000})
     train(scene, tmp_path / "full", cfg, progress=False)
     shutil.copytree(tmp_path / "full", tmp_path / "resumed")
     for p in (tmp_path / "resumed" / "checkpoints").glob("*.pt"):
@@ -240,8 +241,8 @@ def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
     per step, and each trainer's time counts its own steps only."""
     from kgs_core.train.trainer import interleave
 
-    cfgs = {"full": tiny_config(iterations=22, checkpoint_every=1000, densify_from=1000),
-            "split": tiny_config(iterations=14, checkpoint_every=1000, densify_from=1000, ablate=("split",))}
+    cfgs = {"full": tiny_config(iterations=22, checkpoint_every=1000, **{"densify.start": 1000}),
+            "split": tiny_config(iterations=14, checkpoint_every=1000, **{"densify.start": 1000}, ablate=("split",))}
     for name, cfg in cfgs.items():
         train(scene, tmp_path / f"alone_{name}", cfg, progress=False)
     trainers = [Trainer(scene, tmp_path / f"together_{name}", cfg, progress=False) for name, cfg in cfgs.items()]
@@ -295,9 +296,10 @@ def test_velocity_epe_against_ground_truth_motion(tmp_path):
 
     root = synthesize("sheet", tmp_path / "sheet", blur="mild", size=48, frames=8, subframes=2, progress=False)
     scene = load_scene(root)
-    cfg = make_config("fast", iterations=80, eval_every=40, checkpoint_every=1000, densify_from=1000,
-                      decompose_at=40, decompose_every=0, opacity_reset_at=(), lod_levels=1, lod_fractions=(1.0,),
-                      init_points=1500, max_gaussians=3000, **{"model.tau": 1e-7})
+    cfg = make_config("fast", iterations=80, eval_every=40, checkpoint_every=1000, decompose_at=40, decompose_every=0,
+                      lod_levels=1, lod_fractions=(1.0,), init_points=1500,
+                      **{"densify.start": 1000, "densify.opacity_reset_at": (), "densify.max_gaussians": 3000,
+                         "model.tau": 1e-7})
     train(scene, tmp_path / "run", cfg, progress=False)
     model = load_run(tmp_path / "run").model
     trained = velocity_epe(model, scene)
@@ -335,10 +337,12 @@ def test_iteration_override_scales_the_preset_schedule(preset):
     schedule override still wins, and the default is the preset's own schedule."""
     base = make_config(preset)
     longer = make_config(preset, iterations=base.iterations * 2)
-    for name in ("decompose_at", "decompose_every", "densify_from", "densify_until"):
+    for name in ("decompose_at", "decompose_every"):
         assert getattr(longer, name) == pytest.approx(2 * getattr(base, name), abs=1), name
-    assert longer.opacity_reset_at[0] == pytest.approx(2 * base.opacity_reset_at[0], abs=1)
-    assert longer.densify_every == base.densify_every  # an interval, not a point of the schedule
+    for name in ("start", "stop"):
+        assert getattr(longer.densify, name) == pytest.approx(2 * getattr(base.densify, name), abs=1), name
+    assert longer.densify.opacity_reset_at[0] == pytest.approx(2 * base.densify.opacity_reset_at[0], abs=1)
+    assert longer.densify.every == base.densify.every  # an interval, not a point of the schedule
     assert make_config(preset, iterations=base.iterations * 2, decompose_at=7).decompose_at == 7
     tiny = make_config(preset, iterations=3)
     assert tiny.decompose_at >= 1 and tiny.eval_every >= 1 and tiny.checkpoint_every >= 1
@@ -453,3 +457,74 @@ def test_time_noise_follows_the_appendix_schedule(scene, tmp_path):
         assert tr.noise.sigma(k) == pytest.approx(appendix(k), rel=1e-12), k
     assert tr.noise.sigma(0) == pytest.approx(w_delay * s_init)  # attenuated at the start
     assert tr.noise.sigma(199) == pytest.approx(s_final)  # the final level after K_max
+
+
+def test_flod_levels_decay_and_a_level_change_keeps_each_gaussians_size(scene, tmp_path):
+    """FLoD (docs/method.md): level l's minimum scale is lambda * rho^(l-1), 0 at the top level;
+    a level change prunes the Gaussians whose importance is below the threshold, keeps a
+    snapshot for rendering at that level, and re-parameterises the scales so that
+    exp(s) + s_min, the size each Gaussian renders with, does not jump."""
+    cfg = tiny_config(iterations=100, lod_levels=5, lod_fractions=(0.1, 0.2, 0.35, 0.55, 1.0), lod_lambda=0.02,
+                      lod_rho=0.5, lod_prune_importance=0.5)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    assert [tr.level_min_scale(i) for i in range(5)] == pytest.approx([0.02, 0.01, 0.005, 0.0025, 0.0])
+    assert tr.level_ends == [10, 20, 35, 55, 100]
+    seen = []
+    importance = tr.importance
+    tr.importance = lambda: seen.append(importance()) or seen[-1]  # the importance the level change used
+    steps = tr.iterate()
+    for _ in range(10):  # the first level ends after the 10th step
+        next(steps)
+    assert len(seen) == 1 and len(tr.levels) == 1
+    keep = seen[0] >= cfg.lod_prune_importance
+    assert 4 <= int(keep.sum()) < len(keep), "the threshold should prune some Gaussians and keep the rest"
+    model, snap = tr.model, tr.levels[0]
+    assert snap["min_scale"] == pytest.approx(0.02) and snap["iteration"] == 10
+    assert len(snap["params"]["means"]) == len(model) == int(keep.sum())
+    assert model.min_scale == pytest.approx(0.01)
+    before = torch.exp(snap["params"]["log_scales"]) + 0.02  # the sizes at level 1, after pruning
+    assert float((model.scales().detach() - before).abs().max()) < 1e-6
+    for _ in steps:
+        pass
+    assert len(tr.levels) == 4 and tr.model.min_scale == 0.0
+    assert [lv["iteration"] for lv in tr.levels] == [10, 20, 35, 55]
+    # Every level renders the scene from the saved run.
+    from kgs_core.model.render import render_model
+
+    run = load_run(tmp_path / "run")
+    assert run.n_levels == 5
+    for level in range(1, 6):
+        out, _ = render_model(run.level(level), scene.test_frames[0].camera, scene.test_frames[0].time)
+        assert float(out.alpha.mean()) > 0.5, level
+
+
+@pytest.mark.parametrize("ablate", ["", "reg", "ani"])
+def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(scene, tmp_path, monkeypatch, ablate):
+    """What `loss_for` adds to the photometric loss: lambda_reg times L_reg, the *mean* offset
+    norm over the dynamic set (every Gaussian before the split), and lambda_ani times L_ani, the
+    mean max/min scale ratio; `--ablate reg` and `--ablate ani` leave exactly their term out."""
+    import kgs_core.train.trainer as trainer_module
+
+    cfg = tiny_config(iterations=1, lod_levels=1, lod_fractions=(1.0,), noise_init_frames=0.0,
+                      ablate=(ablate,) if ablate else ())
+    assert cfg.lambda_tv == 0  # (the fast preset's; the K-Planes smoothness would add a third term)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    tr.init_model()
+    model = tr.model
+    with torch.no_grad():  # a field that moves things, so that L_reg is not zero
+        model.deform.mlp[-1].weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(0))
+    seen = {}
+    photometric = trainer_module.photometric_loss
+    monkeypatch.setattr(trainer_module, "photometric_loss", lambda *a: seen.setdefault("photo", photometric(*a)))
+    frame = scene.train_frames[3]
+    loss, _ = tr.loss_for(frame, 0)
+    rest = float(loss.detach() - seen["photo"].detach())
+    with torch.no_grad():
+        reg = float(model.offsets(torch.arange(len(model)), frame.time).dx.norm(dim=-1).mean())
+        s = model.scales()
+        ani = float((s.max(-1).values / (s.min(-1).values + cfg.eps_ani)).mean())
+    assert reg > 1e-3 and ani >= 0.99  # (max/min scale ratio: 1 for the isotropic initial scales)
+    full = tiny_config()
+    assert full.lambda_reg > 0 and full.lambda_ani > 0
+    expected = (0 if ablate == "reg" else full.lambda_reg * reg) + (0 if ablate == "ani" else full.lambda_ani * ani)
+    assert rest == pytest.approx(expected, rel=1e-3, abs=1e-7)

@@ -139,9 +139,10 @@ def train_case(name: str, root: Path, iterations: int, size: int, tau: float | N
         scene = load_scene(folder)
         raw_extent = None
     cfg = make_config("fast", iterations=iterations, eval_every=max(iterations // 4, 1), checkpoint_every=10**9,
-                      densify_from=iterations // 10, densify_until=int(iterations * 0.7), densify_every=iterations // 10,
-                      decompose_at=iterations // 5, decompose_every=0, opacity_reset_at=(), init_points=2000,
-                      max_gaussians=8000, **({"model.tau": tau} if tau else {}))
+                      decompose_at=iterations // 5, decompose_every=0, init_points=2000,
+                      **{"densify.start": iterations // 10, "densify.stop": int(iterations * 0.7),
+                         "densify.every": iterations // 10, "densify.opacity_reset_at": (), "densify.max_gaussians": 8000},
+                      **({"model.tau": tau} if tau else {}))
     t0 = time.perf_counter()
     try:
         info = train(scene, root / f"run-{abs(hash(name)) % 10**8}", cfg, progress=False)

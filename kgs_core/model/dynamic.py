@@ -19,7 +19,7 @@ from torch import Tensor, nn
 from ..render import packed_covariance
 from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
 from .deformation import DeformationField, FineResidual, Offsets
-from .gaussians import GaussianParams
+from .gaussians import GaussianParams, append, select
 from .kinematics import motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm, so3_exp
 
 Velocity = Literal["paper", "physical"]
@@ -137,12 +137,28 @@ class KinematicsGS(nn.Module):
         return {"grid": list(self.deform.planes.parameters()), "deform_mlp": list(self.deform.mlp.parameters()),
                 "fine_mlp": list(self.fine.parameters()), "kappa": [self.kappa]}
 
+    # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
+    # dynamic flags and K: `keep_gaussians` and `add_gaussians` resize all of it in lock-step,
+    # and drop the kNN graph of the coarse-to-fine step, which indexes the old set. Nothing else
+    # should assign `params`, `dynamic` or `variance` with a new length.
     def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor) -> None:
-        """After densification or pruning: new leaf tensors and the matching per-Gaussian flags."""
+        if not len(params) == len(dynamic) == len(variance):
+            raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
+                             f"{len(variance)} values of K")
         self.params = params
         self.dynamic = dynamic
         self.variance = variance
         self._knn = None
+
+    def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None) -> None:
+        """Keeps the Gaussians where `keep (N,) bool` is true (pruning)."""
+        self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep])
+
+    def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None) -> None:
+        """Appends Gaussians (densification: clones and split children); each inherits the dynamic
+        flag and K of its parent, `parents (M,)` indices into the current set."""
+        self.set_params(append(self.params, optimizer, new), torch.cat([self.dynamic, self.dynamic[parents]]),
+                        torch.cat([self.variance, self.variance[parents]]))
 
     def scales(self) -> Tensor:
         # Clamped so that exp cannot overflow float32 (e^88) or underflow to 0 at extreme logits.
@@ -206,7 +222,7 @@ class KinematicsGS(nn.Module):
         """`(D, C)` rows of `x` (one per dynamic Gaussian) averaged over each one's kNN graph
         row (the coarse deformation), as a sparse matrix product `W x`. Gathering `x[knn]`
         instead is the same forward, but its backward (an accumulating index_put) is serial on
-        CPU: 10 ms of a 66 ms panel step against 1.4 ms for this (docs/performance.md)."""
+        CPU: 10 ms of a 66 ms panel step against 1.4 ms for this."""
         knn = self.knn_index()
         if self._knn_mean is None or self._knn_mean[0] is not knn:
             self._knn_mean = (knn, *neighbour_mean_matrices(knn))
@@ -226,7 +242,7 @@ class KinematicsGS(nn.Module):
 
         `shared_fine`: the fine residual is evaluated at the first time only and added at every
         time, so that differences between the times are the coarse motion's. The physical
-        velocity uses this (docs/method.md, session 13): the per-Gaussian residual made the
+        velocity uses this (docs/method.md, "Velocity"): the per-Gaussian residual made the
         velocities noisier (error 0.26 against 0.07 px/frame on the sheet), and evaluating it
         at three times cost a sixth of a training step."""
         x = self.params.means[idx]
@@ -318,7 +334,28 @@ class KinematicsGS(nn.Module):
         canonical covariance. `velocity=False` (the caller will not read it): under the
         convolve form at exposure 0 the covariance
         gets `(0^2 / 12) v v^T`, so the velocity's two extra field samples are skipped, the
-        covariance is the residual one (the same matrix) and the velocity is None."""
+        covariance is the residual one (the same matrix) and the velocity is None.
+
+        Every combination of the flags, in one place (`e` the exposure; the position is always
+        the canonical mean plus the field's offset, coarse kNN mean + fine residual under C.F.,
+        `coarse_to_fine`, the field's own offset without it):
+
+        - Before the split, or `kinematic=False` (`--ablate kr`, `split`): velocity zeros;
+          covariance residual, `R(q) exp(dr)` and `s exp(lambda_s ds)`; no blur sweep.
+        - K.R., `kr_form="convolve"` (the default): velocity `"physical"`, the central
+          difference over `t +- h` with `h = dt max(e, 1/2) / 2` and C.F.'s fine residual shared
+          (the coarse motion's), or `"paper"`, `dx / dt`; covariance residual
+          `+ (dt e)^2 / 12 v_rel v_rel^T`, `v_rel` being `v` plus the camera's own motion when
+          `camera_motion` is given; sweep `v_rel dt e` when `e > 0`.
+        - K.R., `kr_form="paper"`: velocity as above; covariance by eqs. 9-14 in the `basis`
+          frame (`refine_covariance`: `basis` matters only here); `camera_motion` ignored; no
+          sweep.
+        - K.R., convolve, `e = 0`, `velocity=False`: velocity None (not computed); covariance
+          residual (what the convolve form gives at `e = 0`); no sweep.
+
+        `velocity_grad=False` takes the two extra samples without gradients (same values). Static
+        Gaussians never reach here: `at` gives them their canonical covariance, blurred along
+        the camera's motion alone under `camera_motion` (convolve form, `e > 0`, after the split)."""
         p, cfg = self.params, self.config
         skip_velocity = not velocity and exposure == 0 and cfg.kr_form == "convolve"
         kinematic = cfg.kinematic and self.decomposed and not skip_velocity

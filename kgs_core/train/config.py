@@ -5,8 +5,15 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from ..model.dynamic import ModelConfig
+from .densify import DensifyStrategy
 
 CAMERA_BLUR = ("off", "poses", "learned")
+# The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
+NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
+# Where the densification settings were before they became `TrainConfig.densify` (old run.json).
+FLAT_DENSIFY = {"grad_threshold": "grad_threshold", "densify_from": "start", "densify_until": "stop",
+                "densify_every": "every", "prune_opacity": "prune_opacity", "percent_dense": "percent_dense",
+                "opacity_reset_at": "opacity_reset_at", "max_gaussians": "max_gaussians"}
 FRAME_SAMPLING = ("uniform", "loss")
 
 ABLATIONS = {
@@ -24,7 +31,6 @@ class TrainConfig:
     iterations: int = 3000
     batch_size: int = 1
     seed: int = 0
-    max_gaussians: int = 60_000
     init_points: int = 20_000  # SfM points used to initialise (random subset when more)
     # learning rates (position: exponential decay from init to final; the rest constant)
     lr_means: float = 1.6e-4
@@ -40,14 +46,8 @@ class TrainConfig:
     lr_deform: float = 1.6e-4
     lr_deform_final: float = 1.6e-6
     lr_kappa: float = 1e-2
-    # densification (3DGS) and pruning
-    densify_from: int = 500
-    densify_until: int = 10_000
-    densify_every: int = 100
-    grad_threshold: float = 1e-4
-    percent_dense: float = 0.01
-    prune_opacity: float = 0.005
-    opacity_reset_at: tuple = (3000,)
+    # densification (3DGS), pruning, opacity resets and the Gaussian budget
+    densify: DensifyStrategy = field(default_factory=DensifyStrategy)
     # static/dynamic decomposition
     decompose_at: int = 3000  # end of the warm-up in which every Gaussian deforms
     decompose_every: int = 2000  # re-run the split on this schedule (0 = never)
@@ -101,7 +101,7 @@ class TrainConfig:
     ablate: tuple = ()
     # Blur every Gaussian along the camera's own motion during the exposure too (K.R. convolve
     # form only; train/camera_motion.py): "off", "poses" (central differences of the poses) or
-    # "learned" (per-frame motion fitted from there, at lr_camera_motion). docs/quality.md.
+    # "learned" (per-frame motion fitted from there, at lr_camera_motion). docs/method.md.
     camera_blur: str = "off"
     lr_camera_motion: float = 3e-3
     # Fit a rigid correction of each training camera's pose (train/pose_refine.py). Off by
@@ -124,7 +124,8 @@ class TrainConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["model"] = self.model.to_dict()
-        for k in ("opacity_reset_at", "lod_fractions", "ablate"):
+        d["densify"]["opacity_reset_at"] = list(self.densify.opacity_reset_at)
+        for k in ("lod_fractions", "ablate"):
             d[k] = list(d[k])
         return d
 
@@ -132,13 +133,16 @@ class TrainConfig:
     def from_dict(cls, d: dict) -> "TrainConfig":
         d = dict(d)
         m = d.pop("model")
-        for k in ("opacity_reset_at", "lod_fractions", "ablate"):
+        # Runs saved before the densification settings were one field kept them at the top level.
+        densify = d.pop("densify", None) or {new: d[old] for old, new in FLAT_DENSIFY.items() if old in d}
+        for k in ("lod_fractions", "ablate"):
             d[k] = tuple(d[k])
         if isinstance(d.get("camera_blur"), bool):  # runs saved when it was an on/off switch
             d["camera_blur"] = "poses" if d["camera_blur"] else "off"
         d.setdefault("tau_auto", False)  # runs saved before it split at their configured τ
-        known = {f.name for f in fields(cls)}
-        return cls(model=ModelConfig.from_dict(m), **{k: v for k, v in d.items() if k in known})
+        known = {f.name for f in fields(cls)} - {"model", "densify"}
+        return cls(model=ModelConfig.from_dict(m), densify=DensifyStrategy(**densify),
+                   **{k: v for k, v in d.items() if k in known})
 
 
 def paper_preset(iterations: int = 30_000) -> TrainConfig:
@@ -146,8 +150,9 @@ def paper_preset(iterations: int = 30_000) -> TrainConfig:
     gradient threshold 1e-4, opacity pruning 0.005, opacity reset at 3k. Another iteration
     count scales every schedule point with it."""
     at = lambda i: max(1, round(i * iterations / 30_000))  # noqa: E731
-    return TrainConfig(iterations=iterations, batch_size=2, max_gaussians=500_000, init_points=100_000,
-                       densify_from=at(500), densify_until=at(10_000), opacity_reset_at=(at(3000),),
+    return TrainConfig(iterations=iterations, batch_size=2, init_points=100_000,
+                       densify=DensifyStrategy(start=at(500), stop=at(10_000), opacity_reset_at=(at(3000),),
+                                               max_gaussians=500_000),
                        decompose_at=at(3000), decompose_every=at(2000),
                        model=ModelConfig(sh_degree=3), eval_every=at(1000), checkpoint_every=at(5000))
 
@@ -162,10 +167,11 @@ def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
     the sheet demo gives 35.0 dB held-out at 1,500 vs 35.6 at 3,000, docs/method.md)."""
     it = iterations
     return TrainConfig(
-        iterations=it, batch_size=1, max_gaussians=30_000, init_points=8_000,
+        iterations=it, batch_size=1, init_points=8_000,
         lr_means=4e-4, lr_means_final=4e-6,
-        densify_from=max(1, it // 10), densify_until=int(0.7 * it), densify_every=150, grad_threshold=2e-4,
-        opacity_reset_at=(int(0.3 * it),), decompose_at=max(1, int(0.2 * it)), decompose_every=max(1, int(0.2 * it)),
+        densify=DensifyStrategy(start=max(1, it // 10), stop=int(0.7 * it), every=150, grad_threshold=2e-4,
+                                opacity_reset_at=(int(0.3 * it),), max_gaussians=30_000),
+        decompose_at=max(1, int(0.2 * it)), decompose_every=max(1, int(0.2 * it)),
         eval_every=max(1, it // 5), checkpoint_every=max(1, 2 * it // 3), lambda_tv=0.0, lambda_reg=1e-2,
         lod_levels=1, lod_fractions=(1.0,),  # docs/method.md: five levels cost 3 dB at this budget
         lr_deform=5e-3, lr_deform_final=5e-5, lr_grid=1e-2, lr_grid_final=1e-4,
@@ -192,7 +198,7 @@ def finetune_config(parent: dict, iterations: int, tau: float | None = None) -> 
     split (at `tau` when given): no densification, no re-split, no opacity reset, one LoD level,
     the position learning rate at its final value."""
     cfg = TrainConfig.from_dict(parent)
-    cfg = replace(cfg, iterations=iterations, densify_from=iterations + 1, densify_until=0, opacity_reset_at=(),
+    cfg = replace(cfg, iterations=iterations, densify=replace(cfg.densify, start=iterations + 1, stop=0, opacity_reset_at=()),
                   decompose_at=iterations + 1, decompose_every=0, lod_levels=1, lod_fractions=(1.0,),
                   lr_means=cfg.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations,
                   time_window_start=1.0)  # the parent has seen the whole clip
@@ -249,16 +255,17 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     into `cfg.fitted`, which run.json keeps. (The fast preset's iteration count is fitted
     before the preset lays out its schedule: `fitted_iterations`.)
 
-    * max_gaussians: the preset's budget scaled by the square root of the pixel count;
+    * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
     * model.deform_temporal: at least one temporal cell per four frames;
     * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units."""
     n_frames = len(scene.train_frames)
     cam = scene.train_frames[0].camera
     pixels = cam.width * cam.height
     fitted = dict(cfg.fitted)
-    if "max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
-        cfg.max_gaussians = int(round(cfg.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
-        fitted["max_gaussians"] = f"{cfg.max_gaussians}: the preset's budget x sqrt({pixels} px / 128^2)"
+    if "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
+        budget = int(round(cfg.densify.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
+        cfg.densify = replace(cfg.densify, max_gaussians=budget)
+        fitted["densify.max_gaussians"] = f"{budget}: the preset's budget x sqrt({pixels} px / 128^2)"
     m = cfg.model
     if "model.deform_temporal" not in explicit and m.deform_temporal < n_frames // 4:
         cfg.model = m = replace(m, deform_temporal=min(n_frames // 4, 128))
@@ -276,16 +283,17 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
 
 def parse_setting(text: str) -> tuple[str, object]:
     """`KEY=VALUE` of one training setting, checked against the schema: KEY a `TrainConfig`
-    field or `model.<ModelConfig field>`; VALUE as JSON when it parses (numbers, true/false,
-    lists), else the plain string, and of the default's type, so that a mistyped value fails
-    here and not minutes into training (an integer stands for a float; true/false only for a
-    switch). Raises ValueError naming the key. What `kgs-app train --set` and `bench quality`'s
+    field, `model.<ModelConfig field>` or `densify.<DensifyStrategy field>`; VALUE as JSON when
+    it parses (numbers, true/false, lists), else the plain string, and of the default's type, so
+    that a mistyped value fails here and not minutes into training (an integer stands for a
+    float; true/false only for a switch). Raises ValueError naming the key. What `kgs-app train --set` and `bench quality`'s
     `@KEY=VALUE` read."""
     import json
 
     key, eq, raw = text.partition("=")
-    defaults = {f.name: getattr(TrainConfig(), f.name) for f in fields(TrainConfig) if f.name not in ("model", "ablate", "fitted")}
-    defaults |= {"model." + f.name: getattr(ModelConfig(), f.name) for f in fields(ModelConfig)}
+    defaults = {f.name: getattr(TrainConfig(), f.name) for f in fields(TrainConfig) if f.name not in ("ablate", "fitted", *NESTED)}
+    for part, schema in NESTED.items():
+        defaults |= {f"{part}.{f.name}": getattr(schema(), f.name) for f in fields(schema)}
     if not eq or key not in defaults:
         raise ValueError(f"{text!r} is not KEY=VALUE with KEY a training setting (e.g. noise_init_frames, model.tau)")
     try:
@@ -328,11 +336,14 @@ def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **override
         if why:
             overrides, fitted = {**overrides, "iterations": n}, {"iterations": why}
     cfg = PRESETS[preset](**({"iterations": overrides["iterations"]} if "iterations" in overrides else {}))
-    model_over = {k[len("model."):]: v for k, v in overrides.items() if k.startswith("model.")}
-    cfg = replace(cfg, **{k: v for k, v in overrides.items() if not k.startswith("model.")}, ablate=tuple(ablate))
+    nested = {part: {k[len(part) + 1:]: v for k, v in overrides.items() if k.startswith(part + ".")}
+              for part in NESTED}
+    cfg = replace(cfg, **{k: v for k, v in overrides.items() if k.split(".")[0] not in NESTED}, ablate=tuple(ablate))
+    if nested["densify"]:
+        cfg = replace(cfg, densify=replace(cfg.densify, **nested["densify"]))
     m = cfg.model
-    if model_over:
-        m = replace(m, **model_over)
+    if nested["model"]:
+        m = replace(m, **nested["model"])
     if scene is not None:
         cfg = fit_to_scene(replace(cfg, model=m, fitted=fitted), scene, explicit)
         m = cfg.model

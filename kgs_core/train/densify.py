@@ -9,24 +9,31 @@ from dataclasses import dataclass
 import torch
 
 from ..model.dynamic import KinematicsGS
-from ..model.gaussians import GaussianParams, append, select, set_param
+from ..model.gaussians import GaussianParams, set_param
 from ..render.covariance import quat_to_rotmat
 from ..render.types import Rendered
 
 
 @dataclass
 class DensifyStrategy:
-    grad_threshold: float
-    densify_from: int
-    densify_until: int
-    densify_every: int
-    prune_opacity: float
-    percent_dense: float
-    opacity_reset_at: tuple
-    max_gaussians: int
-    extent: float = 1.0
+    """Its fields are the configuration (`TrainConfig.densify`, set with `--set densify.KEY=VALUE`);
+    the running gradient statistics are state, created fresh for each copy (`dataclasses.replace`
+    gives the trainer its own) and kept in checkpoints by the trainer."""
+
+    # Clone (small) or split (large) a Gaussian whose mean screen-space gradient, in NDC units as
+    # in the 3DGS literature, reaches this.
+    grad_threshold: float = 1e-4
+    start: int = 500  # the first iteration that densifies
+    stop: int = 10_000  # densify before this iteration
+    every: int = 100
+    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
+    percent_dense: float = 0.01  # "small" (cloned, not split): largest scale below this share of the extent
+    opacity_reset_at: tuple = (3000,)  # iterations at which every opacity is capped at 0.01
+    max_gaussians: int = 60_000  # the budget: beyond it only the largest gradients densify
+    extent: float = 1.0  # the scene's extent, normalised scene units
 
     def __post_init__(self):
+        self.opacity_reset_at = tuple(self.opacity_reset_at)
         self.grad_sum = torch.zeros(0)
         self.count = torch.zeros(0)
 
@@ -49,7 +56,7 @@ class DensifyStrategy:
     def step(self, model: KinematicsGS, optimizer, it: int) -> bool:
         """Returns True when the set of Gaussians changed."""
         changed = False
-        if self.densify_from <= it < self.densify_until and it % self.densify_every == 0 and it > 0:
+        if self.start <= it < self.stop and it % self.every == 0 and it > 0:
             self._densify_and_prune(model, optimizer)
             changed = True
         if it in self.opacity_reset_at:
@@ -94,11 +101,9 @@ class DensifyStrategy:
                 child.log_scales = torch.log((s / 1.6 - model.min_scale).clamp_min(1e-8))
                 new_parts.append(child)
                 parents.append(idx)
-        params, dynamic, variance = p, model.dynamic, model.variance
         for part, par in zip(new_parts, parents):
-            params = append(params, optimizer, part)
-            dynamic = torch.cat([dynamic, dynamic[par]])
-            variance = torch.cat([variance, variance[par]])
+            model.add_gaussians(part, par, optimizer)
+        params = model.params
         # Prune: split parents, transparent and huge Gaussians.
         keep = torch.ones(len(params), dtype=torch.bool)
         keep[: n][split] = False
@@ -108,7 +113,6 @@ class DensifyStrategy:
         keep &= ~big_world
         if keep.sum() < 4:  # never prune everything
             keep[:] = True
-        params = select(params, optimizer, keep)
-        model.set_params(params, dynamic[keep], variance[keep])
-        self.grad_sum = torch.zeros(len(params))
-        self.count = torch.zeros(len(params))
+        model.keep_gaussians(keep, optimizer)
+        self.grad_sum = torch.zeros(len(model))
+        self.count = torch.zeros(len(model))

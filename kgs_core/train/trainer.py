@@ -3,6 +3,7 @@ held-out PSNR against wall time, checkpoints and resume."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import random
@@ -195,9 +196,7 @@ class Trainer:
         return self.cfg.lod_lambda * self.cfg.lod_rho ** level_idx
 
     def make_strategy(self) -> DensifyStrategy:
-        c = self.cfg
-        return DensifyStrategy(c.grad_threshold, c.densify_from, c.densify_until, c.densify_every, c.prune_opacity,
-                               c.percent_dense, tuple(c.opacity_reset_at), c.max_gaussians)
+        return dataclasses.replace(self.cfg.densify)  # this run's own copy, with fresh statistics
 
     def make_optimizers(self) -> None:
         c = self.cfg
@@ -376,9 +375,7 @@ class Trainer:
         imp = self.importance()
         keep = imp >= self.cfg.lod_prune_importance
         if keep.sum() >= 4:
-            from ..model.gaussians import select
-
-            model.set_params(select(model.params, self.opt, keep), model.dynamic[keep], model.variance[keep])
+            model.keep_gaussians(keep, self.opt)
         snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
                 "variance": model.variance.clone(), "min_scale": model.min_scale, "iteration": self.iteration + 1}
         self.levels.append(snap)
