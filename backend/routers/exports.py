@@ -18,6 +18,7 @@ from kgs_core.export.bake import parse_times
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
 from ..registry import ACTIVE, JobStatus, Workspace, new_id
+from ..responses import ExportSummary
 from ..schemas import StrictRequest
 
 router = APIRouter(tags=["exports"])
@@ -43,7 +44,7 @@ def public(row: dict) -> dict:
     return {k: row[k] for k in ("id", "run_id", "format", "status", "error", "created", "params")}
 
 
-@router.post("/api/runs/{run_id}/exports", status_code=202)
+@router.post("/api/runs/{run_id}/exports", status_code=202, response_model=ExportSummary)
 def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(workspace),
                  jr: JobRunner = Depends(jobs)) -> dict:
     run = get_or_404(ws, "runs", run_id)
@@ -57,13 +58,13 @@ def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(worksp
     return public(ws.get("exports", eid))
 
 
-@router.get("/api/runs/{run_id}/exports")
+@router.get("/api/runs/{run_id}/exports", response_model=list[ExportSummary])
 def list_exports(run_id: str, ws: Workspace = Depends(workspace)) -> list[dict]:
     get_or_404(ws, "runs", run_id)
     return [public(r) for r in ws.list("exports", run_id=run_id)]
 
 
-@router.get("/api/exports/{export_id}")
+@router.get("/api/exports/{export_id}", response_model=ExportSummary)
 def get_export(export_id: str, ws: Workspace = Depends(workspace)) -> dict:
     return public(get_or_404(ws, "exports", export_id))
 

@@ -18,6 +18,7 @@ from kgs_core.train.config import ABLATIONS, PRESETS, make_config, overrides_fro
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
 from ..registry import ACTIVE, JobStatus, Workspace, new_id
+from ..responses import Edits, LogRow, RunDetail, RunSummary, Split
 from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
@@ -37,8 +38,8 @@ class TrainRequest(StrictRequest):
     ablate: list[str] = []
     seed: int | None = Field(None, ge=0, le=2**31 - 1)
     exposure: float | None = Field(None, ge=0, le=1, description="the training video's exposure (default: the scene's)")
-    settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig field "
-                                "or model.FIELD), checked against the schema and applied last, as `kgs-app train --set`")
+    settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig field, "
+                                "model.FIELD or densify.FIELD), checked against the schema and applied last, as `kgs-app train --set`")
 
     @field_validator("settings")
     @classmethod
@@ -97,12 +98,12 @@ def resumable(row: dict, info: dict) -> bool:
             and isinstance(total, int) and last < total)
 
 
-@router.get("")
+@router.get("", response_model=list[RunSummary])
 def list_runs(ws: Workspace = Depends(workspace)) -> list[dict]:
     return [public(r) for r in ws.list("runs")]
 
 
-@router.post("", status_code=202)
+@router.post("", status_code=202, response_model=RunSummary)
 def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     scene = get_or_404(ws, "scenes", req.scene_id)
     if scene["status"] != JobStatus.DONE:
@@ -128,7 +129,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     return public(ws.get("runs", row["id"]))
 
 
-@router.get("/{run_id}")
+@router.get("/{run_id}", response_model=RunDetail)
 def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -> dict:
     """Status, and for a trained run: frames (time, camera), τ, K histogram, LoD levels, counts."""
     row = get_or_404(ws, "runs", run_id)
@@ -150,14 +151,14 @@ def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -
     return out
 
 
-@router.get("/{run_id}/log")
+@router.get("/{run_id}/log", response_model=list[LogRow])
 def get_log(run_id: str, ws: Workspace = Depends(workspace)) -> list[dict]:
     row = get_or_404(ws, "runs", run_id)
     rows = read_log(Path(row["path"]))
     return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()} for r in rows]
 
 
-@router.post("/{run_id}/cancel")
+@router.post("/{run_id}/cancel", response_model=RunSummary)
 def cancel_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     get_or_404(ws, "runs", run_id)
     if not jr.cancel("runs", run_id):
@@ -165,7 +166,7 @@ def cancel_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
     return public(ws.get("runs", run_id))
 
 
-@router.post("/{run_id}/resume", status_code=202)
+@router.post("/{run_id}/resume", status_code=202, response_model=RunSummary)
 def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     """Continues a run that stopped short from its last checkpoint, with its own configuration."""
     row = get_or_404(ws, "runs", run_id)
@@ -203,7 +204,7 @@ def delete_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)
     ws.delete("runs", run_id)
 
 
-@router.post("/{run_id}/tau")
+@router.post("/{run_id}/tau", response_model=Split)
 async def set_tau(run_id: str, req: TauRequest, request: Request) -> dict:
     """Recomputes the static/dynamic split from the stored K (no retraining) and pushes the new
     sets to every viewer subscribed to the run."""
@@ -213,7 +214,7 @@ async def set_tau(run_id: str, req: TauRequest, request: Request) -> dict:
     return split
 
 
-@router.post("/{run_id}/finetune", status_code=202)
+@router.post("/{run_id}/finetune", status_code=202, response_model=RunSummary)
 def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace = Depends(workspace),
              jr: JobRunner = Depends(jobs)) -> dict:
     """A new run that continues this one's model with the split at `tau` (the live τ when not
@@ -244,12 +245,12 @@ def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace 
     return public(ws.get("runs", rid))
 
 
-@router.get("/{run_id}/edits")
+@router.get("/{run_id}/edits", response_model=Edits)
 def get_edits(run_id: str, request: Request) -> dict:
     return run_view(request.app, run_id).edits.to_dict()
 
 
-@router.post("/{run_id}/edits")
+@router.post("/{run_id}/edits", response_model=Split)
 async def edit(run_id: str, req: EditRequest, request: Request) -> dict:
     view = run_view(request.app, run_id)
     try:

@@ -18,6 +18,7 @@ from kgs_core.data.synth.scenes import SCENES
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
 from ..registry import ACTIVE, JobStatus, Workspace
+from ..responses import SceneDetail, SceneSummary
 from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/scenes", tags=["scenes"])
@@ -74,12 +75,12 @@ def scene_summary(path: Path) -> dict:
             "exposure": scene.exposure, "format": scene.source_format, "has_ground_truth": scene.has_ground_truth}
 
 
-@router.get("")
+@router.get("", response_model=list[SceneSummary])
 def list_scenes(ws: Workspace = Depends(workspace)) -> list[dict]:
     return [public(r, ws) for r in ws.list("scenes")]
 
 
-@router.post("", status_code=202)
+@router.post("", status_code=202, response_model=SceneSummary)
 def create_scene(req: SynthRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     if req.name not in SCENES:
         raise HTTPException(422, f"unknown synthetic scene {req.name!r}; one of {sorted(SCENES)}")
@@ -167,7 +168,7 @@ def start_ingest(ws: Workspace, jr: JobRunner, row: dict, req: IngestRequest) ->
         **req.model_dump(exclude_none=True)})
 
 
-@router.post("/upload", status_code=201)
+@router.post("/upload", status_code=201, response_model=SceneDetail)
 async def upload_scene(request: Request, name: str = Query(..., min_length=1, max_length=80, pattern=r"^[\w.\- ]+$"),
                        kind: Literal["zip", "video"] = Query(...),
                        hold: bool = Query(False, description="video: keep it as 'uploaded' (a second camera's video "
@@ -213,7 +214,7 @@ def waiting_video(ws: Workspace, scene_id: str) -> dict:
     return row
 
 
-@router.post("/{scene_id}/video", status_code=201)
+@router.post("/{scene_id}/video", status_code=201, response_model=SceneSummary)
 async def upload_second_video(scene_id: str, request: Request, role: Literal["sharp"] = Query(...),
                               ws: Workspace = Depends(workspace)) -> dict:
     """A second camera's video of the same moment (raw body), synchronised with the first and with
@@ -229,7 +230,7 @@ async def upload_second_video(scene_id: str, request: Request, role: Literal["sh
     return public(ws.get("scenes", scene_id), ws)
 
 
-@router.post("/{scene_id}/ingest", status_code=202)
+@router.post("/{scene_id}/ingest", status_code=202, response_model=SceneSummary)
 def ingest_scene(scene_id: str, req: IngestRequest, ws: Workspace = Depends(workspace),
                  jr: JobRunner = Depends(jobs)) -> dict:
     """Starts (or, after a failure or a cancel, retries) the ingest of an uploaded video."""
@@ -237,7 +238,7 @@ def ingest_scene(scene_id: str, req: IngestRequest, ws: Workspace = Depends(work
     return public(ws.get("scenes", scene_id), ws)
 
 
-@router.post("/{scene_id}/cancel", status_code=202)
+@router.post("/{scene_id}/cancel", status_code=202, response_model=SceneSummary)
 def cancel_scene(scene_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     """Stops a scene's job (an ingest or a synthesis); its uploaded video stays for a retry."""
     get_or_404(ws, "scenes", scene_id)
@@ -272,7 +273,7 @@ def _safe_extract(zip_path: Path, dest: Path, max_bytes: int) -> Path:
     raise HTTPException(422, "no dataset in the zip (expected dataset.json, transforms_train.json or sparse/)")
 
 
-@router.get("/{scene_id}")
+@router.get("/{scene_id}", response_model=SceneDetail)
 def get_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> dict:
     row = get_or_404(ws, "scenes", scene_id)
     out = public(row, ws)

@@ -9,11 +9,12 @@ from kgs_core.data.synth.generate import DEFAULT_SCENE
 from ..deps import jobs, workspace
 from ..jobs import JobRunner
 from ..registry import JobStatus, Workspace
+from ..responses import DemoStarted, SystemInfo
 
 router = APIRouter(prefix="/api", tags=["system"])
 
 
-@router.get("/system")
+@router.get("/system", response_model=SystemInfo)
 def system(request: Request, ws: Workspace = Depends(workspace)) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -25,7 +26,7 @@ def system(request: Request, ws: Workspace = Depends(workspace)) -> dict:
             "demo_scene": DEFAULT_SCENE, "token_required": bool(request.app.state.settings.token)}
 
 
-@router.post("/demo", status_code=202)
+@router.post("/demo", status_code=202, response_model=DemoStarted)
 def demo(request: Request, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     """Synthesize the built-in scene, then train the fast preset on it (two chained jobs)."""
     return start_demo(ws, jr)

@@ -1,0 +1,189 @@
+"""What the REST API answers, as pydantic models: the routers declare them as `response_model`,
+so `/docs` shows each response's fields, and a handler that returns a field the model does not
+list (or the wrong type) fails loudly in the tests instead of drifting from the documentation
+(`extra="forbid"`). Request bodies live beside their routers; WebSocket messages in
+`messages.py`."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from .registry import JobStatus
+
+
+class Response(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# ------------------------------------------------------------------ system
+
+
+class SystemInfo(Response):
+    version: str
+    workspace: str = Field(description="the workspace folder's name")
+    scenes: int
+    runs: int
+    demo_scene: str = Field(description="the built-in scene `POST /api/demo` synthesizes")
+    token_required: bool
+
+
+class DemoStarted(Response):
+    scene_id: str
+    run_id: str
+
+
+# ------------------------------------------------------------------ scenes
+
+
+class IngestProgress(Response):
+    stage: str
+    done: int
+    total: int | None
+    elapsed: float = Field(description="seconds since the ingest started")
+    stages: list[tuple[str, float]] = Field(description="the stages done, each with its seconds")
+
+
+class SceneSummary(Response):
+    id: str
+    name: str
+    source: str = Field(description="synth, ingest or upload")
+    status: JobStatus
+    error: str | None
+    created: float = Field(description="Unix time")
+    videos: int | None = Field(None, description="ingest scenes: the videos uploaded (1, or 2 with a sharp camera)")
+    progress: IngestProgress | None = None
+
+
+class SceneDetail(SceneSummary):
+    """A ready scene adds what its frames are (`kgs_core.data.scene.Scene`)."""
+
+    frames: int | None = None
+    train_frames: int | None = None
+    test_frames: int | None = None
+    image_size: tuple[int, int] | None = None
+    dt: float | None = Field(None, description="the frame interval in normalised time")
+    exposure: float | None = None
+    format: str | None = None
+    has_ground_truth: bool | None = None
+
+
+# ------------------------------------------------------------------ runs
+
+
+class TrainingProgress(Response):
+    """A training job's latest step (`progress.json`, written by the job's process)."""
+
+    iteration: int
+    iterations: int
+    loss: float | None
+    psnr_heldout: float | None
+    elapsed: float
+    gaussians: int
+    dynamic_share: float
+
+
+class RunSummary(Response):
+    id: str
+    scene_id: str | None
+    name: str
+    status: JobStatus
+    error: str | None
+    created: float = Field(description="Unix time")
+    scene_name: str | None
+    folder: str = Field(description="the run's folder, its last two path parts")
+    progress: TrainingProgress | None
+    has_model: bool
+    resumable: bool = Field(description="stopped short of its iterations with a checkpoint to continue from")
+    iteration: int | None = None
+    train_seconds: float | None = None
+    final_psnr_heldout: float | None = None
+    gaussians: int | None = None
+    dynamic_share: float | None = None
+    lod_levels: int | None = None
+
+
+class Split(Response):
+    """The static/dynamic split at the run's live τ, with what the edit layer keeps."""
+
+    tau: float
+    lod: int
+    gaussians: int
+    dynamic: int
+    static: int
+    dynamic_share: float
+    kept: int
+    dynamic_kept: int
+    static_kept: int
+    version: int = Field(description="bumped by every τ change or edit; splat buffers carry it")
+
+
+class Histogram(Response):
+    log10_edges: list[float] = Field(description="bin edges of log10 K")
+    counts: list[int]
+
+
+class Level(Response):
+    level: int
+    gaussians: int
+
+
+class FrameInfo(Response):
+    index: int
+    id: str | int
+    time: float
+    split: str = Field(description="train or test")
+    width: int
+    height: int
+    K: list[list[float]] = Field(description="3x3 intrinsics, pixels")
+    viewmat: list[list[float]] = Field(description="4x4 world-to-camera, OpenCV axes")
+
+
+class EditLevel(Response):
+    deleted: list[int]
+    hidden: list[int]
+
+
+class Crop(Response):
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+
+
+class Edits(Response):
+    """The run's edit layer (`kgs_core/edits.py`): per LoD level, by Gaussian index."""
+
+    format_version: int
+    levels: dict[str, EditLevel]
+    crop: Crop | None
+
+
+class RunDetail(RunSummary):
+    """A run with a model adds what a viewer needs to open it."""
+
+    tau: float | None = None
+    split: Split | None = None
+    histogram: Histogram | None = None
+    levels: list[Level] | None = None
+    dt: float | None = None
+    exposure: float | None = Field(None, description="the exposure the run trained with")
+    static_only: bool | None = None
+    sh_degree: int | None = None
+    frames: list[FrameInfo] | None = None
+    edits: Edits | None = None
+
+
+# A row of the training log (`log.csv`): its columns as they are in that run (iteration,
+# train_seconds, loss, psnr_heldout, ...), NaN sent as null.
+LogRow = dict[str, float | None]
+
+
+# ------------------------------------------------------------------ exports
+
+
+class ExportSummary(Response):
+    id: str
+    run_id: str
+    format: str
+    status: JobStatus
+    error: str | None
+    created: float = Field(description="Unix time")
+    params: dict = Field(description="the export request as given")
