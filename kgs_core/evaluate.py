@@ -94,7 +94,7 @@ def velocity_epe(model: KinematicsGS, scene: Scene) -> float | None:
     return float(np.concatenate(errs).mean()) if errs else None
 
 
-# The dynamic-region mask of a real clip, derived without ground truth (docs/quality.md): the
+# The dynamic-region mask of a real clip, derived without ground truth (docs/metrics.md): the
 # pixels where a static 3DGS of the same clip, rendered at the sharp camera, errs by more than
 # STATIC_ERROR_THRESHOLD (mean absolute RGB error), cleaned of thin edges (an opening, then
 # connected regions of at least MIN_REGION of the image) and dilated by DILATE of the width.

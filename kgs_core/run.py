@@ -7,12 +7,13 @@ RUN/
   checkpoints/        ckpt_XXXXXX.pt: model + optimizer + schedule state, for --resume
   log.csv             iteration, train_seconds, wall_seconds, loss, psnr_heldout, psnr_heldout_dynamic
                       (inside the ground-truth dynamic masks, when the scene has them), gaussians,
-                      dynamic_share
+                      dynamic_share, exposure (the one K.R. trains with; it moves with fit_exposure)
   psnr_vs_time.png    held-out PSNR (and inside the dynamic mask) against training time
   decomposition.npy   temporal variance K per Gaussian (final level)
   metrics.json/.md    written by `kgs-app eval`
   error.txt           present when training failed
 ```
+(docs/run-directory.md has the rest: edits.json, exports/, progress.json, the keys of run.json.)
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ the environment once, when torch is imported. So `configure_process` runs first 
 entry point (`kgs-app`, the server's job processes), and the server's job runner starts each
 job with `placement_env` for its share of the machine.
 
-Measured in docs/performance.md, "Sharing the CPU" (`kgs-app bench threads`): a short spin
+Measured in docs/results.md, "Sharing the CPU" (`kgs-app bench threads`): a short spin
 (SPIN_COUNT) is the fastest alone (libgomp's default spins 300,000 times before a waiting
 thread sleeps); no wait policy makes two multi-threaded trainings share two cores well, a
 thread count that follows the load does (ThreadTuner).
@@ -86,7 +86,7 @@ class ThreadTuner:
     OpenMP splits every parallel loop statically between the threads and waits for all of
     them, so a thread whose core another process holds delays every loop by a time slice: two
     2-thread trainings on two cores, or one beside a busy process, ran 3.5-6x slower than alone
-    (docs/performance.md, "Sharing the CPU"). Waiting passively helps sharing but costs 50 %
+    (docs/results.md, "Sharing the CPU"). Waiting passively helps sharing but costs 50 %
     alone; one thread each is the fastest shared, all the cores alone. What else runs changes
     while a training runs and nobody tells the process, so it is measured, at no cost: over
     each `window_s`, the machine's busy CPU time (`machine_busy_seconds`) minus this process's

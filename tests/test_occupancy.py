@@ -1,4 +1,4 @@
-"""The occupancy count behind docs/performance.md (session 10) against independent counts."""
+"""The occupancy count behind docs/rasterizer.md ("Measured and not kept") against independent counts."""
 
 import torch
 

@@ -4,7 +4,7 @@ The kernels walk every (tile, Gaussian) pair of the bounding-box tile lists, eve
 the pair's box clipped to the tile, as one 16-lane vector per row. This counts, exactly (in
 float64, with the kernels' per-lane test `power <= 0 and alpha >= 1/255`), how many of
 those pairs and rows reach a pixel centre at all and how many lanes of a row do. Numbers
-and what they meant for the kernels: docs/performance.md, session 10.
+and what they meant for the kernels: docs/rasterizer.md, "Measured and not kept".
 
     python -m kgs_app.bench.occupancy [--n 50000] [--res 256] [--seed 0]
 """

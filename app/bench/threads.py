@@ -4,7 +4,7 @@ Times a training (the demo scene, fast preset, `--iterations` steps, each in its
 the CLI and the server's jobs run it) alone, two at once, and beside one busy process, under
 each OpenMP setting in POLICIES. The time is the run's own `train_seconds` (process start-up
 and the scene's loading left out); "two at once" reports the slower of the pair, the time
-until both are done. Results: docs/performance.md, "Sharing the CPU".
+until both are done. Results: docs/results.md, "Sharing the CPU".
 
 Run it with nothing else on the machine: it measures contention on purpose, and any other load
 becomes part of every number.

@@ -1,5 +1,5 @@
 """The training camera's own motion during each exposure, for blurring every Gaussian along its
-velocity relative to the camera (`TrainConfig.camera_blur`; docs/quality.md).
+velocity relative to the camera (`TrainConfig.camera_blur`; docs/method.md, "The camera's own blur").
 
 A still world point `x` moves relative to the camera like a point with world velocity
 `A x + b` seen by a still camera, `A = Rᵀ dR/dt` (skew-symmetric for a rigid camera: an

@@ -121,7 +121,7 @@ void bin_gaussians(int64_t n, const int32_t* bbox, const int32_t* radii, const S
   {
     // Boxes read in depth order are random reads of memory the projection wrote long
     // before; fetching them GATHER_AHEAD ranks ahead keeps enough misses in flight (the
-    // gather alone 0.55 -> 0.2-0.3 ms at 50k, session 12).
+    // gather alone 0.55 -> 0.2-0.3 ms at 50k).
     constexpr int64_t GATHER_AHEAD = 32;
 #pragma omp for schedule(static)
     for (int64_t rank = 0; rank < n_vis; ++rank) {

@@ -56,7 +56,7 @@ constexpr int64_t kMaxChannels = 256;  // per-row buffers live on the stack
 // Calls run(std::integral_constant<int, FC>) with FC the channel count F when it is one the
 // presets use (16: fast, 32: paper), 0 for any other F. With FC known every per-channel loop
 // is a fixed run of vector operations; with a runtime count GCC kept them as loops with
-// remainders (backward ~2x slower at the fast preset's size, session 12).
+// remainders (backward ~2x slower at the fast preset's size).
 template <typename Run>
 void with_channel_count(int64_t F, Run&& run) {
   switch (F) {

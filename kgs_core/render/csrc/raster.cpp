@@ -13,7 +13,7 @@
 // behind the arithmetic. As it finishes a pair, the forward writes the pair's record for
 // the backward (the line, with the box cut to the rows and lanes where the pair
 // contributed, and its gradient slot), so the backward streams memory forward and never
-// evaluates a row in which every lane failed the alpha test. (Session 11: copying the lines
+// evaluates a row in which every lane failed the alpha test. (Copying the lines
 // into records in a separate pass before the forward cost ~1 ms at 50k / 256²; reading the
 // lines in the backward too cost it ~9 %.)
 //
@@ -185,8 +185,8 @@ struct RowEval {
 // term log2(e) cc dy^2 / 2, for tile row r, broadcast over the lane set Y. Formed per row in
 // scalar code they put ~15 cycles of scalar steps at the head of every row's chain (dy ->
 // power -> exp2 -> alpha -> the pixel update). The AVX-512 version below forms them for all
-// 16 rows at once per pair and picks row r with one permute: forward -4 to -7 % (session 12;
-// shortening the chain's tail, e.g. T - alpha T as one multiply-add, measured level). Both
+// 16 rows at once per pair and picks row r with one permute: forward -4 to -7 %
+// (shortening the chain's tail, e.g. T - alpha T as one multiply-add, measured level). Both
 // round exactly as the scalar forms do.
 template <typename Y, typename S>
 struct GaussRows {
@@ -333,7 +333,7 @@ inline typename Simd<S>::V expected_depth(typename Simd<S>::V depth_sum, typenam
 // NC: the channel count when known at compile time (3, as in training), 0 otherwise.
 // The tile and the pair lists come by value: through references the compiler reloaded
 // their fields for every pair, since the record and pixel stores might alias them (the
-// per-tile part of GaussRows then stays out of the pair loop: forward -3 %, session 12).
+// per-tile part of GaussRows then stays out of the pair loop: forward -3 %).
 // Besides the pixels, the forward writes each pair's box cut to the rows and lanes where it
 // contributed (used_box; pairs behind a finished tile: empty): the backward then
 // skips the rows where every lane failed the alpha test (23 % of the box's rows on the
@@ -354,7 +354,7 @@ void forward_tile(const RasterShape& s, const TileGeom t, const PairLines<S> lin
   M done[TILE];
   // The colour sums: on the stack when C is known (through a heap pointer they cost a
   // reload of that pointer on every row, which the compiler cannot tell from the stores:
-  // forward -2 to -9 %, session 12), else in the caller's buffer.
+  // forward -2 to -9 %), else in the caller's buffer.
   V acc_local[NC > 0 ? NC * TILE : 1];
   V* acc = acc_local;
   if constexpr (NC == 0) {
@@ -668,7 +668,7 @@ void backward_tile(const RasterShape& s, const TileGeom& t, const S* records, co
     int32_t slot_index;
     // Slots are numbered id-major, so each pair writes its slot to a cache line nobody has
     // touched in this call: asking for ownership of that line a few pairs ahead hides the miss
-    // (it stalled the store queue: backward -25 to -38 %, session 12).
+    // (it stalled the store queue: backward -25 to -38 %).
     if (k - SLOT_AHEAD >= t.begin) {
       read_record_head(records + size_t(k - SLOT_AHEAD) * (RECORD_HEAD + C), box, slot_index);
       __builtin_prefetch(slots + size_t(slot_index) * stride, 1);

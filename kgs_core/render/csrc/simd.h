@@ -7,7 +7,7 @@
 //  * Simd<float> on AVX2 + FMA without AVX-512 (AMD Zen 2/3, older Intel): a pair of __m256
 //    with float-vector masks (all-ones lanes), written with intrinsics. GCC's lowering of
 //    the 64-byte generic vectors to AVX2 spilled lanes to the stack and ran the mask tests
-//    lane by lane: 2.2x slower kernels on a Zen 3 (docs/performance.md, session 8).
+//    lane by lane: 2.2x slower kernels on a Zen 3 (docs/rasterizer.md).
 //  * the generic one (double, and float without either): GCC/Clang vector extensions with
 //    integer-vector masks. Double exists for gradcheck, not for speed.
 #pragma once
@@ -27,7 +27,7 @@ constexpr int LANES = 16;
 // Whether a lane set X also offers half rows (X::Half: LANES / 2 lanes, and X's vectors
 // expose them as .h[0], .h[1]). Only the AVX2 path does: there a half row is one register.
 // (AVX-512VL half rows, 256-bit ops with mask registers, were measured on a Zen 4, whose
-// 512-bit ops occupy a 256-bit pipe twice: no gain, docs/performance.md, session 9.)
+// 512-bit ops occupy a 256-bit pipe twice: no gain, docs/rasterizer.md.)
 template <class X, class = void>
 struct has_half_rows : std::false_type {};
 template <class X>
@@ -114,10 +114,10 @@ struct SimdGeneric {
 // round(x) and f = x - k in [-1/2, 1/2], exact; 2^f ~ 1 + c1 f + ... + c6 f^6 with Cephes
 // exp2f's coefficients (~2e-7 relative). The polynomial runs in Estrin's form, three
 // multiply-adds deep where Horner's is six: the tile kernels are bound by the latency of
-// this chain, not by its operation count (docs/performance.md, session 10). Inputs are
+// this chain, not by its operation count (docs/rasterizer.md). Inputs are
 // clamped to [-60, 120]: 2^-60 ~ 9e-19 is far below any alpha threshold, and lanes outside a
 // Gaussian's footprint stay out of denormal numbers, which cost ~100 cycles each. AVX-512
-// clamps only from below (one step off the chain, session 12): vscalefps is defined for any
+// clamps only from below (one step off the chain): vscalefps is defined for any
 // k (2^k overflows to inf), and the kernels' power <= 0 test leaves such lanes out; the
 // other paths assemble 2^k from exponent bits, which needs k <= 127.
 constexpr float EXP2_LO = -60.0f, EXP2_HI = 120.0f;
