@@ -7,3 +7,6 @@ const ENTITIES = { "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "
 export function esc(value) {
   return String(value ?? "").replace(/[&<>"'`]/g, (c) => ENTITIES[c]);
 }
+
+// The page's element with this id.
+export const $ = (id) => document.getElementById(id);

@@ -2,8 +2,7 @@
 
 import { Viewer } from "./viewer.js";
 import { makeDemoScene, showRuns, uploadVideos } from "./train.js";
-
-const $ = (id) => document.getElementById(id);
+import { $ } from "./dom.js";
 
 async function route() {
   const m = location.hash.match(/^#\/run\/([0-9a-f]+)/);

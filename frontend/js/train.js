@@ -3,9 +3,7 @@
 
 import { api, openStream, upload } from "./api.js";
 import { drawChart } from "./chart.js";
-import { esc } from "./dom.js";
-
-const $ = (id) => document.getElementById(id);
+import { $, esc } from "./dom.js";
 
 const ACTIVE = ["queued", "running", "cancelling"];
 const RETRYABLE = ["uploaded", "failed", "cancelled", "interrupted"];

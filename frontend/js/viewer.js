@@ -1,18 +1,18 @@
 // The viewer page: streams a run's splats from the server, draws them with WebGL2, and wires
-// the controls (time, sets, overlays, tau, exposure, LoD, camera, editing, exports).
+// the controls (time, sets, overlays, tau, exposure, LoD). Camera navigation, editing and the
+// export panel live in navigation.js, editing.js and export-panel.js, mixed into `Viewer`.
 
 import { api, openStream, withToken } from "./api.js";
 import { parseBuffer } from "./buffers.js";
 import { FLAG_DYNAMIC, packSet, textureRows, TEX_WIDTH, SPLATS_PER_ROW } from "./pack.js";
 import { SplatRenderer } from "./renderer.js";
-import { ORBIT_RADIANS_PER_PIXEL, OrbitCamera, cameraCenter, flyMove, flyTurn, focusDepth, intrinsics, orbitAtDepth,
-  project } from "./camera.js";
+import { OrbitCamera, cameraCenter, focusDepth, intrinsics, orbitAtDepth } from "./camera.js";
 import { drawHistogram } from "./chart.js";
-import { esc } from "./dom.js";
-import { frontOf } from "./pick.js";
+import { $, esc } from "./dom.js";
 import { arrowScale, arrowSegments } from "./arrows.js";
-
-const $ = (id) => document.getElementById(id);
+import { navigation } from "./navigation.js";
+import { editing } from "./editing.js";
+import { exportPanel } from "./export-panel.js";
 
 export class Viewer {
   constructor(runId) {
@@ -405,181 +405,6 @@ export class Viewer {
     this.setViewmat(f.viewmat.flat());
   }
 
-  initMouse() {
-    const c = this.canvas;
-    let drag = null;
-    c.addEventListener("contextmenu", (e) => e.preventDefault());
-    c.addEventListener("pointerdown", (e) => {
-      if (this.tool !== "none") return this.editPointer(e, "down");
-      drag = { x: e.clientX, y: e.clientY, button: e.button };
-      c.setPointerCapture(e.pointerId);
-    });
-    c.addEventListener("pointermove", (e) => {
-      if (this.tool !== "none") return this.editPointer(e, "move");
-      if (!drag) return;
-      const dx = (e.clientX - drag.x) / c.clientWidth, dy = (e.clientY - drag.y) / c.clientHeight;
-      drag.x = e.clientX; drag.y = e.clientY;
-      this.pivotSet = true;  // the user's view from here on
-      if (this.mode === "orbit") {
-        const turn = ORBIT_RADIANS_PER_PIXEL;
-        if (drag.button === 2 || e.shiftKey) this.orbit.pan(dx, dy);
-        else this.orbit.rotate(-turn * dx * c.clientWidth, turn * dy * c.clientHeight);
-      } else {
-        this.viewmat = flyTurn(this.viewmat, 2 * dx, -2 * dy);
-      }
-      this.dirty = true;
-      this.requestSort();
-    });
-    c.addEventListener("pointerup", (e) => {
-      if (this.tool !== "none") return this.editPointer(e, "up");
-      drag = null;
-    });
-    c.addEventListener("wheel", (e) => {
-      e.preventDefault();
-      this.pivotSet = true;
-      if (this.mode === "orbit") this.orbit.zoom(Math.exp(e.deltaY * 0.001));
-      else this.viewmat = flyMove(this.viewmat, -e.deltaY * 0.002, 0, 0);
-      this.dirty = true;
-      this.requestSort();
-    }, { passive: false });
-    this.keys = new Set();
-    window.addEventListener("keydown", (e) => { if (e.target.tagName !== "INPUT") this.keys.add(e.code); });
-    window.addEventListener("keyup", (e) => this.keys.delete(e.code));
-  }
-
-  fly() {
-    if (this.mode !== "fly" || !this.keys || !this.keys.size) return;
-    const s = 0.02;
-    const k = this.keys;
-    const f = (k.has("KeyW") ? s : 0) - (k.has("KeyS") ? s : 0);
-    const r = (k.has("KeyD") ? s : 0) - (k.has("KeyA") ? s : 0);
-    const u = (k.has("KeyE") ? s : 0) - (k.has("KeyQ") ? s : 0);
-    if (f || r || u) {
-      this.viewmat = flyMove(this.viewmat, f, r, u);
-      this.dirty = true;
-      this.requestSort();
-    }
-  }
-
-  // ------------------------------------------------------------------ editing
-
-  initEditing() {
-    this.tool = "none";
-    $("tool").onchange = (e) => { this.tool = e.target.value; this.canvas.style.cursor = this.tool === "none" ? "" : "crosshair"; };
-    $("sel-clear").onclick = () => this.setSelection(new Set());
-    for (const op of ["hide", "delete"]) $(`edit-${op}`).onclick = () => this.edit(op, [...this.selected]);
-    $("edit-unhide").onclick = () => this.edit("unhide", []);
-    $("edit-restore").onclick = () => this.edit("restore", []);
-    $("edit-crop").onclick = () => this.cropToSelection();
-  }
-
-  // Indices (within the LoD level) of drawn splats whose centre projects inside `inside(u, v)`.
-  // The splats whose centres fall inside a screen region. By default only those at the front:
-  // a box around a ball must not take the wall behind it (deleting would leave a hole there).
-  // "Through" (#select-through) takes everything inside, at every depth.
-  pick(inside) {
-    const vm = this.currentViewmat(), K = this.intrinsics();
-    const hits = [];  // [index, u, v, depth]
-    for (const set of [this.static, this.dynamic]) {
-      if (!set) continue;
-      const isDyn = set === this.dynamic;
-      if ((isDyn && !(this.show & 2)) || (!isDyn && !(this.show & 1))) continue;
-      for (let i = 0; i < set.count; i++) {
-        const [u, v, z] = project(vm, K, [set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
-        if (z > 0.01 && inside(u, v)) hits.push([set.index[i], u, v, z]);
-      }
-    }
-    if ($("select-through").checked) return new Set(hits.map((h) => h[0]));
-    return new Set(frontOf(hits).map((h) => h[0]));
-  }
-
-  editPointer(e, phase) {
-    const r = this.canvas.getBoundingClientRect();
-    const sx = this.canvas.width / r.width, sy = this.canvas.height / r.height;
-    const u = (e.clientX - r.left) * sx, v = (e.clientY - r.top) * sy;
-    const box = $("select-box");
-    if (this.tool === "box") {
-      if (phase === "down") { this.boxStart = [u, v]; box.style.display = "block"; }
-      if (!this.boxStart) return;
-      const [u0, v0] = this.boxStart;
-      Object.assign(box.style, { left: `${Math.min(u0, u) / sx}px`, top: `${Math.min(v0, v) / sy}px`,
-                                 width: `${Math.abs(u - u0) / sx}px`, height: `${Math.abs(v - v0) / sy}px` });
-      if (phase === "up") {
-        box.style.display = "none";
-        this.selectBox(u0, v0, u, v, e.shiftKey);
-        this.boxStart = null;
-      }
-    } else if (this.tool === "brush") {
-      if (phase === "down") this.brushing = true;
-      if (phase === "up") this.brushing = false;
-      if (!this.brushing) return;
-      const rad = parseFloat($("brush-size").value) * sx;
-      const picked = this.pick((a, b) => (a - u) ** 2 + (b - v) ** 2 <= rad * rad);
-      this.setSelection(new Set([...this.selected, ...picked]));
-    }
-  }
-
-  selectBox(u0, v0, u1, v1, add = false) {
-    const [a0, a1] = [Math.min(u0, u1), Math.max(u0, u1)], [b0, b1] = [Math.min(v0, v1), Math.max(v0, v1)];
-    const picked = this.pick((u, v) => u >= a0 && u <= a1 && v >= b0 && v <= b1);
-    this.setSelection(add ? new Set([...this.selected, ...picked]) : picked);
-    return picked.size;
-  }
-
-  setSelection(sel) {
-    this.selected = sel;
-    $("sel-count").textContent = `${sel.size.toLocaleString()} selected`;
-    this.packedStatic = null;  // repack the flags
-    this.rebuild();
-  }
-
-  async edit(op, indices, crop) {
-    const res = await api(`/api/runs/${this.runId}/edits`, { method: "POST", body: { op, lod: this.lod, indices, crop } });
-    if (op === "delete" || op === "hide") this.selected = new Set();
-    $("sel-count").textContent = `${this.selected.size} selected`;
-    return res;
-  }
-
-  cropToSelection() {
-    if (!this.selected.size) return this.status("select the region to keep first");
-    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-    for (const set of [this.static, this.dynamic]) {
-      if (!set) continue;
-      for (let i = 0; i < set.count; i++) {
-        if (!this.selected.has(set.index[i])) continue;
-        for (let k = 0; k < 3; k++) {
-          lo[k] = Math.min(lo[k], set.positions[3 * i + k]);
-          hi[k] = Math.max(hi[k], set.positions[3 * i + k]);
-        }
-      }
-    }
-    return this.edit("crop", [], { min: lo, max: hi });
-  }
-
-  // ------------------------------------------------------------------ exports
-
-  initExports() {
-    $("export-go").onclick = async () => {
-      const format = $("export-format").value;
-      const body = { format, lod: this.lod, exposure: this.exposure };
-      if (format === "glb") body.times = String(this.t.toFixed(4));
-      const job = await api(`/api/runs/${this.runId}/exports`, { method: "POST", body });
-      $("export-status").textContent = `${format}: running…`;
-      this.pollExport(job.id, format);
-    };
-  }
-
-  async pollExport(id, format) {
-    const job = await api(`/api/exports/${id}`);
-    if (job.status === "queued" || job.status === "running") return setTimeout(() => this.pollExport(id, format), 700);
-    const el = $("export-status");
-    if (job.status === "done") {
-      el.innerHTML = `<a id="export-link" href="${esc(withToken(`/api/exports/${encodeURIComponent(id)}/download`))}">download ${esc(format)}</a>`;
-    } else {
-      el.textContent = `${format}: ${job.status} ${job.error || ""}`;
-    }
-  }
-
   status(text) {
     $("status").textContent = text;
   }
@@ -610,3 +435,4 @@ export class Viewer {
   }
 }
 
+Object.assign(Viewer.prototype, navigation, editing, exportPanel);

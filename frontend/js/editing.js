@@ -1,0 +1,103 @@
+// Selecting and editing splats in the viewer: box and brush selection of the splats in front
+// (or through, at every depth), then hide, delete, restore or crop through the server's edit
+// layer (`/api/runs/{id}/edits`; the model itself is never changed). Mixed into `Viewer`.
+
+import { api } from "./api.js";
+import { project } from "./camera.js";
+import { $ } from "./dom.js";
+import { frontOf } from "./pick.js";
+
+export const editing = {
+  initEditing() {
+    this.tool = "none";
+    $("tool").onchange = (e) => { this.tool = e.target.value; this.canvas.style.cursor = this.tool === "none" ? "" : "crosshair"; };
+    $("sel-clear").onclick = () => this.setSelection(new Set());
+    for (const op of ["hide", "delete"]) $(`edit-${op}`).onclick = () => this.edit(op, [...this.selected]);
+    $("edit-unhide").onclick = () => this.edit("unhide", []);
+    $("edit-restore").onclick = () => this.edit("restore", []);
+    $("edit-crop").onclick = () => this.cropToSelection();
+  },
+
+  // Indices (within the LoD level) of drawn splats whose centre projects inside `inside(u, v)`.
+  // The splats whose centres fall inside a screen region. By default only those at the front:
+  // a box around a ball must not take the wall behind it (deleting would leave a hole there).
+  // "Through" (#select-through) takes everything inside, at every depth.
+  pick(inside) {
+    const vm = this.currentViewmat(), K = this.intrinsics();
+    const hits = [];  // [index, u, v, depth]
+    for (const set of [this.static, this.dynamic]) {
+      if (!set) continue;
+      const isDyn = set === this.dynamic;
+      if ((isDyn && !(this.show & 2)) || (!isDyn && !(this.show & 1))) continue;
+      for (let i = 0; i < set.count; i++) {
+        const [u, v, z] = project(vm, K, [set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
+        if (z > 0.01 && inside(u, v)) hits.push([set.index[i], u, v, z]);
+      }
+    }
+    if ($("select-through").checked) return new Set(hits.map((h) => h[0]));
+    return new Set(frontOf(hits).map((h) => h[0]));
+  },
+
+  editPointer(e, phase) {
+    const r = this.canvas.getBoundingClientRect();
+    const sx = this.canvas.width / r.width, sy = this.canvas.height / r.height;
+    const u = (e.clientX - r.left) * sx, v = (e.clientY - r.top) * sy;
+    const box = $("select-box");
+    if (this.tool === "box") {
+      if (phase === "down") { this.boxStart = [u, v]; box.style.display = "block"; }
+      if (!this.boxStart) return;
+      const [u0, v0] = this.boxStart;
+      Object.assign(box.style, { left: `${Math.min(u0, u) / sx}px`, top: `${Math.min(v0, v) / sy}px`,
+                                 width: `${Math.abs(u - u0) / sx}px`, height: `${Math.abs(v - v0) / sy}px` });
+      if (phase === "up") {
+        box.style.display = "none";
+        this.selectBox(u0, v0, u, v, e.shiftKey);
+        this.boxStart = null;
+      }
+    } else if (this.tool === "brush") {
+      if (phase === "down") this.brushing = true;
+      if (phase === "up") this.brushing = false;
+      if (!this.brushing) return;
+      const rad = parseFloat($("brush-size").value) * sx;
+      const picked = this.pick((a, b) => (a - u) ** 2 + (b - v) ** 2 <= rad * rad);
+      this.setSelection(new Set([...this.selected, ...picked]));
+    }
+  },
+
+  selectBox(u0, v0, u1, v1, add = false) {
+    const [a0, a1] = [Math.min(u0, u1), Math.max(u0, u1)], [b0, b1] = [Math.min(v0, v1), Math.max(v0, v1)];
+    const picked = this.pick((u, v) => u >= a0 && u <= a1 && v >= b0 && v <= b1);
+    this.setSelection(add ? new Set([...this.selected, ...picked]) : picked);
+    return picked.size;
+  },
+
+  setSelection(sel) {
+    this.selected = sel;
+    $("sel-count").textContent = `${sel.size.toLocaleString()} selected`;
+    this.packedStatic = null;  // repack the flags
+    this.rebuild();
+  },
+
+  async edit(op, indices, crop) {
+    const res = await api(`/api/runs/${this.runId}/edits`, { method: "POST", body: { op, lod: this.lod, indices, crop } });
+    if (op === "delete" || op === "hide") this.selected = new Set();
+    $("sel-count").textContent = `${this.selected.size} selected`;
+    return res;
+  },
+
+  cropToSelection() {
+    if (!this.selected.size) return this.status("select the region to keep first");
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (const set of [this.static, this.dynamic]) {
+      if (!set) continue;
+      for (let i = 0; i < set.count; i++) {
+        if (!this.selected.has(set.index[i])) continue;
+        for (let k = 0; k < 3; k++) {
+          lo[k] = Math.min(lo[k], set.positions[3 * i + k]);
+          hi[k] = Math.max(hi[k], set.positions[3 * i + k]);
+        }
+      }
+    }
+    return this.edit("crop", [], { min: lo, max: hi });
+  },
+};

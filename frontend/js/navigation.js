@@ -1,0 +1,63 @@
+// Moving the viewer's camera with the mouse and keyboard: orbit (drag to turn, right-drag or
+// shift-drag to pan, wheel to zoom) or fly (drag to look, wheel and W/A/S/D/Q/E to move). Mixed
+// into `Viewer` (viewer.js); the editing tools take the pointer while one is active.
+
+import { ORBIT_RADIANS_PER_PIXEL, flyMove, flyTurn } from "./camera.js";
+
+export const navigation = {
+  initMouse() {
+    const c = this.canvas;
+    let drag = null;
+    c.addEventListener("contextmenu", (e) => e.preventDefault());
+    c.addEventListener("pointerdown", (e) => {
+      if (this.tool !== "none") return this.editPointer(e, "down");
+      drag = { x: e.clientX, y: e.clientY, button: e.button };
+      c.setPointerCapture(e.pointerId);
+    });
+    c.addEventListener("pointermove", (e) => {
+      if (this.tool !== "none") return this.editPointer(e, "move");
+      if (!drag) return;
+      const dx = (e.clientX - drag.x) / c.clientWidth, dy = (e.clientY - drag.y) / c.clientHeight;
+      drag.x = e.clientX; drag.y = e.clientY;
+      this.pivotSet = true;  // the user's view from here on
+      if (this.mode === "orbit") {
+        const turn = ORBIT_RADIANS_PER_PIXEL;
+        if (drag.button === 2 || e.shiftKey) this.orbit.pan(dx, dy);
+        else this.orbit.rotate(-turn * dx * c.clientWidth, turn * dy * c.clientHeight);
+      } else {
+        this.viewmat = flyTurn(this.viewmat, 2 * dx, -2 * dy);
+      }
+      this.dirty = true;
+      this.requestSort();
+    });
+    c.addEventListener("pointerup", (e) => {
+      if (this.tool !== "none") return this.editPointer(e, "up");
+      drag = null;
+    });
+    c.addEventListener("wheel", (e) => {
+      e.preventDefault();
+      this.pivotSet = true;
+      if (this.mode === "orbit") this.orbit.zoom(Math.exp(e.deltaY * 0.001));
+      else this.viewmat = flyMove(this.viewmat, -e.deltaY * 0.002, 0, 0);
+      this.dirty = true;
+      this.requestSort();
+    }, { passive: false });
+    this.keys = new Set();
+    window.addEventListener("keydown", (e) => { if (e.target.tagName !== "INPUT") this.keys.add(e.code); });
+    window.addEventListener("keyup", (e) => this.keys.delete(e.code));
+  },
+
+  fly() {
+    if (this.mode !== "fly" || !this.keys || !this.keys.size) return;
+    const s = 0.02;
+    const k = this.keys;
+    const f = (k.has("KeyW") ? s : 0) - (k.has("KeyS") ? s : 0);
+    const r = (k.has("KeyD") ? s : 0) - (k.has("KeyA") ? s : 0);
+    const u = (k.has("KeyE") ? s : 0) - (k.has("KeyQ") ? s : 0);
+    if (f || r || u) {
+      this.viewmat = flyMove(this.viewmat, f, r, u);
+      this.dirty = true;
+      this.requestSort();
+    }
+  },
+};
