@@ -125,16 +125,8 @@ def select_configs(spec: str | None) -> list[str]:
     return sorted(dict.fromkeys(resolved), key=lambda n: (order.index(n.split("@")[0]), "@" in n))
 
 
-def main(argv: list[str]) -> int:
-    from kgs_core.data.formats import load_scene
-    from kgs_core.data.synth.generate import synthesize
-    from kgs_core.evaluate import evaluate_model
-    from kgs_core.run import load_run, read_log
-    from kgs_core.train.config import make_config
-    from kgs_core.train.trainer import Trainer
-
-    from ..cluster import add_ray_options, ray_runner, timing_note
-    from .equal_time import equal_time
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    from ..cluster import add_ray_options
 
     ap = argparse.ArgumentParser(prog="kgs-app bench quality", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", default="sheet")
@@ -162,6 +154,61 @@ def main(argv: list[str]) -> int:
         ap.error(f"--cuts must be at least 1, got {args.cuts}")
     if args.cuts > 1 and args.budget != "time":
         ap.error("--cuts applies to --budget time (it spreads the re-timed runs' iteration counts)")
+    return args
+
+
+def tau_sweep(run, scene, taus: list[float]) -> None:
+    """Prints the full model re-split at each τ from its stored K (no retraining)."""
+    from kgs_core.evaluate import evaluate_model
+
+    print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
+    print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
+    print("| --: | ------: | ------------: | --------------: | --------: |")
+    for tau in taus:
+        run.model.decompose(tau, recompute=False)
+        m = evaluate_model(run.model, scene)
+        share = float(run.model.dynamic.float().mean())
+        print(f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
+              f"{fmt(m['decomposition_iou'])} |", flush=True)
+
+
+def plot_curves(curves: dict, dashed: set, path: Path, title: str) -> None:
+    """Held-out PSNR, and inside the dynamic mask, against training time for every configuration
+    (`curves`: name -> [(seconds, PSNR, PSNR in mask)]; the re-timed ones `dashed`)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
+    for col, (ax, what) in enumerate(zip(axes, ("held-out PSNR (dB)", "held-out PSNR inside the dynamic mask (dB)")), 1):
+        for name, pts in curves.items():
+            pts = [(p[0], p[col]) for p in pts if not math.isnan(p[col])]
+            if pts:
+                ax.plot(*zip(*pts), marker="o", ms=2, label=name, ls="--" if name in dashed else "-")
+        ax.set_xlabel("training time (s)")
+        ax.set_ylabel(what)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(argv: list[str]) -> int:
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.synth.generate import synthesize
+    from kgs_core.evaluate import evaluate_model
+    from kgs_core.run import load_run, read_log
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import Trainer
+
+    from ..cluster import ray_runner, timing_note
+    from .equal_time import equal_time
+
+    args = parse_args(argv)
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out or tempfile.mkdtemp(prefix="kgs-bench-quality-"))
@@ -221,36 +268,10 @@ def main(argv: list[str]) -> int:
     if nodes:
         print("\n" + timing_note(nodes, args.task_cpus))
     if "full" in names:
-        print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
-        print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
-        print("| --: | ------: | ------------: | --------------: | --------: |")
-        run = load_run(root / "full")
-        for tau in [float(x) for x in args.taus.split(",")]:
-            run.model.decompose(tau, recompute=False)
-            m = evaluate_model(run.model, scene)
-            share = float(run.model.dynamic.float().mean())
-            print(f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
-                  f"{fmt(m['decomposition_iou'])} |", flush=True)
+        tau_sweep(load_run(root / "full"), scene, [float(x) for x in args.taus.split(",")])
     if args.plot:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
-        for col, (ax, what) in enumerate(zip(axes, ("held-out PSNR (dB)", "held-out PSNR inside the dynamic mask (dB)")), 1):
-            for name, pts in curves.items():
-                pts = [(p[0], p[col]) for p in pts if not math.isnan(p[col])]
-                if pts:
-                    ax.plot(*zip(*pts), marker="o", ms=2, label=name, ls="--" if name in dashed else "-")
-            ax.set_xlabel("training time (s)")
-            ax.set_ylabel(what)
-            ax.grid(alpha=0.3)
-        axes[0].legend(fontsize=7)
-        fig.suptitle(f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
-        fig.tight_layout()
-        Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(args.plot)
+        plot_curves(curves, dashed, Path(args.plot),
+                    f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
         print(f"\nplot: {args.plot}")
     (root / "bench.json").write_text(json.dumps({"curves": curves, "seconds_per_iteration": rate}))
     return 0
