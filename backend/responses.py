@@ -15,6 +15,15 @@ class Response(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+class JobRow(Response):
+    """What every registry row answers with: scenes, runs and exports are made by jobs."""
+
+    id: str
+    status: JobStatus
+    error: str | None
+    created: float = Field(description="Unix time")
+
+
 # ------------------------------------------------------------------ system
 
 
@@ -43,13 +52,9 @@ class IngestProgress(Response):
     stages: list[tuple[str, float]] = Field(description="the stages done, each with its seconds")
 
 
-class SceneSummary(Response):
-    id: str
+class SceneSummary(JobRow):
     name: str
     source: str = Field(description="synth, ingest or upload")
-    status: JobStatus
-    error: str | None
-    created: float = Field(description="Unix time")
     videos: int | None = Field(None, description="ingest scenes: the videos uploaded (1, or 2 with a sharp camera)")
     progress: IngestProgress | None = None
 
@@ -82,13 +87,9 @@ class TrainingProgress(Response):
     dynamic_share: float
 
 
-class RunSummary(Response):
-    id: str
+class RunSummary(JobRow):
     scene_id: str | None
     name: str
-    status: JobStatus
-    error: str | None
-    created: float = Field(description="Unix time")
     scene_name: str | None
     folder: str = Field(description="the run's folder, its last two path parts")
     progress: TrainingProgress | None
@@ -179,11 +180,7 @@ LogRow = dict[str, float | None]
 # ------------------------------------------------------------------ exports
 
 
-class ExportSummary(Response):
-    id: str
+class ExportSummary(JobRow):
     run_id: str
     format: str
-    status: JobStatus
-    error: str | None
-    created: float = Field(description="Unix time")
     params: dict = Field(description="the export request as given")

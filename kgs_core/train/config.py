@@ -286,8 +286,8 @@ def parse_setting(text: str) -> tuple[str, object]:
     field, `model.<ModelConfig field>` or `densify.<DensifyStrategy field>`; VALUE as JSON when
     it parses (numbers, true/false, lists), else the plain string, and of the default's type, so
     that a mistyped value fails here and not minutes into training (an integer stands for a
-    float; true/false only for a switch). Raises ValueError naming the key. What `kgs-app train --set` and `bench quality`'s
-    `@KEY=VALUE` read."""
+    float; true/false only for a switch). Raises ValueError naming the key. What `kgs-app train
+    --set`, the REST `settings` and `bench quality`'s `@KEY=VALUE` read."""
     import json
 
     key, eq, raw = text.partition("=")

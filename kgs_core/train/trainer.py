@@ -573,7 +573,6 @@ class Trainer:
         if self.fitted_exposure is not None:
             info["exposure"] = self.exposure
             info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
-
         if self.events:
             info["guard_events"] = self.events
         write_run_json(self.run_dir, info)
