@@ -6,7 +6,6 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import get_args
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -83,12 +82,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     """Train Kinematics-GS on a scene folder; writes a run directory."""
     from kgs_core.data.formats import load_scene
     from kgs_core.threads import tuner_for_process
-    from kgs_core.train.config import make_config, overrides_from
+    from kgs_core.train.config import make_config
+    from kgs_core.train.settings import NAMED, named_overrides
     from kgs_core.train.trainer import train
 
-    overrides = overrides_from(args.iterations, args.tau, args.velocity, args.basis, args.seed, args.on_nonfinite,
-                               kr_form=args.kr_form, camera_blur=args.camera_blur, exposure=args.exposure,
-                               pose_refine=None if args.pose_refine is None else args.pose_refine == "on")
+    overrides = named_overrides({name: getattr(args, name) for name in NAMED})
     overrides.update(dict(args.set or ()))  # --set KEY=VALUE: any setting of the schema, applied last
     ablate = tuple(a for a in (args.ablate or "").split(",") if a)
     make_config(args.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
@@ -284,24 +282,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return importlib.import_module(f"kgs_app.bench.{args.what}").main(args.rest)
 
 
-def unit_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
-    if not 0 <= v <= 1:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
-    return v
-
-
 def setting(text: str) -> tuple[str, object]:
     """argparse type: KEY=VALUE of a training setting (`parse_setting`)."""
-    from kgs_core.train.config import parse_setting
+    from kgs_core.train.settings import parse_setting
 
     try:
         return parse_setting(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def on_off(text: str) -> bool:
+    """argparse type: a switch, on or off."""
+    if text not in ("on", "off"):
+        raise argparse.ArgumentTypeError(f"expected on or off, got {text!r}")
+    return text == "on"
 
 
 def positive_int(text: str) -> int:
@@ -313,6 +308,36 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+def add_named_settings(p: argparse.ArgumentParser) -> None:
+    """`--NAME` for each setting offered by name (`settings.NAMED`), its type, choices and
+    bounds read from the schema: a word setting takes its choices, a switch on/off."""
+    from kgs_core.schema import choices
+    from kgs_core.train.settings import NAMED, setting_type
+
+    def typed(name, kind):
+        def convert(text: str):
+            try:
+                value = kind(text)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
+                                                 f"got {text!r}") from None
+            try:
+                return NAMED[name].check(value)
+            except ValueError as exc:
+                raise argparse.ArgumentTypeError(str(exc)) from None
+        return convert
+
+    for name, named in NAMED.items():
+        kind = setting_type(named.key)
+        flag = "--" + name.replace("_", "-")
+        if kind is bool:
+            p.add_argument(flag, type=on_off, metavar="{on,off}", help=named.help)
+        elif choices(kind) is not None:
+            p.add_argument(flag, choices=choices(kind), help=named.help)
+        else:
+            p.add_argument(flag, type=typed(name, kind), help=named.help)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -367,35 +392,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)
 
-    from kgs_core.model.dynamic import Basis, KRForm, Velocity
-    from kgs_core.train.config import ABLATIONS, CAMERA_BLUR, PRESETS
+    from kgs_core.train.config import ABLATIONS, PRESETS
 
     p = sub.add_parser("train", help="train Kinematics-GS on a scene folder")
     p.add_argument("scene", help="dataset folder (Nerfies, D-NeRF or COLMAP layout)")
     p.add_argument("--out", required=True, help="run directory")
     p.add_argument("--preset", default="fast", choices=sorted(PRESETS))
     p.add_argument("--ablate", help="comma-separated: " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()))
-    p.add_argument("--tau", type=float, help="static/dynamic threshold on the temporal variance K (normalised scene "
-                   "units^2; default: fitted to the scene, an RMS image motion of 0.62 px)")
-    p.add_argument("--exposure", type=unit_float, help="the training video's exposure, a fraction of the frame interval "
-                   "(default: the scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off")
-    p.add_argument("--velocity", choices=get_args(Velocity), help="velocity estimate of the kinematic basis")
-    p.add_argument("--basis", choices=get_args(Basis),
-                   help="kinematic frame: the paper's (reference-axis switch), branch-free, or continuous (principal)")
-    p.add_argument("--kr-form", choices=get_args(KRForm),
-                   help="kinematic refinement: the paper's projection onto the velocity frame, or the predicted "
-                        "covariance convolved with the motion during the exposure (docs/method.md)")
-    p.add_argument("--camera-blur", choices=list(CAMERA_BLUR),
-                   help="also blur every Gaussian along the camera's own motion during the exposure (hand-held shake): "
-                        "from the poses' differences, or learned per frame from there (default off; docs/method.md)")
-    p.add_argument("--pose-refine", choices=["on", "off"],
-                   help="fit a rigid correction of each training camera's pose, for footage whose structure-from-motion "
-                        "poses are poor (default off; docs/real-footage.md)")
-    p.add_argument("--on-nonfinite", choices=["error", "restore"],
-                   help="NaN/Inf in training: stop with an error naming the tensor (default), or restore the last "
-                        "good checkpoint and continue with a lower learning rate")
-    p.add_argument("--iterations", type=positive_int, help="override the preset's iteration count (its schedule scales with it)")
-    p.add_argument("--seed", type=int)
+    add_named_settings(p)
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.add_argument("--set", action="append", type=setting, metavar="KEY=VALUE",
                    help="any training setting (a TrainConfig field, model.FIELD or densify.FIELD), checked against the schema; "

@@ -80,10 +80,51 @@ def test_bench_quality_configs_take_overrides_of_training_settings():
     for bad, needle in (("full@model.tau=abc", "model.tau takes a number"),
                         ("full@noise_per_gaussian=1", "noise_per_gaussian takes true or false"),
                         ("full@iterations=1.5", "iterations takes a whole number"),
-                        ("full@camera_blur=2", "camera_blur takes a word")):
+                        ("full@camera_blur=2", "camera_blur must be one of off, poses, learned")):
         with pytest.raises(SystemExit, match=needle):
             select_configs(bad)
     assert config_overrides("full@lambda_reg=0")["lambda_reg"] == 0.0  # an integer stands for a float
+
+
+def test_every_setting_parses_its_own_default_and_refuses_another_type():
+    import json
+
+    from kgs_core.train.settings import parse_setting, schema
+
+    for key, (_, default) in schema().items():
+        assert parse_setting(f"{key}={json.dumps(default)}") == (key, default), key
+    assert {"iterations", "model.tau", "densify.max_gaussians", "camera_blur"} <= set(schema())
+    assert not {"ablate", "fitted", "model", "densify"} & set(schema())  # not settings
+    with pytest.raises(ValueError, match="model.velocity must be one of paper, physical, got 'fast'"):
+        parse_setting("model.velocity=fast")
+    with pytest.raises(ValueError, match="densify.opacity_reset_at takes a JSON list"):
+        parse_setting("densify.opacity_reset_at=3")
+
+
+def test_named_options_of_the_command_line_and_the_server_come_from_one_table():
+    from kgs_app.cli import build_parser
+    from kgs_backend.routers.runs import TrainRequest, TrainRequestBase
+    from kgs_core.train.settings import NAMED, named_overrides, schema
+
+    assert all(named.key in schema() for named in NAMED.values())
+    train = next(a for a in build_parser()._subparsers._group_actions[0].choices["train"]._actions if a.dest == "tau")
+    assert train.help == NAMED["tau"].help
+    assert set(TrainRequest.model_fields) - set(TrainRequestBase.model_fields) == set(NAMED)
+    argv = ["train", "scene", "--out", "run", "--tau", "1e-3", "--pose-refine", "on", "--camera-blur", "poses",
+            "--seed", "3", "--kr-form", "paper", "--on-nonfinite", "restore"]
+    args = build_parser().parse_args(argv)
+    from_cli = named_overrides({name: getattr(args, name) for name in NAMED})
+    body = TrainRequest(scene_id="s", tau=1e-3, pose_refine=True, camera_blur="poses", seed=3, kr_form="paper",
+                        on_nonfinite="restore")
+    assert from_cli == named_overrides(body.model_dump(include=set(NAMED))) == {
+        "model.tau": 1e-3, "pose_refine": True, "camera_blur": "poses", "seed": 3, "model.kr_form": "paper",
+        "on_nonfinite": "restore"}
+    # The same bounds on both sides.
+    for name, bad in (("tau", 0), ("exposure", 1.5), ("iterations", 0), ("seed", -1), ("basis", "round")):
+        with pytest.raises(ValueError, match=name):
+            TrainRequest(scene_id="s", **{name: bad})
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["train", "s", "--out", "r", "--" + name, str(bad)])
 
 
 def test_every_benchmark_answers_help_and_bench_step_prints_its_table():

@@ -394,3 +394,39 @@ def test_paper_form_of_kr_matches_eqs_9_to_14_worked_by_hand():
     # A Gaussian moving by still_len per frame is halfway blended toward its predicted covariance.
     half = refine(0.4, frame_len=torch.tensor([1e-3], dtype=f64))
     assert torch.allclose(half, 0.5 * (sigma[0] + refine(0.4)), atol=1e-12)
+
+
+def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
+    """`keep_gaussians` / `add_gaussians` carry the parameters, their Adam moments, the dynamic
+    flags, K and a strategy's statistics together; each survivor keeps its own values, each new
+    Gaussian its parent's flag and K with zero moments and statistics."""
+    from kgs_core.model.gaussians import GaussianParams
+    from kgs_core.train.densify import DensifyStrategy
+
+    m = moving_model(n=10)
+    m.dynamic[:5] = False
+    m.variance = torch.arange(10.0)
+    opt = torch.optim.Adam([{"params": [v], "name": k} for k, v in m.params.items()], lr=1e-3)
+    sum(v.sum() for _, v in m.params.items()).backward()
+    opt.step()
+    strategy = DensifyStrategy()
+    strategy.reset(10)
+    strategy.state["grad_sum"] += torch.arange(10.0) * 2
+    keep = torch.tensor([i % 3 != 0 for i in range(10)])  # 1 2 4 5 7 8
+    means, moment = m.params.means.detach()[keep].clone(), opt.state[m.params.means]["exp_avg"][keep].clone()
+    m.keep_gaussians(keep, opt, strategy.state)
+    assert len(m) == 6 and torch.equal(m.variance, torch.tensor([1.0, 2, 4, 5, 7, 8]))
+    assert torch.equal(m.dynamic, torch.tensor([False, False, False, True, True, True]))
+    assert torch.equal(strategy.state["grad_sum"], 2 * m.variance) and len(strategy.state["count"]) == 6
+    assert torch.equal(m.params.means.detach(), means) and torch.equal(opt.state[m.params.means]["exp_avg"], moment)
+    parents = torch.tensor([0, 5])
+    new = GaussianParams(*(v.detach()[parents].clone() for _, v in m.params.items()))
+    m.add_gaussians(new, parents, opt, strategy.state)
+    assert len(m) == 8 and torch.equal(m.variance[6:], torch.tensor([1.0, 8.0]))
+    assert torch.equal(m.dynamic[6:], torch.tensor([False, True]))
+    assert torch.equal(strategy.state["grad_sum"][6:], torch.zeros(2)) and len(strategy.state["count"]) == 8
+    assert torch.equal(opt.state[m.params.means]["exp_avg"][6:], torch.zeros(2, 3))
+    # A strategy left behind by a resize that did not carry it is an error, not silently zeroed.
+    m.keep_gaussians(torch.ones(8, dtype=torch.bool).index_fill_(0, torch.tensor([0]), False), opt)
+    with pytest.raises(RuntimeError, match="statistics cover 8 Gaussians, the model has 7"):
+        strategy._ensure(len(m))

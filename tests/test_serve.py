@@ -400,6 +400,13 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     assert meta["tau"] == pytest.approx(tau) and meta["split"]["gaussians"] == done["gaussians"]
     assert client.post("/api/runs/nope/finetune", json={}).status_code == 404
     assert client.post(f"/api/runs/{done['id']}/resume").status_code == 409  # it finished
+    # A run.json whose configuration is malformed is refused with the field named, not a 500.
+    info_path = Path(client.app_.state.ws.get("runs", done["id"])["path"]) / "run.json"
+    info = json.loads(info_path.read_text())
+    info["config"]["densify"]["grad_treshold"] = 1e-4
+    info_path.write_text(json.dumps(info))
+    bad_ft = client.post(f"/api/runs/{done['id']}/finetune", json={"tau": tau, "iterations": 20})
+    assert bad_ft.status_code == 409 and "run.json: densify.grad_treshold is not a setting" in bad_ft.json()["detail"]
     # A restarted server lists the earlier runs and their states.
     app2 = create_app(Settings(workspace=ws_dir))
     with TestClient(app2, base_url=BASE) as c2:

@@ -253,15 +253,16 @@ def _cfg(**over):
     return make_config("fast", **base)
 
 
-def _poison_at(trainer, iteration: int):
-    """Makes the gradient of the Gaussian means NaN once, at `iteration`."""
+def _poison_at(trainer, iteration: int, tensor=lambda tr: tr.model.params.means):
+    """Makes the gradient of `tensor(trainer)` (default the Gaussian means) NaN once, at `iteration`."""
     hit = {"done": False}
     orig = trainer.check_gradients
 
     def check(it):
         if it == iteration and not hit["done"]:
             hit["done"] = True
-            trainer.model.params.means.grad[0, 0] = float("nan")
+            grad = tensor(trainer).grad
+            grad.view(-1)[0] = float("nan")
         orig(it)
 
     trainer.check_gradients = check
@@ -275,6 +276,22 @@ def test_nonfinite_gradient_error_names_tensor_and_iteration(tiny_scene, tmp_pat
     with pytest.raises(NonFiniteError, match=r"gaussians\.means .* at iteration 17"):
         tr.run()
     assert "NonFiniteError" in (tmp_path / "run" / "error.txt").read_text()
+
+
+@pytest.mark.parametrize("name,settings,tensor", [
+    ("camera_motion.motion", {"camera_blur": "learned"}, lambda tr: tr.camera_motion.motion),
+    ("pose_correction.delta", {"pose_refine": True}, lambda tr: tr.pose_correction.delta),
+    ("exposure.logit", {"fit_exposure": True, "exposure": 0.5}, lambda tr: tr.fitted_exposure.logit),
+])
+def test_nonfinite_gradient_of_the_camera_and_exposure_parameters_is_named(tiny_scene, tmp_path, name, settings, tensor):
+    """Not only the Gaussians and the field: every fitted parameter is checked (the exposure
+    and the learned camera motion act after the split at iteration 10)."""
+    from kgs_core.train.trainer import NonFiniteError, Trainer
+
+    tr = Trainer(tiny_scene, tmp_path / "run", _cfg(**settings, **{"model.tau": 1e-9}), progress=False)
+    _poison_at(tr, 17, tensor)
+    with pytest.raises(NonFiniteError, match=rf"{name} .* at iteration 17"):
+        tr.run()
 
 
 def test_nonfinite_restore_continues_with_lower_learning_rate(tiny_scene, tmp_path):

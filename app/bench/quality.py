@@ -81,7 +81,7 @@ def config_slug(name: str) -> str:
 
 def _override(text: str, spec: str) -> tuple[str, object]:
     """`key=value` of a `--configs` entry (`parse_setting`)."""
-    from kgs_core.train.config import parse_setting
+    from kgs_core.train.settings import parse_setting
 
     try:
         return parse_setting(text)

@@ -9,11 +9,11 @@ from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
-from pydantic import Field, field_validator
+from pydantic import Field, create_model, field_validator
 
-from kgs_core.model.dynamic import Basis, KRForm, Velocity
 from kgs_core.run import RunError, read_log
-from kgs_core.train.config import ABLATIONS, PRESETS, make_config, overrides_from, parse_setting
+from kgs_core.train.config import ABLATIONS, PRESETS, TrainConfig, make_config
+from kgs_core.train.settings import NAMED, NamedSetting, named_overrides, parse_setting, setting_type
 
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
@@ -24,20 +24,11 @@ from ..schemas import StrictRequest
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
 
-class TrainRequest(StrictRequest):
+class TrainRequestBase(StrictRequest):
     scene_id: str
     name: str | None = Field(None, max_length=80)
     preset: str = "fast"
-    iterations: int | None = Field(None, ge=1, le=1_000_000)
-    tau: float | None = Field(None, gt=0)
-    velocity: Velocity | None = None
-    basis: Basis | None = None
-    kr_form: KRForm | None = None
-    camera_blur: Literal["off", "poses", "learned"] | None = None
-    pose_refine: bool | None = None  # fit each training camera's pose correction (default off)
     ablate: list[str] = []
-    seed: int | None = Field(None, ge=0, le=2**31 - 1)
-    exposure: float | None = Field(None, ge=0, le=1, description="the training video's exposure (default: the scene's)")
     settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig field, "
                                 "model.FIELD or densify.FIELD), checked against the schema and applied last, as `kgs-app train --set`")
 
@@ -47,6 +38,19 @@ class TrainRequest(StrictRequest):
         for text in value:
             parse_setting(text)  # a ValueError naming the key becomes a 422
         return value
+
+
+def named_field(named: NamedSetting) -> tuple[object, object]:
+    """A request field for a setting offered by name: the schema's type (optional: None is the
+    preset's value), its bounds and its help."""
+    return (setting_type(named.key) | None,
+            Field(None, ge=named.minimum, le=named.maximum, gt=0 if named.positive else None, description=named.help))
+
+
+# The body of POST /api/runs: the fields above, and one per setting offered by name (`NAMED`,
+# the same table `kgs-app train`'s options come from).
+TrainRequest = create_model("TrainRequest", __base__=TrainRequestBase,
+                            **{name: named_field(named) for name, named in NAMED.items()})
 
 
 class TauRequest(StrictRequest):
@@ -70,6 +74,14 @@ def read_json(path: Path) -> dict:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return {}
+
+
+def saved_config(run_id: str, info: dict) -> TrainConfig:
+    """The configuration a run's run.json records, or a 409 naming what is wrong with it."""
+    try:
+        return TrainConfig.from_dict(info.get("config"))
+    except ValueError as exc:
+        raise HTTPException(409, f"run {run_id}: run.json: {exc}") from None
 
 
 def public(row: dict) -> dict:
@@ -113,8 +125,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     bad = [a for a in req.ablate if a not in ABLATIONS]
     if bad:
         raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
-    overrides = overrides_from(req.iterations, req.tau, req.velocity, req.basis, req.seed, kr_form=req.kr_form,
-                               camera_blur=req.camera_blur, exposure=req.exposure, pose_refine=req.pose_refine)
+    overrides = named_overrides(req.model_dump(include=set(NAMED)))
     overrides.update(parse_setting(text) for text in req.settings)
     try:
         make_config(req.preset, ablate=tuple(req.ablate), **overrides)  # refused here, not in the job
@@ -177,6 +188,7 @@ def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
     scene = ws.get("scenes", row["scene_id"]) if row["scene_id"] else None
     if scene is None:
         raise HTTPException(409, "the run's scene is no longer in the workspace")
+    saved_config(run_id, info)  # a malformed run.json is refused here, not in the job
     ws.update("runs", run_id, status=JobStatus.QUEUED, error=None)
     jr.start("runs", run_id, "train", {"scene_dir": scene["path"], "run_dir": row["path"], "config": info["config"],
                                        "resume": True})
@@ -227,7 +239,7 @@ def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace 
         raise HTTPException(409, f"run {run_id} has no model to fine-tune (status: {parent['status']})")
     info = read_json(path / "run.json")
     tau = req.tau if req.tau is not None else run_view(request.app, run_id).tau
-    cfg = finetune_config(info["config"], req.iterations, tau)
+    cfg = finetune_config(saved_config(run_id, info), req.iterations, tau)
     cfg.init_from = str(path)
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import asdict, dataclass, field
-from typing import Literal, NamedTuple, get_args
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -18,12 +18,12 @@ from torch import Tensor, nn
 
 from ..render import packed_covariance
 from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
+from ..schema import check_choices, from_fields, json_object
 from .deformation import DeformationField, FineResidual, Offsets
 from .gaussians import GaussianParams, append, select
-from .kinematics import motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm, so3_exp
+from .kinematics import Basis, motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm, so3_exp
 
 Velocity = Literal["paper", "physical"]
-Basis = Literal["paper", "duff", "principal"]
 KRForm = Literal["convolve", "paper"]
 
 
@@ -57,10 +57,7 @@ class ModelConfig:
     bound: float = 1.5  # K-Planes domain, normalised scene units
 
     def __post_init__(self):
-        for name, literal in (("kr_form", KRForm), ("velocity", Velocity), ("basis", Basis)):
-            allowed = get_args(literal)
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"model.{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        check_choices(self, "model.")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -69,11 +66,13 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
-        d = dict(d)
-        d["deform_multires"] = tuple(d["deform_multires"])
+        """From `to_dict`'s output (a run.json's `config.model`); ValueError naming a bad field."""
+        d = json_object(d, "model")
+        if "deform_multires" in d:
+            d["deform_multires"] = tuple(d["deform_multires"])
         # Runs saved before kr_form existed all used the paper's form: keep rendering them so.
         d.setdefault("kr_form", "paper")
-        return cls(**d)
+        return from_fields(cls, d, "model.")
 
 
 @dataclass
@@ -138,9 +137,10 @@ class KinematicsGS(nn.Module):
                 "fine_mlp": list(self.fine.parameters()), "kappa": [self.kappa]}
 
     # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
-    # dynamic flags and K: `keep_gaussians` and `add_gaussians` resize all of it in lock-step,
-    # and drop the kNN graph of the coarse-to-fine step, which indexes the old set. Nothing else
-    # should assign `params`, `dynamic` or `variance` with a new length.
+    # dynamic flags, K, and a strategy's statistics held by the caller: `keep_gaussians` and
+    # `add_gaussians` resize all of it in lock-step, and drop the kNN graph of the coarse-to-fine
+    # step, which indexes the old set. Nothing else should assign `params`, `dynamic` or
+    # `variance` with a new length.
     def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor) -> None:
         if not len(params) == len(dynamic) == len(variance):
             raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
@@ -150,15 +150,24 @@ class KinematicsGS(nn.Module):
         self.variance = variance
         self._knn = None
 
-    def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None) -> None:
-        """Keeps the Gaussians where `keep (N,) bool` is true (pruning)."""
+    def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None,
+                       state: dict[str, Tensor] | None = None) -> None:
+        """Keeps the Gaussians where `keep (N,) bool` is true (pruning): parameters, Adam
+        moments, dynamic flags, K, and the (N, ...) tensors of `state` (a strategy's statistics,
+        replaced in the dict)."""
         self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep])
+        for k, v in (state or {}).items():
+            state[k] = v[keep]
 
-    def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None) -> None:
+    def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None,
+                      state: dict[str, Tensor] | None = None) -> None:
         """Appends Gaussians (densification: clones and split children); each inherits the dynamic
-        flag and K of its parent, `parents (M,)` indices into the current set."""
+        flag and K of its parent, `parents (M,)` indices into the current set, and starts with
+        zero Adam moments and zeros in `state`."""
         self.set_params(append(self.params, optimizer, new), torch.cat([self.dynamic, self.dynamic[parents]]),
                         torch.cat([self.variance, self.variance[parents]]))
+        for k, v in (state or {}).items():
+            state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
 
     def scales(self) -> Tensor:
         # Clamped so that exp cannot overflow float32 (e^88) or underflow to 0 at extreme logits.

@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Literal
 
 from ..model.dynamic import ModelConfig
+from ..schema import check_choices, from_fields, json_object
 from .densify import DensifyStrategy
 
-CAMERA_BLUR = ("off", "poses", "learned")
+CameraBlur = Literal["off", "poses", "learned"]
+FrameSampling = Literal["uniform", "loss"]
+OnNonfinite = Literal["error", "restore"]
 # The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
 NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
 # Where the densification settings were before they became `TrainConfig.densify` (old run.json).
 FLAT_DENSIFY = {"grad_threshold": "grad_threshold", "densify_from": "start", "densify_until": "stop",
                 "densify_every": "every", "prune_opacity": "prune_opacity", "percent_dense": "percent_dense",
                 "opacity_reset_at": "opacity_reset_at", "max_gaussians": "max_gaussians"}
-FRAME_SAMPLING = ("uniform", "loss")
 
 ABLATIONS = {
     "cf": "no coarse-to-fine (dynamic Gaussians use the field's own offsets)",
@@ -76,7 +79,7 @@ class TrainConfig:
     noise_per_gaussian: bool = True
     # Which training frame each step sees: "uniform", or "loss" (a mix of uniform and each
     # frame's running photometric loss, so that frames the model fits worst are seen more).
-    frame_sampling: str = "uniform"  # one of FRAME_SAMPLING
+    frame_sampling: FrameSampling = "uniform"
     frame_sampling_mix: float = 0.5  # "loss": the share of draws weighted by the loss
     # The warm-up sees a time window that grows from the clip's middle: at iteration 0 the frames
     # within `time_window_start` / 2 of the middle (as a fraction of the clip), the whole clip
@@ -94,7 +97,7 @@ class TrainConfig:
     eval_frames: int = 4
     checkpoint_every: int = 1000
     # guards: what a NaN/Inf in the loss or a gradient does
-    on_nonfinite: str = "error"  # "error": stop, naming the tensor; "restore": last good checkpoint
+    on_nonfinite: OnNonfinite = "error"  # "error": stop, naming the tensor; "restore": last good checkpoint
     nonfinite_lr_factor: float = 0.5  # "restore" multiplies every learning rate by this
     nonfinite_max_restores: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -102,7 +105,7 @@ class TrainConfig:
     # Blur every Gaussian along the camera's own motion during the exposure too (K.R. convolve
     # form only; train/camera_motion.py): "off", "poses" (central differences of the poses) or
     # "learned" (per-frame motion fitted from there, at lr_camera_motion). docs/method.md.
-    camera_blur: str = "off"
+    camera_blur: CameraBlur = "off"
     lr_camera_motion: float = 3e-3
     # Fit a rigid correction of each training camera's pose (train/pose_refine.py). Off by
     # default: on `walk` it fitted the training views 2 dB better and the sharp camera 0.3 dB
@@ -121,6 +124,11 @@ class TrainConfig:
     # preset's constants were kept (no scene given, or every setting given explicitly).
     fitted: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        check_choices(self)
+        if self.exposure is not None and not 0 <= self.exposure <= 1:
+            raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {self.exposure!r}")
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["model"] = self.model.to_dict()
@@ -131,17 +139,23 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        d = dict(d)
+        """From `to_dict`'s output (a run.json's `config`), older layouts included; ValueError
+        naming the field when a part is malformed (keys this version does not know are skipped
+        at the top level, refused inside `model` and `densify`)."""
+        d = json_object(d, "config")
+        if "model" not in d:
+            raise ValueError("config has no model block")
         m = d.pop("model")
         # Runs saved before the densification settings were one field kept them at the top level.
         densify = d.pop("densify", None) or {new: d[old] for old, new in FLAT_DENSIFY.items() if old in d}
         for k in ("lod_fractions", "ablate"):
-            d[k] = tuple(d[k])
+            if k in d:
+                d[k] = tuple(d[k])
         if isinstance(d.get("camera_blur"), bool):  # runs saved when it was an on/off switch
             d["camera_blur"] = "poses" if d["camera_blur"] else "off"
         d.setdefault("tau_auto", False)  # runs saved before it split at their configured τ
         known = {f.name for f in fields(cls)} - {"model", "densify"}
-        return cls(model=ModelConfig.from_dict(m), densify=DensifyStrategy(**densify),
+        return cls(model=ModelConfig.from_dict(m), densify=from_fields(DensifyStrategy, densify, "densify."),
                    **{k: v for k, v in d.items() if k in known})
 
 
@@ -182,29 +196,16 @@ def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
 PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 
-def overrides_from(iterations: int | None = None, tau: float | None = None, velocity: str | None = None,
-                   basis: str | None = None, seed: int | None = None, on_nonfinite: str | None = None,
-                   kr_form: str | None = None, camera_blur: str | None = None, exposure: float | None = None,
-                   pose_refine: bool | None = None) -> dict:
-    """`make_config` overrides from the options the CLI and the server share (None = preset's)."""
-    named = {"iterations": iterations, "model.tau": tau, "model.velocity": velocity, "model.basis": basis, "model.kr_form": kr_form,
-             "seed": seed, "on_nonfinite": on_nonfinite, "camera_blur": camera_blur, "exposure": exposure,
-             "pose_refine": pose_refine}
-    return {k: v for k, v in named.items() if v is not None}
-
-
-def finetune_config(parent: dict, iterations: int, tau: float | None = None) -> "TrainConfig":
-    """Fine-tuning a finished run (its `run.json` config) for `iterations` more, keeping its
-    split (at `tau` when given): no densification, no re-split, no opacity reset, one LoD level,
-    the position learning rate at its final value."""
-    cfg = TrainConfig.from_dict(parent)
-    cfg = replace(cfg, iterations=iterations, densify=replace(cfg.densify, start=iterations + 1, stop=0, opacity_reset_at=()),
-                  decompose_at=iterations + 1, decompose_every=0, lod_levels=1, lod_fractions=(1.0,),
-                  lr_means=cfg.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations,
-                  time_window_start=1.0)  # the parent has seen the whole clip
-    if tau is not None:
-        cfg.model.tau = tau
-    return cfg
+def finetune_config(parent: TrainConfig, iterations: int, tau: float | None = None) -> "TrainConfig":
+    """Fine-tuning a finished run (its configuration) for `iterations` more, keeping its split
+    (at `tau` when given): no densification, no re-split, no opacity reset, one LoD level, the
+    position learning rate at its final value."""
+    return replace(parent, iterations=iterations,
+                   densify=replace(parent.densify, start=iterations + 1, stop=0, opacity_reset_at=()),
+                   decompose_at=iterations + 1, decompose_every=0, lod_levels=1, lod_fractions=(1.0,),
+                   lr_means=parent.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations,
+                   time_window_start=1.0,  # the parent has seen the whole clip
+                   model=parent.model if tau is None else replace(parent.model, tau=tau))
 
 
 # The fast preset's constants are tuned on the 128², 60-frame demo scene; these are that scene's
@@ -281,49 +282,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     return cfg
 
 
-def parse_setting(text: str) -> tuple[str, object]:
-    """`KEY=VALUE` of one training setting, checked against the schema: KEY a `TrainConfig`
-    field, `model.<ModelConfig field>` or `densify.<DensifyStrategy field>`; VALUE as JSON when
-    it parses (numbers, true/false, lists), else the plain string, and of the default's type, so
-    that a mistyped value fails here and not minutes into training (an integer stands for a
-    float; true/false only for a switch). Raises ValueError naming the key. What `kgs-app train
-    --set`, the REST `settings` and `bench quality`'s `@KEY=VALUE` read."""
-    import json
-
-    key, eq, raw = text.partition("=")
-    defaults = {f.name: getattr(TrainConfig(), f.name) for f in fields(TrainConfig) if f.name not in ("ablate", "fitted", *NESTED)}
-    for part, schema in NESTED.items():
-        defaults |= {f"{part}.{f.name}": getattr(schema(), f.name) for f in fields(schema)}
-    if not eq or key not in defaults:
-        raise ValueError(f"{text!r} is not KEY=VALUE with KEY a training setting (e.g. noise_init_frames, model.tau)")
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    value = tuple(value) if isinstance(value, list) else value
-    default = defaults[key]
-    want = float if default is None else type(default)  # (the None defaults are optional numbers)
-    number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    ok = (value is None and default is None) or (
-        isinstance(value, bool) if want is bool else
-        number if want is float else
-        isinstance(value, want) and not isinstance(value, bool))
-    if not ok:
-        kind = {bool: "true or false", float: "a number", int: "a whole number", str: "a word",
-                tuple: "a JSON list"}.get(want, want.__name__)
-        raise ValueError(f"{key} takes {kind} (default {default!r}), got {raw!r}")
-    return key, float(value) if want is float and value is not None else value
-
-
 def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **overrides) -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    if overrides.get("camera_blur", "off") not in CAMERA_BLUR:
-        raise ValueError(f"camera_blur must be one of {', '.join(CAMERA_BLUR)}, got {overrides['camera_blur']!r}")
-    if overrides.get("frame_sampling", "uniform") not in FRAME_SAMPLING:
-        raise ValueError(f"frame_sampling must be one of {', '.join(FRAME_SAMPLING)}, got {overrides['frame_sampling']!r}")
-    if overrides.get("exposure") is not None and not 0 <= overrides["exposure"] <= 1:
-        raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {overrides['exposure']!r}")
     bad = [a for a in ablate if a not in ABLATIONS]
     if bad:
         raise ValueError(f"unknown ablation {bad[0]!r}; choose from {', '.join(ABLATIONS)}")

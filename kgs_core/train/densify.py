@@ -17,8 +17,10 @@ from ..render.types import Rendered
 @dataclass
 class DensifyStrategy:
     """Its fields are the configuration (`TrainConfig.densify`, set with `--set densify.KEY=VALUE`);
-    the running gradient statistics are state, created fresh for each copy (`dataclasses.replace`
-    gives the trainer its own) and kept in checkpoints by the trainer."""
+    the running gradient statistics are per-Gaussian state (`state`: grad_sum and count, (N,)
+    each), created fresh for each copy (`dataclasses.replace` gives the trainer its own), resized
+    with the Gaussians by whoever prunes or adds them (`KinematicsGS.keep_gaussians` /
+    `add_gaussians` take it), and kept in checkpoints by the trainer."""
 
     # Clone (small) or split (large) a Gaussian whose mean screen-space gradient, in NDC units as
     # in the 3DGS literature, reaches this.
@@ -34,13 +36,19 @@ class DensifyStrategy:
 
     def __post_init__(self):
         self.opacity_reset_at = tuple(self.opacity_reset_at)
-        self.grad_sum = torch.zeros(0)
-        self.count = torch.zeros(0)
+        self.state: dict[str, torch.Tensor] = {}
+        self.reset(0)
+
+    def reset(self, n: int) -> None:
+        """Zero statistics for `n` Gaussians."""
+        self.state.update(grad_sum=torch.zeros(n), count=torch.zeros(n))
 
     def _ensure(self, n: int) -> None:
-        if len(self.grad_sum) != n:
-            self.grad_sum = torch.zeros(n)
-            self.count = torch.zeros(n)
+        have = len(self.state["grad_sum"])
+        if have == 0:
+            self.reset(n)
+        elif have != n:  # someone resized the Gaussians without passing `state` along
+            raise RuntimeError(f"densification statistics cover {have} Gaussians, the model has {n}")
 
     def accumulate(self, out: Rendered, width: int, height: int) -> None:
         g = out.means2d.grad
@@ -50,8 +58,8 @@ class DensifyStrategy:
         # Pixel gradients -> NDC units, so thresholds match the 3DGS literature.
         g = g * torch.tensor([width / 2.0, height / 2.0])
         vis = out.radii > 0
-        self.grad_sum[vis] += g[vis].norm(dim=-1)
-        self.count[vis] += 1
+        self.state["grad_sum"][vis] += g[vis].norm(dim=-1)
+        self.state["count"][vis] += 1
 
     def step(self, model: KinematicsGS, optimizer, it: int) -> bool:
         """Returns True when the set of Gaussians changed."""
@@ -69,7 +77,7 @@ class DensifyStrategy:
     def _densify_and_prune(self, model: KinematicsGS, optimizer) -> None:
         n = len(model)
         self._ensure(n)
-        avg = self.grad_sum / self.count.clamp_min(1)
+        avg = self.state["grad_sum"] / self.state["count"].clamp_min(1)
         big = avg >= self.grad_threshold
         scales = model.scales().detach()
         small = scales.max(-1).values <= self.percent_dense * self.extent
@@ -102,7 +110,7 @@ class DensifyStrategy:
                 new_parts.append(child)
                 parents.append(idx)
         for part, par in zip(new_parts, parents):
-            model.add_gaussians(part, par, optimizer)
+            model.add_gaussians(part, par, optimizer, self.state)
         params = model.params
         # Prune: split parents, transparent and huge Gaussians.
         keep = torch.ones(len(params), dtype=torch.bool)
@@ -113,6 +121,5 @@ class DensifyStrategy:
         keep &= ~big_world
         if keep.sum() < 4:  # never prune everything
             keep[:] = True
-        model.keep_gaussians(keep, optimizer)
-        self.grad_sum = torch.zeros(len(model))
-        self.count = torch.zeros(len(model))
+        model.keep_gaussians(keep, optimizer, self.state)
+        self.reset(len(model))  # 3DGS: the statistics start again after each densification

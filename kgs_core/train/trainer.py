@@ -26,7 +26,7 @@ from ..model.render import render_model
 from ..render.types import Rendered
 from ..run import save_decomposition, save_torch, write_run_json
 from .camera_motion import CameraMotion
-from .config import FRAME_SAMPLING, TrainConfig
+from .config import TrainConfig
 from .densify import DensifyStrategy
 from .exposure import FittedExposure
 from .pose_refine import PoseCorrection
@@ -148,8 +148,6 @@ class Trainer:
         self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
                               if cfg.camera_blur != "off" else None)
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
-        if cfg.frame_sampling not in FRAME_SAMPLING:  # (a config read back from a run.json skips make_config)
-            raise ValueError(f"frame_sampling must be one of {', '.join(FRAME_SAMPLING)}, got {cfg.frame_sampling!r}")
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
 
@@ -375,7 +373,7 @@ class Trainer:
         imp = self.importance()
         keep = imp >= self.cfg.lod_prune_importance
         if keep.sum() >= 4:
-            model.keep_gaussians(keep, self.opt)
+            model.keep_gaussians(keep, self.opt, self.strategy.state)
         snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
                 "variance": model.variance.clone(), "min_scale": model.min_scale, "iteration": self.iteration + 1}
         self.levels.append(snap)
@@ -407,10 +405,16 @@ class Trainer:
         return row
 
     def check_gradients(self, it: int) -> None:
-        """NaN/Inf in any gradient: an error naming the parameter (a Gaussian attribute or a
-        network weight) and the iteration."""
+        """NaN/Inf in any gradient: an error naming the parameter (a Gaussian attribute, a
+        network weight, the camera motion, a pose correction or the fitted exposure) and the
+        iteration."""
         named = {f"gaussians.{k}": v for k, v in self.model.params.items()}
         named.update({f"network.{k}": p for k, p in self.model.named_parameters()})
+        for part, module in (("camera_motion", self.camera_motion), ("pose_correction", self.pose_correction)):
+            if module is not None:
+                named.update({f"{part}.{k}": p for k, p in module.named_parameters()})
+        if self.fitted_exposure is not None:
+            named["exposure.logit"] = self.fitted_exposure.logit
         grads = [p.grad for p in named.values() if p.grad is not None]
         # One sum per tensor (NaN and Inf propagate into it) instead of an isfinite mask each:
         # the names are looked up only when something is wrong.
@@ -440,7 +444,7 @@ class Trainer:
             "iteration": self.iteration, "train_seconds": self.train_seconds, "model": self.model.state(),
             "opt": self.opt.state_dict(), "net_opt": self.net_opt.state_dict(), "levels": self.levels,
             "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
-            "strategy": {"grad_sum": self.strategy.grad_sum, "count": self.strategy.count},
+            "strategy": dict(self.strategy.state),
             "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
             "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
             "frame_loss": self.frame_loss.clone(),
@@ -462,7 +466,7 @@ class Trainer:
         self.opt.load_state_dict(state["opt"])
         self.net_opt.load_state_dict(state["net_opt"])
         self.strategy = self.make_strategy()
-        self.strategy.grad_sum, self.strategy.count = state["strategy"]["grad_sum"], state["strategy"]["count"]
+        self.strategy.state.update(grad_sum=state["strategy"]["grad_sum"], count=state["strategy"]["count"])
         self.iteration = state["iteration"]
         self.train_seconds = state["train_seconds"]
         self.levels = state["levels"]
