@@ -30,6 +30,11 @@ class RunViews:
                 self.views.popitem(last=False)
         return v
 
+    def loaded(self, run_id: str) -> RunView | None:
+        """The run's view if it is loaded, without touching the workspace or the disk."""
+        with self.lock:
+            return self.views.get(run_id)
+
     def drop(self, run_id: str) -> None:
         with self.lock:
             self.views.pop(run_id, None)

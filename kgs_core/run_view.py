@@ -19,7 +19,7 @@ from .edits import EditLayer, load_edits, save_edits
 from .export.bake import Baked, baked_from
 from .model.dynamic import split_counts, variance_histogram
 from .run import LoadedRun, load_run
-from .splat_buffer import pack_buffer, rgba_of
+from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, rgba_of
 
 _STOP = threading.Event()  # set at interpreter exit: builders stop between samples
 _BUILDERS: set[threading.Thread] = set()
@@ -35,11 +35,15 @@ def _stop_builders() -> None:
 
 
 class Trajectories:
-    """The dynamic set sampled once per frame interval (positions, covariances, velocities), so
-    that a time change is a linear interpolation between two samples instead of three
-    deformation-field evaluations. Built in a background thread; exact evaluation answers until
-    it is ready. Covariances interpolate linearly (a convex combination of SPD matrices stays
-    SPD). The interpolation error is measured by `kgs-app bench serve` (docs/serve.md)."""
+    """The dynamic set sampled once per frame interval (positions, packed covariances,
+    velocities), so that a time change is a linear interpolation between two samples instead of
+    three deformation-field evaluations. Built in a background thread; exact evaluation answers
+    until it is ready. Covariances interpolate linearly (a convex combination of SPD matrices
+    stays SPD). The interpolation error is measured by `kgs-app bench serve` (docs/serve.md).
+
+    The cache belongs to one version of the view (τ and edits), so the Gaussians the edits keep
+    are fixed for its life: `buffer` cuts the samples to them once (`_kept`), and each request
+    then only interpolates and packs."""
 
     def __init__(self, view: "RunView", model, lod: int, version: int, exposure: float):
         self.key = (lod, version, exposure)
@@ -48,6 +52,8 @@ class Trajectories:
         self.ready = threading.Event()
         self.failed: str | None = None
         self.times = None
+        self._kept_samples: dict | None = None
+        self._kept_lock = threading.Lock()
         th = threading.Thread(target=self._build, daemon=True)
         _BUILDERS.add(th)
         th.start()
@@ -67,10 +73,10 @@ class Trajectories:
                 # evaluation, or it never finishes while many clients scrub.
                 idx, g = m.at_dynamic(float(t), exposure, self.view.dt)
                 means.append(g.means.numpy())
-                covs.append(g.covars.numpy())
+                covs.append(g.covars6.numpy())
                 vels.append(g.velocity.numpy())
             self.idx = idx.numpy()
-            self.means, self.covs, self.vels = np.stack(means), np.stack(covs), np.stack(vels)
+            self.means, self.cov6, self.vels = np.stack(means), np.stack(covs), np.stack(vels)
             self.rgba = rgba_of(g.sh, g.opacities)
             self.times = times
             self.ready.set()
@@ -79,13 +85,55 @@ class Trajectories:
         finally:
             _BUILDERS.discard(threading.current_thread())
 
-    def at(self, t: float):
-        """(idx, means, covars, velocity, rgba) at `t` by linear interpolation."""
+    def _bracket(self, t: float) -> tuple[int, float]:
+        """(k, w): `t` lies at weight w between samples k and k + 1."""
         times = self.times
         k = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2))
-        w = float((t - times[k]) / (times[k + 1] - times[k]))
-        lerp = lambda a: (1 - w) * a[k] + w * a[k + 1]  # noqa: E731
-        return self.idx, lerp(self.means), lerp(self.covs), lerp(self.vels), self.rgba
+        return k, float((t - times[k]) / (times[k + 1] - times[k]))
+
+    def _kept(self, keep: np.ndarray) -> dict:
+        """The samples cut to the Gaussians `keep` (the view's edits at this cache's version),
+        ready to interpolate straight into a buffer: covariances in one unit for the whole cache
+        and clipped to float16's range, as are the velocities (a convex mix stays inside it);
+        made on the first request."""
+        with self._kept_lock:
+            if self._kept_samples is None:
+                sel = keep[self.idx]
+                cut = (lambda a: a) if sel.all() else (lambda a: a[:, sel])  # noqa: E731
+                cov6 = cut(self.cov6)
+                scale = float(np.median([cov_scale(c) for c in cov6]))
+                self._kept_samples = {
+                    "means": np.ascontiguousarray(cut(self.means)), "scale": scale,
+                    "cov6": np.clip(cov6 / scale, -F16_MAX, F16_MAX, dtype=np.float32),
+                    "vels": np.clip(cut(self.vels), -F16_MAX, F16_MAX, dtype=np.float32),
+                    "rgba": self.rgba[sel], "index": self.idx[sel].astype(np.uint32)}
+                self.means = self.cov6 = self.vels = None  # only the cut is read from here on
+            return self._kept_samples
+
+    def nbytes(self) -> int:
+        """Memory held by the samples (and their kept cut, once made)."""
+        arrays = [self.means, self.cov6, self.vels, *(self._kept_samples or {}).values()]
+        return sum({id(a): a.nbytes for a in arrays if isinstance(a, np.ndarray)}.values())
+
+    def buffer(self, t: float, keep: np.ndarray, header: dict, velocity: bool) -> bytes:
+        """The kept dynamic set at `t`, linearly interpolated between the two samples around it,
+        written straight into a splat buffer."""
+        kept = self._kept(keep)
+        k, w = self._bracket(t)
+
+        def lerp_into(a: np.ndarray, out: np.ndarray) -> None:
+            step = a[k + 1] - a[k]
+            step *= w
+            np.add(a[k], step, out=out, casting="same_kind")
+
+        buf, rec, vel = new_buffer(header, len(kept["index"]), velocity, kept["scale"])
+        lerp_into(kept["means"], rec["position"])
+        lerp_into(kept["cov6"], rec["covariance"])
+        rec["rgba"] = kept["rgba"]
+        rec["index"] = kept["index"]
+        if vel is not None:
+            lerp_into(kept["vels"], vel)
+        return bytes(buf)
 
 
 def _with_tau(model, tau: float):
@@ -113,6 +161,8 @@ class RunView:
         self.tau = float(self.run.model.config.tau)
         self._models: dict[int, object] = {}
         self._static: dict[tuple, bytes] = {}
+        self._keep: dict[tuple, np.ndarray] = {}
+        self._nothing_dynamic: dict[tuple, bool] = {}
         self._trajectories: dict[tuple, Trajectories] = {}
         self.use_trajectories = True  # False: always evaluate the deformation field exactly
         self.version = 0  # bumped by τ changes and edits: clients re-request the static set
@@ -148,10 +198,24 @@ class RunView:
             return lod, self._models[lod]
 
     def state(self, lod: int | None):
-        """(lod, model, keep mask, version), consistent with each other."""
+        """(lod, model, keep mask, version), consistent with each other; the mask is made once
+        per version (every buffer request asks for it)."""
         with self.lock:
             lod, m = self.model(lod)
-            return lod, m, self.keep(lod, m), self.version
+            key = (lod, self.version)
+            if key not in self._keep:
+                self._keep[key] = mask = self.keep(lod, m)
+                mask.flags.writeable = False  # shared by every request of this version
+            return lod, m, self._keep[key], self.version
+
+    def nothing_dynamic(self, lod: int, model) -> bool:
+        """True when the run has no dynamic set to send at this LoD (a static run, or a split
+        that left every Gaussian static); asked on every buffer request, so kept per version."""
+        with self.lock:
+            key = (lod, self.version)
+            if key not in self._nothing_dynamic:
+                self._nothing_dynamic[key] = self.run.static_only or (model.decomposed and not bool(model.dynamic.any()))
+            return self._nothing_dynamic[key]
 
     def keep(self, lod: int, model) -> np.ndarray:
         return self.edits.keep_mask(lod, model.params.means.detach().numpy())
@@ -174,7 +238,7 @@ class RunView:
                 g = m.at_static()
             idx = torch.from_numpy(np.nonzero(sel)[0])
             buf = pack_buffer({"kind": "static", "lod": lod, "version": version},
-                              g.means[idx].numpy(), g.covars[idx].double().numpy(),
+                              g.means[idx].numpy(), g.covars6[idx].double().numpy(),
                               rgba_of(g.sh[idx], g.opacities[idx]), idx.numpy().astype(np.uint32))
             with self.lock:
                 if version == self.version:
@@ -187,7 +251,7 @@ class RunView:
         """The ready trajectory cache for (lod, exposure), starting its build if needed."""
         with self.lock:
             lod, m = self.model(lod)
-            if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
+            if self.nothing_dynamic(lod, m):
                 return None
             key = (lod, self.version, round(float(exposure), 6))
             tr = self._trajectories.get(key)
@@ -203,20 +267,18 @@ class RunView:
         `exact` is not asked for), else evaluated exactly."""
         lod, m, keep, version = self.state(lod)
         header = {"kind": "dynamic", "lod": lod, "t": t, "exposure": exposure, "version": version}
-        if self.run.static_only or (m.decomposed and not bool(m.dynamic.any())):
-            return pack_buffer(header, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 4)), np.zeros(0),
+        if self.nothing_dynamic(lod, m):
+            return pack_buffer(header, np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 4)), np.zeros(0),
                                np.zeros((0, 3)) if velocity else None)
         tr = None if (exact or not self.use_trajectories) else self.trajectories(lod, exposure)
         if tr is not None and tr.key[1] == version:
-            idx, means, covs, vels, rgba = tr.at(float(t))
-            header["interpolated"] = True
-        else:
-            with self.compute:  # without velocities a sharp frame skips their field samples
-                idx_t, g = m.at_dynamic(float(t), exposure, self.dt, velocity=velocity)
-            idx, means, covs = idx_t.numpy(), g.means.numpy(), g.covars.numpy()
-            vels = g.velocity.numpy() if g.velocity is not None else None
-            rgba = rgba_of(g.sh, g.opacities)
-            header["interpolated"] = False
+            return tr.buffer(float(t), keep, {**header, "interpolated": True}, velocity)
+        with self.compute:  # without velocities a sharp frame skips their field samples
+            idx_t, g = m.at_dynamic(float(t), exposure, self.dt, velocity=velocity)
+        idx, means, covs = idx_t.numpy(), g.means.numpy(), g.covars6.numpy()
+        vels = g.velocity.numpy() if g.velocity is not None else None
+        rgba = rgba_of(g.sh, g.opacities)
+        header["interpolated"] = False
         sel = keep[idx]
         return pack_buffer(header, means[sel], covs[sel], rgba[sel], idx[sel].astype(np.uint32),
                            vels[sel] if velocity else None)
@@ -287,4 +349,6 @@ class RunView:
     def _invalidate(self) -> None:
         self.version += 1
         self._static.clear()
+        self._keep.clear()
+        self._nothing_dynamic.clear()
         self._trajectories.clear()

@@ -29,28 +29,50 @@ from .render.sh import C0
 MAGIC = b"KGS1"
 RECORD = np.dtype([("position", "<f4", 3), ("covariance", "<f2", 6), ("rgba", "u1", 4), ("index", "<u4")])
 assert RECORD.itemsize == 32
-TRIU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+F16_MAX = 65504.0  # the largest float16: larger values are clipped to it, not sent as inf
 
 
-def pack_buffer(header: dict, means: np.ndarray, covars: np.ndarray, rgba: np.ndarray, index: np.ndarray,
-                velocity: np.ndarray | None = None) -> bytes:
-    n = len(means)
-    cov6 = covars[:, TRIU[0], TRIU[1]] if n else np.zeros((0, 6))
-    scale = float(np.median(cov6[:, [0, 3, 5]].sum(1) / 3)) if n else 1.0
-    scale = scale if scale > 0 and np.isfinite(scale) else 1.0
-    rec = np.empty(n, dtype=RECORD)
-    rec["position"] = means
-    rec["covariance"] = np.clip(cov6 / scale, -65504, 65504)
-    rec["rgba"] = rgba
-    rec["index"] = index
-    header = {**header, "count": n, "cov_scale": scale, "velocity": velocity is not None}
+def cov_scale(cov6: np.ndarray) -> float:
+    """The median of the covariances' traces / 3, what `pack_buffer` divides them by (1.0 for
+    none, or when it is not a positive number)."""
+    if not len(cov6):
+        return 1.0
+    scale = float(np.median(cov6[:, [0, 3, 5]].sum(1) / 3))
+    return scale if scale > 0 and np.isfinite(scale) else 1.0
+
+
+def new_buffer(header: dict, n: int, velocity: bool, scale: float) -> tuple[bytearray, np.ndarray, np.ndarray | None]:
+    """A zeroed buffer of the layout above for `n` splats, its header written: (the buffer, its
+    `n` records, its `(n, 3)` float16 velocities or None), the last two writable views into it,
+    so that a caller fills the splats in place and sends `bytes(buffer)`."""
+    header = {**header, "count": n, "cov_scale": float(scale), "velocity": velocity}
     hj = json.dumps(header).encode()
     hj += b" " * (-len(hj) % 4)
-    parts = [MAGIC, struct.pack("<I", len(hj)), hj, rec.tobytes()]
-    if velocity is not None:
-        v = np.clip(velocity, -65504, 65504).astype("<f2").tobytes()
-        parts.append(v + b"\0" * (-len(v) % 4))
-    return b"".join(parts)
+    start = 8 + len(hj)
+    vel_bytes = 6 * n if velocity else 0
+    buf = bytearray(start + RECORD.itemsize * n + vel_bytes + (-vel_bytes % 4))
+    buf[:4] = MAGIC
+    struct.pack_into("<I", buf, 4, len(hj))
+    buf[8:start] = hj
+    rec = np.frombuffer(buf, dtype=RECORD, count=n, offset=start)
+    vel = np.frombuffer(buf, dtype="<f2", count=3 * n, offset=start + RECORD.itemsize * n).reshape(n, 3) if velocity else None
+    return buf, rec, vel
+
+
+def pack_buffer(header: dict, means: np.ndarray, cov6: np.ndarray, rgba: np.ndarray, index: np.ndarray,
+                velocity: np.ndarray | None = None, scale: float | None = None) -> bytes:
+    """One buffer of the layout above from `means (N, 3)`, `cov6 (N, 6)` (packed upper
+    triangles xx, xy, xz, yy, yz, zz), `rgba (N, 4) uint8`, `index (N,)` and optionally
+    `velocity (N, 3)`; `scale` is the covariance unit (default `cov_scale(cov6)`)."""
+    scale = cov_scale(cov6) if scale is None else float(scale)
+    buf, rec, vel = new_buffer(header, len(means), velocity is not None, scale)
+    rec["position"] = means
+    rec["covariance"] = np.clip(cov6 / scale, -F16_MAX, F16_MAX)
+    rec["rgba"] = rgba
+    rec["index"] = index
+    if vel is not None:
+        vel[:] = np.clip(velocity, -F16_MAX, F16_MAX)
+    return bytes(buf)
 
 
 def unpack_buffer(data: bytes) -> tuple[dict, np.ndarray, np.ndarray | None]:

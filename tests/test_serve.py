@@ -433,6 +433,41 @@ def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
     assert np.allclose(rec_n["covariance"].astype(np.float64), rec_v["covariance"].astype(np.float64), atol=1e-3)
 
 
+def test_trajectory_cache_gives_the_exact_set_at_its_samples_and_the_linear_mix_between(copy_run):
+    """The cache's buffers: at a sample time the exact evaluation's splats (to float16), halfway
+    between two samples their mean, and after an edit only the Gaussians the edit keeps."""
+    from kgs_core.run_view import RunView
+
+    view = RunView(copy_run)
+    lod = view.run.n_levels
+    view.trajectories(lod, 0.0)
+    tr = view._trajectories[(lod, view.version, 0.0)]
+    assert tr.ready.wait(60) and tr.failed is None
+
+    def splats(buf):
+        h, rec, vel = unpack_buffer(buf)
+        return h, rec["index"], rec["position"].astype(np.float64), rec["covariance"] * h["cov_scale"], vel
+
+    t0, t1 = (float(t) for t in tr.times[2:4])
+    ha, ia, pa, ca, va = splats(view.dynamic_buffer(t0))
+    hb, ib, pb, cb, vb = splats(view.dynamic_buffer(t0, exact=True))
+    assert ha["interpolated"] and not hb["interpolated"] and len(ia) > 0
+    assert np.array_equal(ia, ib) and np.allclose(pa, pb, atol=1e-6)
+    assert np.allclose(ca, cb, rtol=2e-3, atol=1e-3 * ha["cov_scale"])
+    assert np.allclose(va.astype(np.float64), vb.astype(np.float64), rtol=2e-3, atol=1e-3)
+    _, _, p1, c1, _ = splats(view.dynamic_buffer(t1, exact=True))
+    _, im, pm, cm, _ = splats(view.dynamic_buffer((t0 + t1) / 2))
+    assert np.array_equal(im, ia) and np.allclose(pm, (pb + p1) / 2, atol=1e-6)
+    assert np.allclose(cm, (cb + c1) / 2, rtol=2e-3, atol=1e-3 * ha["cov_scale"])
+    # An edit makes a new version: its cache leaves the deleted Gaussians out.
+    gone = [int(i) for i in ia[:3]]
+    view.apply_edit("delete", lod, gone)
+    view.trajectories(lod, 0.0)
+    assert view._trajectories[(lod, view.version, 0.0)].ready.wait(60)
+    h, idx, *_ = splats(view.dynamic_buffer(t0))
+    assert h["interpolated"] and len(idx) == len(ia) - 3 and not set(gone) & set(idx.tolist())
+
+
 # ------------------------------------------------------------ hostile clients
 
 

@@ -18,6 +18,8 @@ from __future__ import annotations
 import asyncio
 import json
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.concurrency import run_in_threadpool
@@ -32,6 +34,15 @@ MAX_MESSAGE = 64 * 1024
 # flood) would otherwise grow this without bound: past the limit it is disconnected.
 MAX_NOTES = 256
 SLOW_CONSUMER = 4008  # close code: the client did not read its messages
+# Splat buffers are built on two threads of their own, not on the shared threadpool: 50
+# clients asking at once would otherwise run 40 builds side by side on two cores, each a
+# millisecond of numpy, and spend more time handing the interpreter lock and the view's lock
+# around than building (measured: docs/serve.md, "Where the buffers are built").
+BUFFER_THREADS = ThreadPoolExecutor(max_workers=2, thread_name_prefix="kgs-buffers")
+
+
+async def build(fn, *args):
+    return await asyncio.get_running_loop().run_in_executor(BUFFER_THREADS, partial(fn, *args))
 
 
 class Hub:
@@ -57,6 +68,7 @@ class Connection:
         self.notes: list[dict] = []
         self.overflow = False  # set when notes passed MAX_NOTES: the sender closes the socket
         self.wake = asyncio.Event()
+        self.view = None  # the RunView last served, reused while the server keeps it loaded
 
     def notify(self, msg: dict) -> None:
         if msg.get("type") == "pong" and any(n.get("type") == "pong" for n in self.notes):
@@ -128,15 +140,19 @@ async def sender(conn: Connection, app) -> None:
             await conn.ws.send_text(json.dumps(conn.notes.pop(0)))
         if not conn.subscribed:
             continue
-        try:
-            view = run_view(app, conn.run_id)
-        except Exception as exc:
-            conn.subscribed = False
-            await conn.ws.send_text(json.dumps(_error(getattr(exc, "detail", str(exc)))))
-            continue
+        # Resolving a view asks the workspace database and the disk: once per connection, and
+        # again only after the run was deleted or left the cache of loaded runs.
+        view = conn.view if conn.view is not None and app.state.views.loaded(conn.run_id) is conn.view else None
+        if view is None:
+            try:
+                view = conn.view = run_view(app, conn.run_id)
+            except Exception as exc:
+                conn.subscribed = False
+                await conn.ws.send_text(json.dumps(_error(getattr(exc, "detail", str(exc)))))
+                continue
         if conn.static_version != view.version:
             try:
-                buf = await run_in_threadpool(view.static_buffer, conn.lod)
+                buf = await build(view.static_buffer, conn.lod)
             except ValueError as exc:  # an LoD level the run does not have
                 conn.subscribed = False
                 await conn.ws.send_text(json.dumps(_error(str(exc))))
@@ -146,7 +162,7 @@ async def sender(conn: Connection, app) -> None:
         if conn.pending is not None:
             req, conn.pending = conn.pending, None
             try:
-                buf = await run_in_threadpool(view.dynamic_buffer, req["t"], req["exposure"], conn.lod, conn.velocity)
+                buf = await build(view.dynamic_buffer, req["t"], req["exposure"], conn.lod, conn.velocity)
             except ValueError as exc:
                 await conn.ws.send_text(json.dumps(_error(str(exc))))
                 continue
