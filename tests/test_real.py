@@ -113,10 +113,16 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
     out = tmp_path / "out"
     shutil.copytree(FIXTURE, out / "scenes" / "walk96")
     assert main(["walk", "--data", str(data), "--size", "96", "--iterations", "40", "--configs", "full,split",
-                 "--out", str(out)]) == 0
+                 "--seeds", "0,1", "--out", str(out)]) == 0
     results = json.loads((out / "results.json").read_text())["walk"]
     assert {"full", "no split, D3DGS-like", "static 3DGS"} <= set(results)
     for row in results.values():
         assert 5 < row["psnr"] < 50 and row["iterations"] >= 40
-    assert "PSNR in mask" in (out / "results.md").read_text()
+        # the row is the mean of each seed's, and the seeds trained apart
+        seeds = row["seeds"]
+        assert set(seeds) == {"0", "1"} and seeds["0"]["run"] != seeds["1"]["run"]
+        assert row["psnr"] == pytest.approx((seeds["0"]["psnr"] + seeds["1"]["psnr"]) / 2)
+    assert results["full"]["seeds"]["0"]["psnr"] != results["full"]["seeds"]["1"]["psnr"]
+    table = (out / "results.md").read_text()
+    assert "PSNR in mask" in table and "| **full** | mean |" in table
     assert (out / "views_walk.png").stat().st_size > 1000 and (out / "psnr_vs_time_walk.png").is_file()

@@ -146,6 +146,23 @@ def plot_curves(curves: dict, title: str, path: Path) -> None:
     plt.close(fig)
 
 
+def table_row(label: str, seed: str, r: dict) -> str:
+    dyn = "static" if r["dynamic_share"] is None else f"{r['dynamic_share']:.0%}"
+    return (f"| {label} | {seed} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} | "
+            f"{dyn} | {r['gaussians']:,.0f} | {r['iterations']:.0f} | {r['seconds']:.0f} |")
+
+
+def mean_over_seeds(by_seed: dict[int, dict]) -> dict:
+    """One configuration's results: its only seed's, or the mean over its seeds with each
+    seed's under `seeds`."""
+    if len(by_seed) == 1:
+        return next(iter(by_seed.values()))
+    rows = list(by_seed.values())
+    mean = {k: (None if rows[0][k] is None else float(np.mean([r[k] for r in rows])))
+            for k in rows[0] if k != "run"}
+    return {**mean, "seeds": {str(seed): r for seed, r in by_seed.items()}}
+
+
 def main(argv: list[str]) -> int:
     from kgs_core.data.formats import load_scene
     from kgs_core.run import load_run, read_log
@@ -170,7 +187,11 @@ def main(argv: list[str]) -> int:
                          "defines the dynamic-region mask")
     ap.add_argument("--budget", default="time", choices=["time", "iterations"])
     ap.add_argument("--cuts", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", default="0",
+                    help="comma-separated training seeds. With more than one, every configuration is trained with "
+                         "each (runs under OUT/runs/CLIP/sSEED), the mask comes from the first seed's static 3DGS, "
+                         "and the table gives each seed's row and their mean (on walk the mask PSNR of one "
+                         "configuration spreads by 2.4 dB over two seeds: docs/results.md)")
     ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s; "
                     "with --ray on a cluster, a folder every node mounts)")
     add_ray_options(ap)
@@ -179,6 +200,14 @@ def main(argv: list[str]) -> int:
         ap.error("--cuts is at least 1, and more than 1 only with --budget time")
     if args.size < 32 or (args.iterations is not None and args.iterations < 1):
         ap.error(f"--size must be at least 32 and --iterations at least 1 (got {args.size}, {args.iterations})")
+    try:
+        seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--seeds takes comma-separated whole numbers, got {args.seeds!r}")
+    if not seeds or len(set(seeds)) != len(seeds):
+        ap.error(f"--seeds needs at least one seed and no repeats, got {args.seeds!r}")
+    if len(seeds) > 1 and args.cuts > 1:
+        ap.error("--cuts above 1 takes one seed (each cut's iteration count differs from seed to seed)")
     names = select_configs(args.configs)
     static_name = select_configs("deform")[0]
     if static_name not in names:
@@ -187,60 +216,70 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out)
     root.mkdir(parents=True, exist_ok=True)
-    lines = [f"# bench real: {args.preset} preset, {args.size} px, same {args.budget}, seed {args.seed}; {machine()}", ""]
+    lines = [f"# bench real: {args.preset} preset, {args.size} px, same {args.budget}, "
+             f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}; {machine()}", ""]
     summary = {}
     for name, blur, sharp in clips:
         scene_dir = ingest_cached(name, blur, sharp, args.size, root)
         scene = load_scene(scene_dir)
 
-        def trainer_for(config: str, iterations: int, suffix: str, scene=scene, name=name) -> Trainer:
-            over = {**config_overrides(config), "iterations": iterations}
-            ablate = over.pop("ablate", ())
-            cfg = make_config(args.preset, ablate=ablate, seed=args.seed, scene=scene, **over)
-            cfg.eval_every = max(cfg.iterations // 10, 1)
-            return Trainer(scene, root / "runs" / name / (config_slug(config) + suffix), cfg, progress=False)
-
         iterations = args.iterations or make_config(args.preset, scene=scene).iterations
         print(f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
               f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
               f"{names[0]}", flush=True)
-        nodes: list[str] = []
-        first, second = equal_time(names, trainer_for, iterations, args.budget, args.cuts, **ray_runner(args, nodes))
-        static_run = load_run(next(t for t in first if t.name == static_name).trainer.run_dir)
-        masks = dynamic_masks(static_run.model, scene)
-        share = float(np.mean([m.mean() for m in masks]))
-        lines += [f"## {name}", "",
-                  f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at {scene.frames[0].camera.width}x"
-                  f"{scene.frames[0].camera.height}; dynamic-region mask: {share:.1%} of the sharp-camera pixels."
-                  + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""), "",
-                  "| configuration | PSNR | SSIM | PSNR in mask | SSIM in mask | dynamic | Gaussians | iterations | train s |",
-                  "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-        print("\n".join(lines[-5:]), flush=True)
-        curves, results, shown = {}, {}, []
-        for t in first + second:
-            run = load_run(t.trainer.run_dir)
-            m = sharp_camera_metrics(run.model, scene, run.static_only, masks)
-            label = t.name.split(" (")[0] + (", same time" if t.retimed else "")
-            label += f" ({t.iterations} it.)" if t.retimed and args.cuts > 1 else ""
-            info = t.trainer.info
-            dyn = "static" if run.static_only else f"{info['dynamic_share']:.0%}"
-            row = (f"| {label} | {m['psnr']:.2f} | {m['ssim']:.3f} | {m['psnr_mask']:.2f} | {m['ssim_mask']:.3f} | "
-                   f"{dyn} | {info['gaussians']:,} | {t.iterations} | {t.seconds:.0f} |")
-            lines.append(row)
-            print(row, flush=True)
-            results[label] = {**m, "iterations": t.iterations, "seconds": t.seconds, "gaussians": info["gaussians"],
-                              "dynamic_share": info["dynamic_share"], "run": str(t.trainer.run_dir)}
-            rate = t.seconds / t.iterations
-            curves[label] = [(r["iteration"] * rate, r["psnr_heldout"]) for r in read_log(t.trainer.run_dir)
-                             if not math.isnan(r["psnr_heldout"])]
-            # The pictures show each configuration at the shared budget: the re-timed run where there is one.
-            if t.name != static_name and (t.retimed or not any(s.name == t.name for s in second)):
-                shown.append((label, run))
-        pictures = root / f"views_{name}.png"
-        side_by_side([r for _, r in shown], scene, masks, pictures)
-        plot_curves(curves, f"{name}: held-out (sharp camera) PSNR, same {args.budget}", root / f"psnr_vs_time_{name}.png")
-        lines += ["", f"Pictures ({pictures.name}), columns: blurry input | " + " | ".join(lb for lb, _ in shown)
-                  + " | sharp frame (mask outlined).", ""]
+        masks, rows, per_seed = None, [], {}
+        for seed in seeds:
+            runs = root / "runs" / name / (f"s{seed}" if len(seeds) > 1 else "")
+
+            def trainer_for(config: str, iterations: int, suffix: str, scene=scene, runs=runs, seed=seed) -> Trainer:
+                over = {**config_overrides(config), "iterations": iterations}
+                ablate = over.pop("ablate", ())
+                cfg = make_config(args.preset, ablate=ablate, seed=seed, scene=scene, **over)
+                cfg.eval_every = max(cfg.iterations // 10, 1)
+                return Trainer(scene, runs / (config_slug(config) + suffix), cfg, progress=False)
+
+            nodes: list[str] = []
+            first, second = equal_time(names, trainer_for, iterations, args.budget, args.cuts, **ray_runner(args, nodes))
+            if masks is None:  # one mask for every configuration and seed: the first seed's static 3DGS
+                static_run = load_run(next(t for t in first if t.name == static_name).trainer.run_dir)
+                masks = dynamic_masks(static_run.model, scene)
+                share = float(np.mean([m.mean() for m in masks]))
+                lines += [f"## {name}", "",
+                          f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at "
+                          f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; dynamic-region mask: "
+                          f"{share:.1%} of the sharp-camera pixels." + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""),
+                          "", "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | dynamic | Gaussians | "
+                          "iterations | train s |", "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                print("\n".join(lines[-5:]), flush=True)
+            curves, shown = {}, []
+            for t in first + second:
+                run = load_run(t.trainer.run_dir)
+                m = sharp_camera_metrics(run.model, scene, run.static_only, masks)
+                label = t.name.split(" (")[0] + (", same time" if t.retimed else "")
+                label += f" ({t.iterations} it.)" if t.retimed and args.cuts > 1 else ""
+                info = t.trainer.info
+                result = {**m, "iterations": t.iterations, "seconds": t.seconds, "gaussians": info["gaussians"],
+                          "dynamic_share": None if run.static_only else info["dynamic_share"], "run": str(t.trainer.run_dir)}
+                per_seed.setdefault(label, {})[seed] = result
+                rows.append(table_row(label, str(seed), result))
+                print(rows[-1], flush=True)
+                rate = t.seconds / t.iterations
+                curves[label] = [(r["iteration"] * rate, r["psnr_heldout"]) for r in read_log(t.trainer.run_dir)
+                                 if not math.isnan(r["psnr_heldout"])]
+                # The pictures show each configuration at the shared budget: the re-timed run where there is one.
+                if t.name != static_name and (t.retimed or not any(s.name == t.name for s in second)):
+                    shown.append((label, run))
+            if seed == seeds[0]:  # pictures and curves of the first seed
+                pictures = root / f"views_{name}.png"
+                side_by_side([r for _, r in shown], scene, masks, pictures)
+                plot_curves(curves, f"{name}: held-out (sharp camera) PSNR, same {args.budget}, seed {seed}",
+                            root / f"psnr_vs_time_{name}.png")
+        results = {label: mean_over_seeds(by_seed) for label, by_seed in per_seed.items()}
+        if len(seeds) > 1:
+            rows += [table_row(f"**{label}**", "mean", r) for label, r in results.items()]
+        lines += rows
+        lines += ["", f"Pictures ({pictures.name}, seed {seeds[0]}), columns: blurry input | "
+                  + " | ".join(lb for lb, _ in shown) + " | sharp frame (mask outlined).", ""]
         summary[name] = results
     (root / "results.md").write_text("\n".join(lines) + "\n")
     (root / "results.json").write_text(json.dumps(summary, indent=1))
