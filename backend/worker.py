@@ -11,6 +11,7 @@ checkpoint and the model as they are, ingest unwinds and leaves nothing ("cancel
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import sys
 import time
@@ -110,17 +111,32 @@ def run_ingest(spec: dict) -> None:
 
     # Cancelling (SIGTERM) raises between SfM's steps: ingest writes into temporary folders and
     # renames only a finished scene, so nothing half-made is left.
-    previous = signal.signal(signal.SIGTERM, _raise_cancelled)
+    asked: list[int] = []
+
+    def cancel(signum, frame) -> None:
+        asked.append(signum)
+        _raise_cancelled(signum, frame)
+
+    previous = signal.signal(signal.SIGTERM, cancel)
     options = {k: spec[k] for k in ("max_size", "mapper", "holdout_every", "fixed_camera", "exposure") if k in spec}
     options.setdefault("max_size", 960)
     listener = stage_writer(Path(spec["progress"])) if spec.get("progress") else (lambda *a: None)
     try:
-        with listen(listener):
-            # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
-            ingest(spec["video"], spec["out"], eval_video=spec.get("eval_video"), cache_dir=False, overwrite=True,
-                   **options)
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+        try:
+            with listen(listener):
+                # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
+                ingest(spec["video"], spec["out"], eval_video=spec.get("eval_video"), cache_dir=False, overwrite=True,
+                       **options)
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+        if asked or STOP:
+            # The cancel came as the ingest ended, or its exception was lost on the way (raised in
+            # a callback from native code that carried on): a cancel still means no scene, and
+            # the uploaded videos kept for a retry.
+            raise Cancelled("cancelled")
+    except Cancelled:
+        shutil.rmtree(spec["out"], ignore_errors=True)
+        raise
     # The uploaded copies go once their frames are in the scene; after a failure or a cancel they
     # stay, so that the ingest can be retried with other options (deleting the scene removes them).
     for key in ("video", "eval_video"):

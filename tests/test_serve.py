@@ -602,6 +602,36 @@ def test_scene_with_runs_cannot_be_deleted_and_uploads_are_cleaned(client, tmp_p
     assert bogus.exists() and not (tmp_path / "out").exists()
 
 
+def test_a_cancel_the_ingest_swallowed_still_leaves_no_scene_and_keeps_the_videos(tmp_path, monkeypatch):
+    """A SIGTERM whose exception is lost on the way (raised inside a callback from native code
+    that carries on, or arriving as the ingest ends) still cancels: no scene, videos kept."""
+    import os
+    import signal
+
+    import kgs_core.data.ingest as ingest_module
+    from kgs_backend.worker import Cancelled, run_ingest
+
+    def finishes_anyway(video, out, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler raises Cancelled here...
+            time.sleep(1.0)
+        except Exception:
+            pass  # ...and the native code it ran in swallows it and finishes
+        Path(out).mkdir(parents=True)
+        (Path(out) / "dataset.json").write_text("{}")
+
+    monkeypatch.setattr(ingest_module, "ingest", finishes_anyway)
+    videos = [tmp_path / ".s.video", tmp_path / ".s.sharp.video"]
+    for v in videos:
+        v.write_bytes(b"video")
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Cancelled):
+        run_ingest({"video": str(videos[0]), "eval_video": str(videos[1]), "out": str(tmp_path / "out"),
+                    "delete_video": True})
+    assert signal.getsignal(signal.SIGTERM) is previous
+    assert all(v.exists() for v in videos) and not (tmp_path / "out").exists()
+
+
 def test_video_upload_second_camera_stages_cancel_and_retry(client, room_video):
     """The UI's video flow through the API: upload held, a second camera's video, ingest with
     options, its stages as it runs, cancel (nothing half-made, the videos kept), retry to the end."""
