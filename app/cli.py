@@ -72,8 +72,9 @@ def cmd_ingest(args: argparse.Namespace) -> int:
           + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points")
     for a in rep.attempts:
         print(f"  tried {a['mapper']}: {a['outcome']}, {a['registered_fraction']:.0%} posed in {a['seconds']:.1f} s")
-    print(f"held out: {rep.holdout}; stride {rep.stride} ({rep.stride_reason})"
-          + ("; decoded frames, features and matches reused from the cache" if rep.cached else ""))
+    reuse = (f"; poses reused from the cache ({rep.poses_from}; --mapper NAME maps anew)" if rep.poses_from else
+             "; decoded frames, features and matches reused from the cache" if rep.cached else "")
+    print(f"held out: {rep.holdout}; stride {rep.stride} ({rep.stride_reason})" + reuse)
     print(f"seconds {rep.seconds} -> {args.out}")
     return 0
 

@@ -108,9 +108,36 @@ def test_frame_set_is_cached_and_reused(room_video, tmp_path):
     again = ingest(video, tmp_path / "b", max_size=None, cache_dir=cache, mapper="incremental", progress=False)
     assert again.cached and "features" not in again.seconds and again.mapper == "incremental"
     assert again.registered >= 0.9 * again.frames
-    assert len([d for d in cache.iterdir() if not d.name.startswith(".")]) == 1
+    frame_sets = lambda: [d for d in cache.iterdir() if not d.name.startswith(".") and d.name != "poses"]  # noqa: E731
+    assert len(frame_sets()) == 1
     ingest(video, tmp_path / "c", max_size=None, every=2, cache_dir=cache, progress=False)
-    assert len([d for d in cache.iterdir() if not d.name.startswith(".")]) == 2
+    assert len(frame_sets()) == 2
+
+
+def test_another_size_reuses_the_poses(room_video, tmp_path):
+    """A re-run at another `max_size` (auto mapper) decodes the frames at that size and rescales
+    the cameras of the model mapped before: no features, no mapping; the same poses, intrinsics
+    in the new pixels, every frame's image matching its camera. `--mapper` maps anew."""
+    video, _ = room_video
+    cache = tmp_path / "cache"
+    first = ingest(video, tmp_path / "full", max_size=None, holdout_every=0, cache_dir=cache, progress=False)
+    assert first.poses_from is None and (cache / "poses").is_dir()
+    small = ingest(video, tmp_path / "small", max_size=96, holdout_every=0, cache_dir=cache, progress=False)
+    assert small.poses_from and "160 px" not in small.poses_from and "None px" in small.poses_from
+    assert "features" not in small.seconds and "mapping" not in small.seconds and "decode" in small.seconds
+    assert small.registered == first.registered and small.mapper == first.mapper
+    # Reprojection error in the new pixels: the keypoints were rescaled with the cameras.
+    assert small.mean_reprojection_error_px == pytest.approx(first.mean_reprojection_error_px * 96 / 160, rel=0.05)
+    a, b = load_scene(tmp_path / "full"), load_scene(tmp_path / "small")
+    for fa, fb in zip(a.train_frames, b.train_frames):
+        assert fa.id == fb.id
+        np.testing.assert_allclose(fb.camera.viewmat, fa.camera.viewmat, atol=1e-6)
+        assert fb.image().shape[:2] == (fb.camera.height, fb.camera.width)
+        assert max(fb.camera.width, fb.camera.height) <= 96
+        np.testing.assert_allclose(fb.camera.K[0, 0] / fb.camera.width, fa.camera.K[0, 0] / fa.camera.width, rtol=0.03)
+    again = ingest(video, tmp_path / "mapped", max_size=96, holdout_every=0, cache_dir=cache, mapper="keyframes",
+                   progress=False)
+    assert again.poses_from is None and "mapping" in again.seconds
 
 
 def test_one_video_holds_out_its_own_frames(room_video, tmp_path):

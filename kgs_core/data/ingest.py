@@ -9,7 +9,9 @@ Two shapes of input:
   second one is registered into the same model and becomes the held-out test views.
 
 The decoded frames, their sharpness, features and matches are cached per frame set (videos,
-stride, frame cap and size) under `cache_dir`, so a re-run with another mapper starts at mapping.
+stride, frame cap and size) under `cache_dir`, so a re-run with another mapper starts at mapping;
+the newest posed model of the frames is kept whatever the size (`cache_dir/poses`), so a re-run
+at another `max_size` with the `auto` mapper only decodes the frames and rescales the cameras.
 A still camera can skip SfM altogether (`fixed_camera`): every frame gets one pose.
 """
 
@@ -58,6 +60,8 @@ class IngestReport:
     mapper: str = ""
     attempts: list = field(default_factory=list)
     stride: int = 1
+    # Set when the poses came from an earlier ingest of the same frames at another size.
+    poses_from: str | None = None
     stride_reason: str = ""
     holdout: str = ""
     cached: bool = False
@@ -119,10 +123,10 @@ def frame_set_key(videos: list[Path], every: int, max_frames: int | None, max_si
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:20]
 
 
-def build_frame_set(folder: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
-                    max_size: int | None, progress: bool) -> dict:
-    """Decodes both videos into `folder/images`, scores sharpness, extracts features and matches
-    them into `folder/database.db`, and writes `folder/frames.json` (names, sharpness, timings)."""
+def decode_frames(folder: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
+                  max_size: int | None, progress: bool) -> dict:
+    """Decodes both videos into `folder/images` and scores each frame's sharpness:
+    `{"names_a", "names_b", "sharpness", "seconds": {"decode"}}`."""
     t0 = time.perf_counter()
     frames_a = decode_video(video, every, max_frames, max_size, progress)
     frames_b: list[np.ndarray] = []
@@ -139,10 +143,17 @@ def build_frame_set(folder: Path, video: Path, eval_video: Path | None, every: i
             Image.fromarray(img).save(folder / "images" / name, compress_level=PNG_LEVEL)
             names.append(name)
             scores[name] = round(sharpness(img), 2)
-    timings = {"decode": time.perf_counter() - t0}
-    timings.update(extract_and_match(folder / "database.db", folder / "images", names_a, names_b, progress))
-    meta = {"names_a": names_a, "names_b": names_b, "sharpness": scores,
-            "seconds": {k: round(v, 2) for k, v in timings.items()}}
+    return {"names_a": names_a, "names_b": names_b, "sharpness": scores,
+            "seconds": {"decode": round(time.perf_counter() - t0, 2)}}
+
+
+def build_frame_set(folder: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
+                    max_size: int | None, progress: bool) -> dict:
+    """`decode_frames`, then features extracted and matched into `folder/database.db`; writes
+    `folder/frames.json` (names, sharpness, timings)."""
+    meta = decode_frames(folder, video, eval_video, every, max_frames, max_size, progress)
+    timings = extract_and_match(folder / "database.db", folder / "images", meta["names_a"], meta["names_b"], progress)
+    meta["seconds"].update({k: round(v, 2) for k, v in timings.items()})
     (folder / "frames.json").write_text(json.dumps(meta))
     return meta
 
@@ -168,6 +179,80 @@ def frame_set(video: Path, eval_video: Path | None, every: int, max_frames: int 
     with atomic_directory(folder, overwrite=True) as tmp:
         meta = build_frame_set(tmp, video, eval_video, every, max_frames, max_size, progress)
     return folder, meta, False
+
+
+def pose_cache_dir(cache_dir: Path, videos: list[Path], every: int, max_frames: int | None) -> Path:
+    """Where the newest posed model of a frame set is kept, whatever the size it was mapped at."""
+    return Path(cache_dir) / "poses" / frame_set_key(videos, every, max_frames, None)
+
+
+def save_poses(folder: Path, rec, max_size: int | None, mapper: str, attempts: list, error_px: float) -> None:
+    """Keeps a posed model for re-runs at another size (`load_poses`), atomically."""
+    with atomic_directory(folder, overwrite=True) as tmp:
+        (tmp / "sparse").mkdir()
+        rec.write(str(tmp / "sparse"))
+        (tmp / "poses.json").write_text(json.dumps({"max_size": max_size, "mapper": mapper, "attempts": attempts,
+                                                     "mean_reprojection_error_px": error_px}))
+
+
+def load_poses(folder: Path):
+    """`(pycolmap.Reconstruction, its metadata)` kept by `save_poses`; None when there is none or
+    it cannot be read (the caller then maps anew)."""
+    import pycolmap
+
+    try:
+        meta = json.loads((folder / "poses.json").read_text())
+        rec = pycolmap.Reconstruction(str(folder / "sparse"))
+    except (OSError, ValueError, RuntimeError):
+        return None
+    return (rec, meta) if isinstance(meta, dict) and rec.num_images() else None
+
+
+def rescale_reconstruction(rec, sizes: dict[str, tuple[int, int]]) -> float:
+    """Rescales each camera of `rec` and its images' keypoints to the size its video's frames
+    now have (`sizes`: the name tag "a" or "b" -> (width, height)), so the model describes frames
+    decoded at another `--max-size`; returns the scale of the long side. Poses and points are
+    unchanged: only pixels change units."""
+    scale = 1.0
+    tag_of_camera = {im.camera_id: im.name[-5] for im in rec.images.values()}  # "f00012_a.png" -> "a"
+    for cam_id, cam in rec.cameras.items():
+        w, h = sizes[tag_of_camera[cam_id]]
+        sx, sy = w / cam.width, h / cam.height
+        scale = max(w, h) / max(cam.width, cam.height)
+        cam.rescale(w, h)
+        for im in rec.images.values():
+            if im.camera_id == cam_id:
+                for p in im.points2D:
+                    p.xy = p.xy * np.array([sx, sy])
+    rec.update_point_3d_errors()  # (COLMAP keeps each point's error: recompute it in the new pixels)
+    return scale
+
+
+def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
+                 max_size: int | None, progress: bool, scratch: Path):
+    """The frame set's model mapped before (at any `--max-size`), rescaled to frames decoded now at
+    `max_size`: `(reconstruction, images folder, decode metadata, {"mapper", "attempts",
+    "from"})`, or None when there is none or its frames are not these (then SfM runs)."""
+    kept = load_poses(poses_dir)
+    if kept is None:
+        return None
+    rec, mapped = kept
+    if progress:
+        print(f"reusing the poses mapped at {mapped.get('max_size')} px ({mapped.get('mapper')}): decoding only "
+              "(--mapper NAME or --no-cache maps anew)", flush=True)
+    folder = scratch / "frames"
+    meta = decode_frames(folder, video, eval_video, every, max_frames, max_size, progress)
+    if not {im.name for im in rec.images.values()} <= set(meta["names_a"] + meta["names_b"]):
+        return None
+    sizes = {}
+    for tag, names in (("a", meta["names_a"]), ("b", meta["names_b"])):
+        if names:
+            with Image.open(folder / "images" / names[0]) as im:
+                sizes[tag] = im.size
+    rescale_reconstruction(rec, sizes)
+    mapped = {"mapper": mapped.get("mapper", "?"), "attempts": mapped.get("attempts", []),
+              "from": f"{mapped.get('mapper', '?')} model mapped at {mapped.get('max_size')} px, rescaled"}
+    return rec, folder / "images", meta, mapped
 
 
 def undistort_frame(cam, image_path: Path):
@@ -233,19 +318,31 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             kept = min(math.ceil(count / stride), max_frames or count) * (2 if eval_video else 1)
             print(f"ingesting {kept} frames; expect about {estimate_seconds(kept, max_size, False):.0f} s "
                   "(less when the frames were ingested before)", flush=True)
-        folder, meta, reused = frame_set(video, eval_video, stride, max_frames, max_size, cache, progress, work)
-        names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
-        timings = {} if reused else dict(meta["seconds"])
-        t0 = time.perf_counter()
-        result = run_sfm(folder / "database.db", folder / "images", work, names_a, names_b, scores, mapper,
-                         progress=progress)
-        timings["mapping"] = time.perf_counter() - t0
+        videos = [video] + ([eval_video] if eval_video else [])
+        kept = None
+        if cache is not None and mapper == "auto":
+            kept = posed_before(pose_cache_dir(cache, videos, stride, max_frames), video, eval_video, stride,
+                                max_frames, max_size, progress, work)
+        if kept is not None:
+            rec, images, meta, mapped = kept
+            names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
+            timings, reused = dict(meta["seconds"]), True
+            mapper_used, attempts = mapped["mapper"], mapped["attempts"]
+        else:
+            folder, meta, reused = frame_set(video, eval_video, stride, max_frames, max_size, cache, progress, work)
+            images = folder / "images"
+            names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
+            timings = {} if reused else dict(meta["seconds"])
+            t0 = time.perf_counter()
+            result = run_sfm(folder / "database.db", images, work, names_a, names_b, scores, mapper,
+                             progress=progress)
+            timings["mapping"] = time.perf_counter() - t0
+            if result is None:
+                raise SceneError(f"structure from motion found no model in {video} ({len(names_a)} frames): too "
+                                 "little texture or parallax? Try another stride (--every), a longer clip, or "
+                                 "--fixed-camera for a camera that does not move")
+            rec, mapper_used, attempts = result.rec, result.mapper, result.attempts
         n = len(names_a)
-        if result is None:
-            raise SceneError(f"structure from motion found no model in {video} ({n} frames): too little texture "
-                             "or parallax? Try another stride (--every), a longer clip, or --fixed-camera for a "
-                             "camera that does not move")
-        rec = result.rec
         reg = {im.name: im for im in rec.images.values() if im.has_pose}
         n_a = sum(1 for nm in names_a if nm in reg)
         n_b = sum(1 for nm in names_b if nm in reg)
@@ -253,15 +350,19 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             missing = [i for i, nm in enumerate(names_a) if nm not in reg]
             raise SceneError(
                 f"structure from motion posed only {n_a} of {n} frames of {video} (need {min_registered:.0%}; "
-                f"mappers tried: {', '.join(a['mapper'] + ' ' + a['outcome'] for a in result.attempts)}). "
+                f"mappers tried: {', '.join(a['mapper'] + ' ' + a['outcome'] for a in attempts)}). "
                 f"Frames not posed (index after the stride of {stride}): {frame_ranges(missing)}. Try another "
                 "stride (--every), a longer clip with more camera movement, or --fixed-camera for a camera that "
                 "does not move")
+        error_px = float(rec.compute_mean_reprojection_error())
+        if cache is not None and kept is None:
+            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts,
+                       error_px)
         report = IngestReport(
             video=str(video), eval_video=str(eval_video) if eval_video else None, frames=n, eval_frames=len(names_b),
-            registered=n_a, eval_registered=n_b, mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
-            points=rec.num_points3D(), mapper=result.mapper, attempts=result.attempts, stride=stride,
-            stride_reason=stride_reason, cached=reused,
+            registered=n_a, eval_registered=n_b, mean_reprojection_error_px=error_px,
+            points=rec.num_points3D(), mapper=mapper_used, attempts=attempts, stride=stride,
+            stride_reason=stride_reason, cached=reused, poses_from=None if kept is None else kept[3]["from"],
             holdout=("second camera (novel view)" if eval_video else
                      f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none"))
         t0 = time.perf_counter()
@@ -283,12 +384,12 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                     fid = f"c{cam_id}_{i:05d}"
                     dst = tmp / "rgb" / "1x" / f"{fid}.png"
                     if undistort and np.any(dist != 0):
-                        cam, pixels = undistort_frame(cam, folder / "images" / nm)
+                        cam, pixels = undistort_frame(cam, images / nm)
                         K, dist = camera_from_colmap(cam, f"{video}: undistorted camera")
                         width, height = int(cam.width), int(cam.height)
                         Image.fromarray(pixels).save(dst, compress_level=PNG_LEVEL)
                     else:
-                        shutil.copyfile(folder / "images" / nm, dst)
+                        shutil.copyfile(images / nm, dst)
                     viewmat = np.eye(4)
                     cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
                     viewmat[:3] = np.asarray(cfw.matrix())
