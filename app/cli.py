@@ -377,14 +377,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, help="keep at most this many frames from the start")
     p.add_argument("--mapper", choices=MAPPERS, default="auto",
                    help="SfM mapper: keyframes (fast), global (GLOMAP), incremental (slowest, most robust); "
-                        "auto tries keyframes, then incremental")
+                        "auto reuses the poses of an earlier ingest of the same frames at any --max-size, else "
+                        "tries keyframes, then incremental; a named mapper always maps anew")
     p.add_argument("--holdout-every", type=int,
                    help="with one video, hold out every n-th frame as a test view (default 8; 0: none)")
     p.add_argument("--fixed-camera", action="store_true",
                    help="the camera does not move: skip SfM and give every frame one pose")
     p.add_argument("--no-cache", action="store_true",
-                   help="do not reuse or keep decoded frames, features and matches (cache: $KGS_CACHE_DIR or "
-                        "~/.cache/kinematics-gs)")
+                   help="do not reuse or keep decoded frames, features, matches and poses (cache: $KGS_CACHE_DIR "
+                        "or ~/.cache/kinematics-gs)")
     p.add_argument("--max-size", type=int, default=960, help="downscale so the long side is at most this")
     p.add_argument("--keep-distortion", action="store_true",
                    help="keep the SfM camera's lens distortion instead of undistorting frames to pinhole "
