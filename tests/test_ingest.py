@@ -123,7 +123,7 @@ def test_another_size_reuses_the_poses(room_video, tmp_path):
     first = ingest(video, tmp_path / "full", max_size=None, holdout_every=0, cache_dir=cache, progress=False)
     assert first.poses_from is None and (cache / "poses").is_dir()
     small = ingest(video, tmp_path / "small", max_size=96, holdout_every=0, cache_dir=cache, progress=False)
-    assert small.poses_from and "160 px" not in small.poses_from and "None px" in small.poses_from
+    assert small.poses_from == "keyframes model mapped at full size, rescaled"
     assert "features" not in small.seconds and "mapping" not in small.seconds and "decode" in small.seconds
     assert small.registered == first.registered and small.mapper == first.mapper
     # Reprojection error in the new pixels: the keypoints were rescaled with the cameras.
@@ -138,6 +138,15 @@ def test_another_size_reuses_the_poses(room_video, tmp_path):
     again = ingest(video, tmp_path / "mapped", max_size=96, holdout_every=0, cache_dir=cache, mapper="keyframes",
                    progress=False)
     assert again.poses_from is None and "mapping" in again.seconds
+    # A kept model that cannot be read (its model files, then its metadata) is mapped anew, not an error.
+    for corrupt in ("sparse", "poses.json"):
+        for kept in (cache / "poses").iterdir():
+            for f in ((kept / "sparse").iterdir() if corrupt == "sparse" else [kept / "poses.json"]):
+                f.write_bytes(b"\x00garbage")
+        broken = ingest(video, tmp_path / f"broken-{corrupt}", max_size=96, holdout_every=0, cache_dir=cache,
+                        progress=False)
+        assert broken.poses_from is None and "mapping" in broken.seconds, corrupt
+        assert broken.registered >= 0.9 * broken.frames
 
 
 def test_one_video_holds_out_its_own_frames(room_video, tmp_path):

@@ -186,13 +186,12 @@ def pose_cache_dir(cache_dir: Path, videos: list[Path], every: int, max_frames: 
     return Path(cache_dir) / "poses" / frame_set_key(videos, every, max_frames, None)
 
 
-def save_poses(folder: Path, rec, max_size: int | None, mapper: str, attempts: list, error_px: float) -> None:
+def save_poses(folder: Path, rec, max_size: int | None, mapper: str, attempts: list) -> None:
     """Keeps a posed model for re-runs at another size (`load_poses`), atomically."""
     with atomic_directory(folder, overwrite=True) as tmp:
         (tmp / "sparse").mkdir()
         rec.write(str(tmp / "sparse"))
-        (tmp / "poses.json").write_text(json.dumps({"max_size": max_size, "mapper": mapper, "attempts": attempts,
-                                                     "mean_reprojection_error_px": error_px}))
+        (tmp / "poses.json").write_text(json.dumps({"max_size": max_size, "mapper": mapper, "attempts": attempts}))
 
 
 def load_poses(folder: Path):
@@ -208,24 +207,20 @@ def load_poses(folder: Path):
     return (rec, meta) if isinstance(meta, dict) and rec.num_images() else None
 
 
-def rescale_reconstruction(rec, sizes: dict[str, tuple[int, int]]) -> float:
+def rescale_reconstruction(rec, sizes: dict[str, tuple[int, int]]) -> None:
     """Rescales each camera of `rec` and its images' keypoints to the size its video's frames
     now have (`sizes`: the name tag "a" or "b" -> (width, height)), so the model describes frames
-    decoded at another `--max-size`; returns the scale of the long side. Poses and points are
-    unchanged: only pixels change units."""
-    scale = 1.0
-    tag_of_camera = {im.camera_id: im.name[-5] for im in rec.images.values()}  # "f00012_a.png" -> "a"
-    for cam_id, cam in rec.cameras.items():
-        w, h = sizes[tag_of_camera[cam_id]]
-        sx, sy = w / cam.width, h / cam.height
-        scale = max(w, h) / max(cam.width, cam.height)
-        cam.rescale(w, h)
-        for im in rec.images.values():
-            if im.camera_id == cam_id:
-                for p in im.points2D:
-                    p.xy = p.xy * np.array([sx, sy])
+    decoded at another `--max-size`. Poses and points are unchanged: only pixels change units."""
+    factors = {}
+    for im in rec.images.values():
+        if im.camera_id not in factors:
+            cam = rec.cameras[im.camera_id]
+            w, h = sizes[im.name[-5]]  # "f00012_a.png" -> "a"
+            factors[im.camera_id] = np.array([w / cam.width, h / cam.height])
+            cam.rescale(w, h)
+        for p in im.points2D:
+            p.xy = p.xy * factors[im.camera_id]
     rec.update_point_3d_errors()  # (COLMAP keeps each point's error: recompute it in the new pixels)
-    return scale
 
 
 def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
@@ -237,12 +232,10 @@ def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: i
     if kept is None:
         return None
     rec, mapped = kept
-    if progress:
-        print(f"reusing the poses mapped at {mapped.get('max_size')} px ({mapped.get('mapper')}): decoding only "
-              "(--mapper NAME or --no-cache maps anew)", flush=True)
     folder = scratch / "frames"
     meta = decode_frames(folder, video, eval_video, every, max_frames, max_size, progress)
     if not {im.name for im in rec.images.values()} <= set(meta["names_a"] + meta["names_b"]):
+        shutil.rmtree(folder)
         return None
     sizes = {}
     for tag, names in (("a", meta["names_a"]), ("b", meta["names_b"])):
@@ -250,9 +243,12 @@ def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: i
             with Image.open(folder / "images" / names[0]) as im:
                 sizes[tag] = im.size
     rescale_reconstruction(rec, sizes)
-    mapped = {"mapper": mapped.get("mapper", "?"), "attempts": mapped.get("attempts", []),
-              "from": f"{mapped.get('mapper', '?')} model mapped at {mapped.get('max_size')} px, rescaled"}
-    return rec, folder / "images", meta, mapped
+    size = mapped.get("max_size")
+    mapper = mapped.get("mapper", "?")
+    source = f"{mapper} model mapped at {f'{size} px' if size else 'full size'}, rescaled"
+    if progress:
+        print(f"reusing the poses of the {source} (--mapper NAME or --no-cache maps anew)", flush=True)
+    return rec, folder / "images", meta, {"mapper": mapper, "attempts": mapped.get("attempts", []), "from": source}
 
 
 def undistort_frame(cam, image_path: Path):
@@ -356,8 +352,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                 "does not move")
         error_px = float(rec.compute_mean_reprojection_error())
         if cache is not None and kept is None:
-            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts,
-                       error_px)
+            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts)
         report = IngestReport(
             video=str(video), eval_video=str(eval_video) if eval_video else None, frames=n, eval_frames=len(names_b),
             registered=n_a, eval_registered=n_b, mean_reprojection_error_px=error_px,
