@@ -64,12 +64,17 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     from kgs_core.data.ingest import ingest
 
     rep = ingest(args.video, args.out, eval_video=args.eval_video, every=args.every, max_frames=args.max_frames,
-                 max_size=args.max_size, exposure=args.exposure, mapper=args.mapper, holdout_every=args.holdout_every,
+                 max_size=args.max_size, exposure=args.exposure, mapper=args.mapper, lens=args.lens,
+                 holdout_every=args.holdout_every,
                  fixed_camera=args.fixed_camera, cache_dir=False if args.no_cache else True,
                  overwrite=args.overwrite, undistort=not args.keep_distortion)
     print(f"{rep.mapper} mapper: posed {rep.registered}/{rep.frames} training frames"
           + (f", {rep.eval_registered}/{rep.eval_frames} frames of the second camera" if rep.eval_video else "")
           + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points")
+    if rep.lens:
+        lens = rep.lens
+        print(f"lens: {lens['model']} refit " + (f"kept, reprojection error {lens['before_px']:.2f} -> {lens['after_px']:.2f} px"
+                                                  if lens["kept"] else f"not kept ({lens.get('reason', '')})"))
     for a in rep.attempts:
         print(f"  tried {a['mapper']}: {a['outcome']}, {a['registered_fraction']:.0%} posed in {a['seconds']:.1f} s")
     reuse = (f"; poses reused from the cache ({rep.poses_from}; --mapper NAME maps anew)" if rep.poses_from else
@@ -367,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_synth)
 
-    from kgs_core.data.sfm import MAPPERS
+    from kgs_core.data.sfm import LENSES, MAPPERS
 
     p = sub.add_parser("ingest", help="structure from motion on a (blurry) video -> scene folder")
     p.add_argument("video")
@@ -379,6 +384,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="SfM mapper: keyframes (fast), global (GLOMAP), incremental (slowest, most robust); "
                         "auto reuses the poses of an earlier ingest of the same frames at any --max-size, else "
                         "tries keyframes, then incremental; a named mapper always maps anew")
+    p.add_argument("--lens", choices=LENSES, default="opencv",
+                   help="lens model: opencv refits each camera after mapping with two focal lengths, two radial "
+                        "and two tangential terms, kept where it lowers the reprojection error; simple keeps "
+                        "SfM's one focal length and one radial term (docs/data.md)")
     p.add_argument("--holdout-every", type=int,
                    help="with one video, hold out every n-th frame as a test view (default 8; 0: none)")
     p.add_argument("--fixed-camera", action="store_true",

@@ -31,11 +31,11 @@ import numpy as np
 from PIL import Image
 
 from ..io import atomic_directory
-from ..progress import progress_bar
+from ..progress import announce, progress_bar
 from .formats import write_nerfies
 from .formats.colmap import camera_from_colmap
 from .scene import Camera, Frame, Scene, SceneError
-from .sfm import MAPPERS, extract_and_match, run_sfm
+from .sfm import LENSES, MAPPERS, extract_and_match, refine_lens, run_sfm
 from .video import count_frames, decode_video
 
 AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
@@ -65,6 +65,9 @@ class IngestReport:
     stride_reason: str = ""
     holdout: str = ""
     cached: bool = False
+    # The lens refit after mapping (`sfm.refine_lens`): kept or not, the reprojection error before
+    # and after; empty when none was tried (`--lens simple`, a fixed camera).
+    lens: dict = field(default_factory=dict)
 
     @property
     def registered_fraction(self) -> float:
@@ -186,12 +189,15 @@ def pose_cache_dir(cache_dir: Path, videos: list[Path], every: int, max_frames: 
     return Path(cache_dir) / "poses" / frame_set_key(videos, every, max_frames, None)
 
 
-def save_poses(folder: Path, rec, max_size: int | None, mapper: str, attempts: list) -> None:
-    """Keeps a posed model for re-runs at another size (`load_poses`), atomically."""
+def save_poses(folder: Path, rec, max_size: int | None, mapper: str, attempts: list, lens: str,
+               lens_report: dict) -> None:
+    """Keeps a posed model for re-runs at another size (`load_poses`), atomically; `lens` is the
+    `--lens` it was made with, `lens_report` what its refit did."""
     with atomic_directory(folder, overwrite=True) as tmp:
         (tmp / "sparse").mkdir()
         rec.write(str(tmp / "sparse"))
-        (tmp / "poses.json").write_text(json.dumps({"max_size": max_size, "mapper": mapper, "attempts": attempts}))
+        (tmp / "poses.json").write_text(json.dumps({"max_size": max_size, "mapper": mapper, "attempts": attempts,
+                                                    "lens": lens, "lens_report": lens_report}))
 
 
 def load_poses(folder: Path):
@@ -224,14 +230,17 @@ def rescale_reconstruction(rec, sizes: dict[str, tuple[int, int]]) -> None:
 
 
 def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
-                 max_size: int | None, progress: bool, scratch: Path):
-    """The frame set's model mapped before (at any `--max-size`), rescaled to frames decoded now at
-    `max_size`: `(reconstruction, images folder, decode metadata, {"mapper", "attempts",
-    "from"})`, or None when there is none or its frames are not these (then SfM runs)."""
+                 max_size: int | None, lens: str, progress: bool, scratch: Path):
+    """The frame set's model mapped before (at any `--max-size`, with the same `--lens`), rescaled
+    to frames decoded now at `max_size`: `(reconstruction, images folder, decode metadata,
+    {"mapper", "attempts", "from", "lens"})`, or None when there is none or its frames are not
+    these (then SfM runs)."""
     kept = load_poses(poses_dir)
     if kept is None:
         return None
     rec, mapped = kept
+    if mapped.get("lens", "simple") != lens:  # (models kept before the lens refit have none)
+        return None
     folder = scratch / "frames"
     meta = decode_frames(folder, video, eval_video, every, max_frames, max_size, progress)
     if not {im.name for im in rec.images.values()} <= set(meta["names_a"] + meta["names_b"]):
@@ -248,7 +257,8 @@ def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: i
     source = f"{mapper} model mapped at {f'{size} px' if size else 'full size'}, rescaled"
     if progress:
         print(f"reusing the poses of the {source} (--mapper NAME or --no-cache maps anew)", flush=True)
-    return rec, folder / "images", meta, {"mapper": mapper, "attempts": mapped.get("attempts", []), "from": source}
+    return rec, folder / "images", meta, {"mapper": mapper, "attempts": mapped.get("attempts", []), "from": source,
+                                          "lens": mapped.get("lens_report", {})}
 
 
 def undistort_frame(cam, image_path: Path):
@@ -276,7 +286,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
            max_frames: int | None = None, max_size: int | None = 960, exposure: float = 0.5,
            mapper: str = "auto", holdout_every: int | None = None, fixed_camera: bool = False,
            cache_dir: str | Path | None | bool = True, min_registered: float = 0.3, overwrite: bool = False,
-           undistort: bool = True, progress: bool = True) -> IngestReport:
+           undistort: bool = True, lens: str = "opencv", progress: bool = True) -> IngestReport:
     """Builds a scene folder from a video. `exposure` is the assumed shutter fraction of the
     training video (unknown from the file; 0.5 is typical for indoor hand-held footage).
 
@@ -285,13 +295,17 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
     `cache_dir`: where frame sets are cached (True: `default_cache_dir()`; None or False: off).
     With `undistort` (the default) every frame whose SfM camera has lens distortion is
     resampled to a pinhole camera by pycolmap's undistorter (cropped to valid pixels), since the
-    rasteriser is pinhole; the distorted model stays under `colmap/sparse/0`."""
+    rasteriser is pinhole; the distorted model stays under `colmap/sparse/0`.
+    `lens`: "opencv" refits each camera as COLMAP's OPENCV lens after mapping, kept where it
+    lowers the reprojection error (`sfm.refine_lens`); "simple" keeps the mappers' SIMPLE_RADIAL."""
     video = Path(video)
     eval_video = Path(eval_video) if eval_video is not None else None
     if not 0 <= exposure <= 1:
         raise SceneError(f"exposure must be in [0, 1], got {exposure}")
     if mapper not in MAPPERS:
         raise SceneError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
+    if lens not in LENSES:
+        raise SceneError(f"lens must be one of {', '.join(LENSES)}, got {lens!r}")
     for v in [video] + ([eval_video] if eval_video else []):
         if not v.is_file():
             raise SceneError(f"video not found: {v}")
@@ -318,12 +332,12 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
         kept = None
         if cache is not None and mapper == "auto":
             kept = posed_before(pose_cache_dir(cache, videos, stride, max_frames), video, eval_video, stride,
-                                max_frames, max_size, progress, work)
+                                max_frames, max_size, lens, progress, work)
         if kept is not None:
             rec, images, meta, mapped = kept
             names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
             timings, reused = dict(meta["seconds"]), True
-            mapper_used, attempts = mapped["mapper"], mapped["attempts"]
+            mapper_used, attempts, lens_report = mapped["mapper"], mapped["attempts"], mapped["lens"]
         else:
             folder, meta, reused = frame_set(video, eval_video, stride, max_frames, max_size, cache, progress, work)
             images = folder / "images"
@@ -338,6 +352,12 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                                  "little texture or parallax? Try another stride (--every), a longer clip, or "
                                  "--fixed-camera for a camera that does not move")
             rec, mapper_used, attempts = result.rec, result.mapper, result.attempts
+            lens_report = {}
+            if lens == "opencv":
+                t0 = time.perf_counter()
+                announce("lens")
+                rec, lens_report = refine_lens(rec)
+                timings["lens"] = time.perf_counter() - t0
         n = len(names_a)
         reg = {im.name: im for im in rec.images.values() if im.has_pose}
         n_a = sum(1 for nm in names_a if nm in reg)
@@ -352,12 +372,14 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                 "does not move")
         error_px = float(rec.compute_mean_reprojection_error())
         if cache is not None and kept is None:
-            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts)
+            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts, lens,
+                       lens_report)
         report = IngestReport(
             video=str(video), eval_video=str(eval_video) if eval_video else None, frames=n, eval_frames=len(names_b),
             registered=n_a, eval_registered=n_b, mean_reprojection_error_px=error_px,
             points=rec.num_points3D(), mapper=mapper_used, attempts=attempts, stride=stride,
             stride_reason=stride_reason, cached=reused, poses_from=None if kept is None else kept[3]["from"],
+            lens=lens_report,
             holdout=("second camera (novel view)" if eval_video else
                      f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none"))
         t0 = time.perf_counter()
