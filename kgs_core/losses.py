@@ -89,6 +89,15 @@ def photometric_loss(img: Tensor, ref: Tensor, lambda_dssim: float = 0.2) -> Ten
     return (1 - lambda_dssim) * l1(img, ref) + lambda_dssim * (1 - ssim(img, ref))
 
 
+def coarse_l1(img: Tensor, ref: Tensor, factor: int) -> Tensor:
+    """L1 between `(H, W, C)` images average-pooled by `factor`: a rendered object displaced from
+    its image by up to about `factor` pixels still overlaps it there, so the loss keeps a
+    gradient that pulls it back (at full resolution it has none once they stop overlapping)."""
+    a = F.avg_pool2d(img.permute(2, 0, 1)[None], factor, ceil_mode=True)
+    b = F.avg_pool2d(ref.permute(2, 0, 1)[None], factor, ceil_mode=True)
+    return (a - b).abs().mean()
+
+
 def psnr(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
     """PSNR in dB for images in [0, 1]; `mask (H, W)` restricts it to selected pixels."""
     err = (img.detach().clamp(0, 1) - ref.detach()) ** 2

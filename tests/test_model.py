@@ -109,6 +109,25 @@ def test_neighbour_mean_is_the_gathered_mean_forward_and_backward():
     assert torch.allclose(m.neighbour_mean(x), x[knn[:, 0]], atol=1e-7)
 
 
+def test_coarse_neighbourhoods_do_not_reach_a_far_cluster():
+    """C.F. averages a dynamic Gaussian's offsets over its nearest dynamic neighbours within
+    `knn_radius` median 8th-neighbour distances: a Gaussian alone beside the moving cluster, far
+    beyond that, keeps its own offsets instead of taking the cluster's motion; unbounded
+    (`knn_radius` 0, and runs saved before the bound) it averages the cluster's."""
+    g = torch.Generator().manual_seed(0)
+    pts = torch.cat([0.05 * torch.randn(40, 3, generator=g), torch.tensor([[2.0, 0.0, 0.0]])])
+    for radius, alone in ((3.0, True), (0.0, False)):
+        m = KinematicsGS(init_from_points(pts.numpy(), np.full((41, 3), 0.5), 1, 4),
+                         ModelConfig(feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4,
+                                     deform_multires=(1, 2), knn_radius=radius))
+        m.decompose(tau=0.0)
+        m.dynamic[:] = True
+        knn = m.knn_index()
+        assert (knn[-1] == 40).all().item() is alone, knn[-1]
+        assert (knn[:40] < 40).all()  # the cluster's own neighbourhoods are untouched
+    assert ModelConfig.from_dict({k: v for k, v in ModelConfig().to_dict().items() if k != "knn_radius"}).knn_radius == 0
+
+
 @pytest.mark.parametrize("coarse_to_fine", [True, False])
 def test_physical_velocity_is_the_central_difference_of_the_coarse_deformed_position(coarse_to_fine):
     """The velocity K.R. uses: the central difference of the deformed position over the

@@ -32,6 +32,11 @@ class ModelConfig:
     sh_degree: int = 1
     feature_dim: int = 16  # per-Gaussian feature f_i of the fine residual
     knn: int = 8  # dynamic neighbours averaged by the coarse deformation
+    # ... within this many times the median distance of a dynamic Gaussian to its knn-th
+    # neighbour: one whose nearest dynamic neighbours are further away (a few dynamic Gaussians
+    # on a wall, far from the moving object) averages its own offsets instead of borrowing an
+    # unrelated object's motion. 0: no bound.
+    knn_radius: float = 3.0
     tau: float = 2e-5  # dynamic when the temporal variance K of dx exceeds tau
     variance_times: int = 16  # T, times at which K is evaluated
     coarse_to_fine: bool = True  # C.F.
@@ -72,6 +77,8 @@ class ModelConfig:
             d["deform_multires"] = tuple(d["deform_multires"])
         # Runs saved before kr_form existed all used the paper's form: keep rendering them so.
         d.setdefault("kr_form", "paper")
+        # ... and before knn_radius, C.F. averaged over unbounded neighbourhoods.
+        d.setdefault("knn_radius", 0.0)
         return from_fields(cls, d, "model.")
 
 
@@ -223,7 +230,10 @@ class KinematicsGS(nn.Module):
             if k <= 1:
                 self._knn = torch.arange(len(pts))[:, None]
             else:
-                _, idx = cKDTree(pts).query(pts, k=k)
+                dist, idx = cKDTree(pts).query(pts, k=k)
+                if self.config.knn_radius > 0:
+                    far = dist > self.config.knn_radius * np.median(dist[:, -1])
+                    idx = np.where(far, np.arange(len(pts))[:, None], idx)  # itself in their place
                 self._knn = torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
         return self._knn
 

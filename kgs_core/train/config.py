@@ -65,6 +65,11 @@ class TrainConfig:
     # out. Off by default: measured within the seed spread on walk and the sheet, and with a
     # scene-scaled lambda_reg 0.9 dB worse and 33 % slower on kitchen (docs/real-footage.md).
     reg_static_samples: int = 0
+    # A coarse photometric term: L1 between render and frame average-pooled by `coarse_factor`,
+    # weighted `lambda_coarse` (0: off). It keeps a gradient on a moving object the field has
+    # lost track of (losses.coarse_l1).
+    lambda_coarse: float = 0.0
+    coarse_factor: int = 8
     lambda_ani: float = 1e-4
     eps_ani: float = 1e-6
     lambda_tv: float = 1e-4  # K-Planes smoothness

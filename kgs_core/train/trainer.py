@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
-from ..losses import photometric_loss, psnr
+from ..losses import coarse_l1, photometric_loss, psnr
 from ..model.deformation import TimeNoise
 from ..model.dynamic import KinematicsGS, otsu_tau, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
@@ -241,6 +241,8 @@ class Trainer:
                               world_transform=self.world_transform(frame))
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
+        if c.lambda_coarse > 0:
+            loss = loss + c.lambda_coarse * coarse_l1(out.image, gt, c.coarse_factor)
         if not self.static_only:
             if c.lambda_reg > 0 and g.offsets_dx is not None:
                 # L_reg: mean |dx| over the dynamic set plus mean |dx| over the static set. The
