@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from kgs_core.losses import photometric_loss, ssim, ssim_reference
+from kgs_core.losses import coarse_l1, l1, photometric_loss, ssim, ssim_reference
 from kgs_core.render import _ext
 
 pytestmark = pytest.mark.skipif(not _ext.compiler_available(), reason="no C++ compiler")
@@ -48,3 +48,18 @@ def test_photometric_loss_gradient_flows_through_fused_ssim():
     img = torch.rand(24, 24, 3, requires_grad=True)
     photometric_loss(img, ref, lambda_dssim=1.0).backward()
     assert torch.isfinite(img.grad).all() and float(img.grad.abs().sum()) > 0
+
+
+def test_coarse_l1_still_sees_how_far_a_displaced_object_is():
+    """A 4 px square drawn 6 or 12 px from where the frame has it: full-resolution L1 is the same
+    for both (no overlap either way, so it has no gradient towards the right place); the 8 px
+    pooled term is lower for the nearer one."""
+    def square(x0: int) -> torch.Tensor:
+        img = torch.zeros(32, 48, 3)
+        img[12:16, x0:x0 + 4] = 1.0
+        return img
+
+    frame = square(8)
+    near, far = square(14), square(20)
+    assert l1(near, frame) == pytest.approx(float(l1(far, frame)))
+    assert coarse_l1(near, frame, 8) < coarse_l1(far, frame, 8)
