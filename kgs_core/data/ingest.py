@@ -233,7 +233,7 @@ def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: i
                  max_size: int | None, lens: str, progress: bool, scratch: Path):
     """The frame set's model mapped before (at any `--max-size`, with the same `--lens`), rescaled
     to frames decoded now at `max_size`: `(reconstruction, images folder, decode metadata,
-    {"mapper", "attempts", "from", "lens"})`, or None when there is none or its frames are not
+    {"mapper", "attempts", "from", "lens_report"})`, or None when there is none or its frames are not
     these (then SfM runs)."""
     kept = load_poses(poses_dir)
     if kept is None:
@@ -258,7 +258,7 @@ def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: i
     if progress:
         print(f"reusing the poses of the {source} (--mapper NAME or --no-cache maps anew)", flush=True)
     return rec, folder / "images", meta, {"mapper": mapper, "attempts": mapped.get("attempts", []), "from": source,
-                                          "lens": mapped.get("lens_report", {})}
+                                          "lens_report": mapped.get("lens_report", {})}
 
 
 def undistort_frame(cam, image_path: Path):
@@ -337,7 +337,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             rec, images, meta, mapped = kept
             names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
             timings, reused = dict(meta["seconds"]), True
-            mapper_used, attempts, lens_report = mapped["mapper"], mapped["attempts"], mapped["lens"]
+            mapper_used, attempts, lens_report = mapped["mapper"], mapped["attempts"], mapped["lens_report"]
         else:
             folder, meta, reused = frame_set(video, eval_video, stride, max_frames, max_size, cache, progress, work)
             images = folder / "images"

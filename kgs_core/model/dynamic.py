@@ -63,6 +63,8 @@ class ModelConfig:
 
     def __post_init__(self):
         check_choices(self, "model.")
+        if not self.knn_radius >= 0:
+            raise ValueError(f"model.knn_radius must be >= 0 (0: no bound), got {self.knn_radius!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)

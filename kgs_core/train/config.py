@@ -133,6 +133,9 @@ class TrainConfig:
         check_choices(self)
         if self.exposure is not None and not 0 <= self.exposure <= 1:
             raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {self.exposure!r}")
+        if not self.lambda_coarse >= 0 or self.coarse_factor < 1:
+            raise ValueError(f"lambda_coarse must be >= 0 and coarse_factor >= 1 (pixels), got {self.lambda_coarse!r} "
+                             f"and {self.coarse_factor!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
