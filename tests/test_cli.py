@@ -64,6 +64,15 @@ def test_bench_quality_configs_take_short_names_and_reject_unknown_ones():
         select_configs("full,bogus")
 
 
+def test_bench_quality_plots_each_scene_and_blur_to_its_own_file():
+    """Benchmarks of several scenes in a row keep every picture: the default path names both."""
+    from kgs_app.bench.quality import parse_args
+
+    panel = parse_args(["--scene", "panel", "--blur", "severe"]).plot
+    sheet = parse_args(["--scene", "sheet"]).plot
+    assert panel.endswith("psnr_vs_time_panel_severe.png") and sheet.endswith("psnr_vs_time_sheet_mild.png")
+    assert parse_args(["--plot", ""]).plot == ""  # no picture, as asked
+
 def test_bench_quality_configs_take_overrides_of_training_settings():
     from kgs_app.bench.quality import config_overrides, select_configs
     from kgs_core.train.config import make_config

@@ -259,13 +259,14 @@ def test_lens_refit_recovers_non_square_pixels():
     """A camera with non-square pixels and a decentred lens (OPENCV fx/fy = 1.04, p1 = 0.004),
     as the BARD-GS pairs have, mapped as SIMPLE_RADIAL: the refit finds its aspect and lowers the
     reprojection error to the keypoint noise; the mapped model is left unchanged."""
-    from kgs_core.data.sfm import refine_lens
+    from kgs_core.data.sfm import LENS_ITERATIONS, refine_lens
 
     rec = synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0])
     rec.update_point_3d_errors()
     before = rec.compute_mean_reprojection_error()
     refit, report = refine_lens(rec)
     assert report["kept"] and report["after_px"] < 0.3 * report["before_px"], report
+    assert report["iterations"] == LENS_ITERATIONS  # past the probe: a lens worth refitting
     assert report["after_px"] < 0.15  # the keypoint noise is 0.05 px per axis
     fx, fy = refit.cameras[1].params[:2]
     assert fx / fy == pytest.approx(1.04, rel=0.005)
@@ -274,9 +275,10 @@ def test_lens_refit_recovers_non_square_pixels():
 
 def test_lens_refit_keeps_a_lens_the_mapper_fits():
     """A lens SIMPLE_RADIAL already describes: the larger model gains nothing worth keeping."""
-    from kgs_core.data.sfm import refine_lens
+    from kgs_core.data.sfm import LENS_PROBE_ITERATIONS, refine_lens
 
     rec = synthetic_reconstruction("SIMPLE_RADIAL", [200.0, 160.0, 90.0, 0.05])
     refit, report = refine_lens(rec)
     assert not report["kept"] and "under 3%" in report["reason"], report
+    assert report["iterations"] == LENS_PROBE_ITERATIONS  # the probe found nothing to gain: stopped there
     assert refit is rec

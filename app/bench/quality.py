@@ -145,11 +145,14 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                     help="with --budget time: train each re-timed configuration at this many iteration counts "
                          "spread over ±5%% of the equal-time one, and report their mean too (default 1)")
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
-    ap.add_argument("--plot", default="bench-results/quality/psnr_vs_time.png")
+    ap.add_argument("--plot", help="PSNR-vs-time picture (default: bench-results/quality/"
+                    "psnr_vs_time_SCENE_BLUR.png, one per scene and blur, so that runs of several scenes all stay)")
     ap.add_argument("--out", help="keep the runs here (default: a temporary folder; with --ray on a cluster, a "
                     "folder every node mounts)")
     add_ray_options(ap)
     args = ap.parse_args(argv)
+    if args.plot is None:
+        args.plot = f"bench-results/quality/psnr_vs_time_{args.scene}_{args.blur}.png"
     if args.cuts < 1:
         ap.error(f"--cuts must be at least 1, got {args.cuts}")
     if args.cuts > 1 and args.budget != "time":
