@@ -98,6 +98,37 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
     assert result.mapper == "keyframes"
 
 
+def test_auto_mapper_maps_keyframes_that_fell_apart_again_with_another_seed(room_video, tmp_path, monkeypatch):
+    """Keyframes that fall apart into fragments (here: seed 0 made to) are mapped once more with
+    KEYFRAME_RETRY_SEED before the denser keyframes or the incremental mapper; both attempts are
+    recorded with their seeds. An explicit `--mapper keyframes` does not retry."""
+    from kgs_core.data import sfm
+    from kgs_core.data.ingest import frame_set
+
+    real = sfm.map_keyframes
+    seeds = []
+
+    def fragile(*args, seed=0, **kw):
+        seeds.append(seed)
+        if seed == 0:
+            raise sfm.KeyframesFellApart("the keyframes fell apart into 5 models, the largest 3 of 8")
+        return real(*args, seed=seed, **kw)
+
+    monkeypatch.setattr(sfm, "map_keyframes", fragile)
+    video, _ = room_video
+    folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
+    result = sfm.run_sfm(folder / "database.db", folder / "images", tmp_path / "work", meta["names_a"], [],
+                         meta["sharpness"], "auto", keyframe_step=2, progress=False)
+    assert seeds == [0, sfm.KEYFRAME_RETRY_SEED] and result.mapper == "keyframes"
+    assert [(a["keyframe_step"], a["seed"]) for a in result.attempts] == [(2, 0), (2, sfm.KEYFRAME_RETRY_SEED)]
+    assert "fell apart" in result.attempts[0]["outcome"] and result.attempts[1]["outcome"] == "ok"
+    assert result.attempts[1]["registered_fraction"] >= 0.95
+    seeds.clear()
+    assert sfm.run_sfm(folder / "database.db", folder / "images", tmp_path / "work2", meta["names_a"], [],
+                       meta["sharpness"], "keyframes", keyframe_step=2, progress=False) is None
+    assert seeds == [0]
+
+
 def test_frame_set_is_cached_and_reused(room_video, tmp_path):
     """A second ingest of the same frames with another mapper reuses the decoded frames,
     features and matches; a changed stride is another frame set."""

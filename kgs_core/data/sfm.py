@@ -34,6 +34,7 @@ MAPPERS = ("auto", "keyframes", "global", "incremental")
 MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
 MAX_REPROJECTION_ERROR_PX = 4.0
 MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
+KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with this seed (run_sfm)
 
 
 @dataclass
@@ -109,13 +110,13 @@ def _largest(recs: dict):
     return max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
 
 
-def _pipeline_options(cls, names: list[str] | None = None):
+def _pipeline_options(cls, names: list[str] | None = None, seed: int = 0):
     opts = cls()
     opts.num_threads = 2
-    opts.random_seed = 0
+    opts.random_seed = seed
     if hasattr(opts, "mapper"):  # the pipeline's seed does not reach its mapper and triangulator
-        opts.mapper.random_seed = 0
-        opts.triangulation.random_seed = 0
+        opts.mapper.random_seed = seed
+        opts.triangulation.random_seed = seed
     if names is not None:
         opts.image_names = names
     return opts
@@ -163,11 +164,18 @@ def keyframe_names(names_a: list[str], names_b: list[str], step: int) -> list[st
     return sorted(picked + [n.replace("_a.", "_b.") for n in picked if n.replace("_a.", "_b.") in twins])
 
 
+class KeyframesFellApart(RuntimeError):
+    """The keyframes formed several models, none with half of them (the mapper's random seed
+    decides this as much as the frames do: docs/data.md, "Ingest speed")."""
+
+
 def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b: list[str],
-                  step: int = 4, progress: bool = True, stages: dict | None = None, adjust: bool = True):
-    """Incremental SfM on the keyframes, absolute pose for every other frame, triangulation from
-    all frames and (with `adjust`) one global bundle adjustment. None when the keyframes do not
-    form a model. `stages` receives the seconds of each step."""
+                  step: int = 4, progress: bool = True, stages: dict | None = None, adjust: bool = True,
+                  seed: int = 0):
+    """Incremental SfM on the keyframes (the mapper's random `seed`), absolute pose for every other
+    frame, triangulation from all frames and (with `adjust`) one global bundle adjustment. None
+    when the keyframes form no model, KeyframesFellApart when they form only fragments.
+    `stages` receives the seconds of each step."""
     import pycolmap
 
     stages = {} if stages is None else stages
@@ -176,7 +184,7 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
         step //= 2
     keyframes = keyframe_names(names_a, names_b, step)
     (out / "keyframes").mkdir(parents=True, exist_ok=True)
-    opts = _pipeline_options(pycolmap.IncrementalPipelineOptions, keyframes)
+    opts = _pipeline_options(pycolmap.IncrementalPipelineOptions, keyframes, seed)
     # Small enough for a short clip's keyframes, large enough that the mapper discards a stray
     # fragment and tries another start instead of keeping it (3 split kitchen into 3-image models).
     opts.min_model_size = min(10, max(3, len(keyframes) // 2))
@@ -184,9 +192,13 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     # pairs (196 discarded models in one 336 + 336 frame ingest, minutes instead of seconds).
     # Bounded: what it has by then is kept or, when too small, mapped again more densely.
     opts.max_runtime_seconds = keyframe_time_budget(len(keyframes))
-    model = _largest(pycolmap.incremental_mapping(db, images, out / "keyframes", options=opts))
+    models = pycolmap.incremental_mapping(db, images, out / "keyframes", options=opts)
+    model = _largest(models)
     stages["keyframes"] = time.perf_counter() - t0
     if model is None or model.num_reg_images() < max(3, len(keyframes) // 2):
+        if len(models) > 1:
+            raise KeyframesFellApart(f"the keyframes fell apart into {len(models)} models, the largest "
+                                     f"{model.num_reg_images()} of {len(keyframes)}")
         return None
     t0 = time.perf_counter()
     posed = {im.name: (im.camera_id, _cam_from_world(im)) for im in model.images.values() if im.has_pose}
@@ -389,38 +401,49 @@ def _absolute_pose(d, model, image, keyframe_ids: list[int], observed: dict):
 def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: list[str], scores: dict[str, float],
             mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int = 4,
             progress: bool = True) -> SfmResult | None:
-    """Maps the frames of `db` with `mapper`. `auto` tries keyframes, keyframes twice as dense, then
-    incremental, and keeps the first model that poses at least `min_registered` of the training
-    frames (else the one that posed the most). Returns None when no mapper produced a model."""
+    """Maps the frames of `db` with `mapper`. `auto` tries keyframes (once more with another seed
+    when they fall apart into fragments), keyframes twice as dense, then incremental, and keeps
+    the first model that poses at least `min_registered` of the training frames (else the one
+    that posed the most). Returns None when no mapper produced a model."""
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
     quiet_colmap()
     # auto: keyframes; when their model falls short, keyframes twice as dense (more overlap between
     # neighbours, still far cheaper than mapping every frame); then every frame incrementally.
-    order = ([("keyframes", keyframe_step)] + ([("keyframes", keyframe_step // 2)] if keyframe_step > 1 else [])
-             + [("incremental", None)]) if mapper == "auto" else [(mapper, keyframe_step)]
+    # Each entry: (mapper, keyframe step, the mapper's random seed).
+    order = ([("keyframes", keyframe_step, 0)] + ([("keyframes", keyframe_step // 2, 0)] if keyframe_step > 1 else [])
+             + [("incremental", None, 0)]) if mapper == "auto" else [(mapper, keyframe_step, 0)]
     attempts, best = [], None
-    for name, step in order:
-        out = work / (f"sparse_{name}" + (f"_{step}" if name == "keyframes" else ""))
+    while order:
+        name, step, seed = order.pop(0)
+        out = work / (f"sparse_{name}" + (f"_{step}_{seed}" if name == "keyframes" else ""))
         out.mkdir(parents=True, exist_ok=True)
         announce(f"mapping ({name})")
         if progress:
-            print(f"mapping with the {name} mapper" + (f" (every {step} frames)" if name == "keyframes" else ""),
-                  flush=True)
+            print(f"mapping with the {name} mapper" + (f" (every {step} frames" + (f", seed {seed})" if seed else ")")
+                                                         if name == "keyframes" else ""), flush=True)
         t0 = time.perf_counter()
         error, stages = None, {}
         try:
             if name == "keyframes":
-                rec = map_keyframes(db, images, out, names_a, names_b, step, progress, stages)
+                rec = map_keyframes(db, images, out, names_a, names_b, step, progress, stages, seed=seed)
             elif name == "global":
                 rec = map_global(db, images, out)
             else:
                 rec = map_incremental(db, images, out, scores)
+        except KeyframesFellApart as exc:
+            rec, error = None, str(exc)
+            if mapper == "auto" and seed == 0:
+                # Whether a keyframe graph falls apart depends on the mapper's seed as much as on
+                # the frames: on one kitchen x2 frame set seeds 0 and 1 gave fragments, 2 and 3 a
+                # model of all 168 keyframes, in 13-16 s, where the denser retry and the
+                # incremental mapper take minutes (docs/data.md, "Ingest speed").
+                order.insert(0, (name, step, KEYFRAME_RETRY_SEED))
         except RuntimeError as exc:  # pycolmap raises RuntimeError on a failed solve
             rec, error = None, str(exc)
         posed = {im.name for im in rec.images.values() if im.has_pose} if rec is not None else set()
         fraction = sum(n in posed for n in names_a) / max(len(names_a), 1)
-        attempts.append({"mapper": name, **({"keyframe_step": step} if name == "keyframes" else {}),
+        attempts.append({"mapper": name, **({"keyframe_step": step, "seed": seed} if name == "keyframes" else {}),
                          "seconds": round(time.perf_counter() - t0, 2),
                          "registered_fraction": round(fraction, 4),
                          "outcome": error or ("no model" if rec is None else "ok"),
