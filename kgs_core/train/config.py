@@ -70,6 +70,10 @@ class TrainConfig:
     # lost track of (losses.coarse_l1).
     lambda_coarse: float = 0.0
     coarse_factor: int = 8
+    # Optical flow between consecutive training frames asks the deforming Gaussians to move in
+    # the image as their pixels do (train/flow.py; per pixel of disagreement, 0: off). Needs
+    # OpenCV (opencv-python-headless).
+    lambda_flow: float = 0.0
     lambda_ani: float = 1e-4
     eps_ani: float = 1e-6
     lambda_tv: float = 1e-4  # K-Planes smoothness
@@ -133,6 +137,8 @@ class TrainConfig:
         check_choices(self)
         if self.exposure is not None and not 0 <= self.exposure <= 1:
             raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {self.exposure!r}")
+        if not self.lambda_flow >= 0:
+            raise ValueError(f"lambda_flow must be >= 0, got {self.lambda_flow!r}")
         if not self.lambda_coarse >= 0 or self.coarse_factor < 1:
             raise ValueError(f"lambda_coarse must be >= 0 and coarse_factor >= 1 (pixels), got {self.lambda_coarse!r} "
                              f"and {self.coarse_factor!r}")

@@ -22,13 +22,14 @@ from ..losses import coarse_l1, photometric_loss, psnr
 from ..model.deformation import TimeNoise
 from ..model.dynamic import KinematicsGS, otsu_tau, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
-from ..model.render import render_model
+from ..model.render import camera_tensors, render_model
 from ..render.types import Rendered
 from ..run import save_decomposition, save_torch, write_run_json
 from .camera_motion import CameraMotion
 from .config import TrainConfig
 from .densify import DensifyStrategy
 from .exposure import FittedExposure
+from .flow import charbonnier, flow_residual, frame_flows
 from .pose_refine import PoseCorrection
 
 
@@ -148,6 +149,8 @@ class Trainer:
         self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
                               if cfg.camera_blur != "off" else None)
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
+        # lambda_flow: each training frame's flow to the next of its camera (train/flow.py).
+        self.flows = frame_flows(scene.train_frames) if cfg.lambda_flow > 0 and not self.static_only else {}
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
 
@@ -243,6 +246,8 @@ class Trainer:
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if c.lambda_coarse > 0:
             loss = loss + c.lambda_coarse * coarse_l1(out.image, gt, c.coarse_factor)
+        if frame.id in self.flows and g.dynamic.any():
+            loss = loss + c.lambda_flow * self.flow_term(frame, out, g)
         if not self.static_only:
             if c.lambda_reg > 0 and g.offsets_dx is not None:
                 # L_reg: mean |dx| over the dynamic set plus mean |dx| over the static set. The
@@ -260,6 +265,17 @@ class Trainer:
             s = model.scales()
             loss = loss + c.lambda_ani * (s.max(-1).values / (s.min(-1).values + c.eps_ani)).mean()
         return loss, out
+
+    def flow_term(self, frame: Frame, out: Rendered, g) -> torch.Tensor:
+        """The flow term (train/flow.py) for the Gaussians that deform: their positions at this
+        frame's time as rendered, at the next frame's time from the field (without time noise)."""
+        j, flow = self.flows[frame.id]
+        nxt = self.scene.train_frames[j]
+        idx = torch.nonzero(g.dynamic).squeeze(1)
+        x_next = self.model.params.means[idx] + self.model.offsets(idx, nxt.time).dx
+        res = flow_residual(g.means[idx], x_next, camera_tensors(frame.camera), camera_tensors(nxt.camera), flow,
+                            out.depth)
+        return charbonnier(res)
 
     def world_transform(self, frame: Frame):
         """The training frame's pose correction as a rigid motion of the Gaussians (None when

@@ -1,0 +1,93 @@
+"""Optical-flow supervision of the deforming Gaussians' image motion (`lambda_flow`, 0: off).
+
+The photometric loss moves a Gaussian only while its splat overlaps the pixels it should
+explain: a moving object the field has lost track of gets no gradient back (docs/real-footage.md,
+"Moving objects lost in part of the clip"). Optical flow between consecutive training frames of
+one camera says where each pixel goes, whether or not the render is there yet. The term asks
+each deforming Gaussian that is visible at the frame's time (in front of the rendered depth at its
+pixel) to move, between this frame's time and the next frame's, as the flow at its pixel says.
+Flow is classical (OpenCV's DIS, computed once per run): nothing to download.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+FLOW_PRESET = "medium"  # DIS preset: ~11 ms per 278x157 pair on two cores
+DEPTH_SLACK = 1.05  # a Gaussian counts as visible when no deeper than this x the rendered depth
+
+
+def frame_flows(frames: list) -> dict[str, tuple[int, Tensor]]:
+    """`{frame id: (index of the next frame of the same camera in time, flow (H, W, 2) in pixels)}`
+    for every frame but each camera's last, from grayscale frames (DIS optical flow)."""
+    try:
+        import cv2
+    except ImportError as exc:  # an optional dependency: only this term needs it
+        raise RuntimeError("lambda_flow > 0 needs OpenCV: pip install opencv-python-headless") from exc
+    dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+                                     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+                                     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])
+    by_camera: dict[int, list[int]] = {}
+    for i, f in enumerate(frames):
+        by_camera.setdefault(f.camera_id, []).append(i)
+    out = {}
+    for order in by_camera.values():
+        order.sort(key=lambda i: frames[i].time)
+        gray = {}
+
+        def grey(i):
+            if i not in gray:
+                gray[i] = cv2.cvtColor((np.clip(frames[i].image(), 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+            return gray[i]
+
+        for a, b in zip(order[:-1], order[1:]):
+            if grey(a).shape != grey(b).shape:
+                continue
+            out[frames[a].id] = (b, torch.from_numpy(dis.calc(grey(a), grey(b), None)))
+            gray.pop(a)
+    return out
+
+
+def project(x: Tensor, viewmat: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel coordinates (N, 2) and camera depth (N,) of world points `x` (N, 3)."""
+    cam = x @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    uv = cam @ K.T
+    return uv[:, :2] / z.clamp_min(1e-6)[:, None], z
+
+
+def sample(image: Tensor, uv: Tensor) -> Tensor:
+    """Bilinear samples (N, C) of `image` (H, W, C) at pixel coordinates `uv` (N, 2), pixel
+    centres at integer coordinates (the rasteriser's convention)."""
+    H, W = image.shape[:2]
+    grid = torch.stack([(uv[:, 0] + 0.5) / W * 2 - 1, (uv[:, 1] + 0.5) / H * 2 - 1], -1)
+    s = F.grid_sample(image.permute(2, 0, 1)[None].float(), grid[None, None], mode="bilinear",
+                      padding_mode="border", align_corners=False)
+    return s[0, :, 0].T
+
+
+def flow_residual(x_t: Tensor, x_next: Tensor, cam_t: tuple[Tensor, Tensor], cam_next: tuple[Tensor, Tensor],
+                  flow: Tensor, depth: Tensor) -> Tensor:
+    """Per visible Gaussian, the image motion it makes from this frame to the next (`x_t`,
+    `x_next` (N, 3) world positions; `cam_*` = (viewmat, K)) minus the flow at its pixel (M, 2);
+    `depth` (H, W, 1) is this frame's rendered depth (0 where nothing was drawn)."""
+    uv_t, z_t = project(x_t, *cam_t)
+    uv_n, _ = project(x_next, *cam_next)
+    H, W = flow.shape[:2]
+    inside = (z_t > 1e-4) & (uv_t[:, 0] >= 0) & (uv_t[:, 0] <= W - 1) & (uv_t[:, 1] >= 0) & (uv_t[:, 1] <= H - 1)
+    uv_t, uv_n, z_t = uv_t[inside], uv_n[inside], z_t[inside]
+    d = sample(depth.detach(), uv_t.detach())[:, 0]
+    front = (d > 0) & (z_t.detach() <= DEPTH_SLACK * d)
+    f = sample(flow, uv_t.detach()[front])
+    return (uv_n[front] - uv_t[front]) - f
+
+
+def charbonnier(r: Tensor) -> Tensor:
+    """Mean robust length of residuals `r` (N, 2) in pixels: ~|r| for large ones, so that flow
+    errors at occlusions and on blur do not dominate."""
+    if len(r) == 0:
+        return r.sum() * 0
+    return (torch.sqrt((r * r).sum(-1) + 1.0) - 1.0).mean()
