@@ -37,6 +37,7 @@ def test_help_lists_working_commands():
         (["train", "nowhere", "--out", "x", "--set", "model.knn=many"], "model.knn takes a whole number"),
         (["train", "nowhere", "--out", "x", "--set", "frame_sampling=often"], "frame_sampling must be one of"),
         (["train", "nowhere", "--out", "x", "--set", "coarse_factor=0"], "coarse_factor >= 1"),
+        (["train", "nowhere", "--out", "x", "--set", "lambda_flow=-1"], "lambda_flow must be >= 0"),
         (["train", "nowhere", "--out", "x", "--set", "model.knn_radius=-1"], "model.knn_radius must be >= 0"),
         (["ingest", "missing.mp4", "--out", "x", "--lens", "fisheye"], "invalid choice: 'fisheye'"),
         (["eval", "."], "not a run directory"),

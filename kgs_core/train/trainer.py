@@ -268,11 +268,15 @@ class Trainer:
 
     def flow_term(self, frame: Frame, out: Rendered, g) -> torch.Tensor:
         """The flow term (train/flow.py) for the Gaussians that deform: their positions at this
-        frame's time as rendered, at the next frame's time from the field (without time noise)."""
+        frame's time as rendered, at the next frame's time from the field (without time noise),
+        each under its own frame's pose correction when poses are refined."""
         j, flow = self.flows[frame.id]
         nxt = self.scene.train_frames[j]
         idx = torch.nonzero(g.dynamic).squeeze(1)
         x_next = self.model.params.means[idx] + self.model.offsets(idx, nxt.time).dx
+        moved = self.world_transform(nxt)  # g.means carry this frame's pose correction; match it
+        if moved is not None:
+            x_next = x_next @ moved[0].T + moved[1]
         res = flow_residual(g.means[idx], x_next, camera_tensors(frame.camera), camera_tensors(nxt.camera), flow,
                             out.depth)
         return charbonnier(res)
