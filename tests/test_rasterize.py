@@ -358,3 +358,24 @@ def test_per_gaussian_loops_stay_vectorised(source, tmp_path):
     vectorised = {r.split(":")[1] for r in report.splitlines() if "loop vectorized" in r and source in r}
     for line in loops:
         assert str(line) in vectorised, f"{source}:{line} is no longer vectorised"
+
+
+def test_build_lock_clears_the_lock_file_a_killed_build_left(tmp_path):
+    """torch waits forever on the `lock` file of a build that was killed half-way; holding our
+    flock, that file can only be stale, so it goes. A second holder waits for the first."""
+    import subprocess
+    import sys
+    import time
+
+    from kgs_core.render._ext import _build_lock
+
+    (tmp_path / "lock").touch()
+    with _build_lock(tmp_path):
+        assert not (tmp_path / "lock").exists()
+        code = ("from pathlib import Path; from kgs_core.render._ext import _build_lock\n"
+                f"print('waiting', flush=True)\nwith _build_lock(Path({str(tmp_path)!r})): print('held', flush=True)")
+        other = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+        assert other.stdout.readline().strip() == "waiting"
+        time.sleep(0.5)
+        assert other.poll() is None  # still waiting for the flock
+    assert other.communicate(timeout=30)[0].strip() == "held" and other.returncode == 0

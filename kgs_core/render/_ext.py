@@ -2,12 +2,20 @@
 
 The extension is compiled on first use with ninja through ``torch.utils.cpp_extension`` and
 cached under ``$KGS_CACHE_DIR/ext/<key>`` (default ``~/.cache/kinematics-gs``). The key
-hashes the sources, the flags, the torch and Python versions and the CPU model, so a change
-to any of them rebuilds instead of loading a stale or illegal-instruction binary.
+hashes the sources, the flags, the torch and Python versions and installation, and the CPU
+model, so a change to any of them rebuilds instead of loading a stale or illegal-instruction
+binary (and two virtual environments do not rebuild each other's: ninja's command line holds
+each one's include paths).
+
+torch guards a build with a lock file it waits on forever; a build killed half-way (Ctrl-C on
+the first run) leaves that file behind and every later run hangs. So the build runs under our
+own ``flock``, which the kernel drops when its holder dies: holding it, a torch lock file found
+is stale and is removed.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import platform
@@ -61,6 +69,7 @@ def build_key() -> str:
         h.update((CSRC / name).read_bytes())
     h.update(" ".join(CFLAGS + LDFLAGS).encode())
     h.update(torch.__version__.encode())
+    h.update(str(Path(torch.__file__).resolve().parent).encode())
     h.update(sys.version.encode())
     h.update(_cpu_model().encode())
     return h.hexdigest()[:16]
@@ -87,18 +96,37 @@ def load(verbose: bool = False) -> ModuleType:
         build_dir = cache_root() / "ext" / key
         build_dir.mkdir(parents=True, exist_ok=True)
         try:
-            _module = cpp_extension.load(
-                name=f"kgs_raster_{key}",
-                sources=[str(CSRC / s) for s in SOURCES],
-                extra_cflags=CFLAGS,
-                extra_ldflags=LDFLAGS,
-                build_directory=str(build_dir),
-                verbose=verbose,
-            )
+            with _build_lock(build_dir):
+                _module = cpp_extension.load(
+                    name=f"kgs_raster_{key}",
+                    sources=[str(CSRC / s) for s in SOURCES],
+                    extra_cflags=CFLAGS,
+                    extra_ldflags=LDFLAGS,
+                    build_directory=str(build_dir),
+                    verbose=verbose,
+                )
         except Exception as exc:  # compiler errors, missing ninja, ...
             _error = exc
             raise ExtensionUnavailable(f"building the C++ rasteriser failed: {exc}") from exc
         return _module
+
+
+class _build_lock:
+    """`with _build_lock(build_dir)`: an exclusive flock on `build_dir/kgs.lock`, held for the
+    build; once held, torch's own `lock` file there can only be a killed build's, and goes."""
+
+    def __init__(self, build_dir: Path):
+        self.path = build_dir / "kgs.lock"
+
+    def __enter__(self):
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(self.fd, fcntl.LOCK_EX)
+        (self.path.parent / "lock").unlink(missing_ok=True)
+        return self
+
+    def __exit__(self, *exc):
+        fcntl.flock(self.fd, fcntl.LOCK_UN)
+        os.close(self.fd)
 
 
 def usable_for(t) -> bool:
