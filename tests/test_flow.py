@@ -25,6 +25,33 @@ def test_flow_residual_is_the_image_motion_minus_the_flow_for_visible_gaussians_
     assert torch.all(x_next.grad[2:] == 0)
 
 
+def test_forward_backward_check_keeps_flow_the_way_back_confirms():
+    """A 3 px shift confirmed by a -3 px flow back is kept, except in the last 3 columns (they
+    point outside the image); where the way back says +3 px (an occlusion) it is dropped; a
+    NaN flow leaves its Gaussian out of the residual."""
+    import numpy as np
+
+    from kgs_core.train.flow import consistent, flow_residual
+
+    H, W = 20, 30
+    fwd = np.zeros((H, W, 2), np.float32)
+    fwd[..., 0] = 3.0
+    ok = consistent(fwd, -fwd)
+    assert ok[:, : W - 3].all() and not ok[:, W - 2:].any()
+    bad = -fwd.copy()
+    bad[10:, ..., 0] = 3.0
+    ok = consistent(fwd, bad)
+    assert ok[:8, : W - 3].all() and not ok[11:].any()
+
+    K = torch.tensor([[100.0, 0, 15], [0, 100.0, 10], [0, 0, 1]])
+    cam = (torch.eye(4), K)
+    x_t = torch.tensor([[0.0, -0.05, 2.0], [0.0, 0.05, 2.0]])  # rows 7.5 and 12.5
+    flow = torch.from_numpy(fwd.copy())
+    flow[11:] = float("nan")
+    r = flow_residual(x_t, x_t, cam, cam, flow, torch.full((H, W, 1), 2.0))
+    assert r.shape == (1, 2) and torch.allclose(r, torch.tensor([[-3.0, 0.0]]))
+
+
 def test_frame_flows_pair_each_frame_with_the_next_of_its_camera_and_measure_the_shift():
     """Three frames of one camera (out of time order in the list) and one of another: flows go
     from each to the next of its own camera in time, and a texture shifted by 3 px comes out as
@@ -77,3 +104,13 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
     tr.model.zero_grad(set_to_none=True)
     info = tr.run()
     assert info["iteration"] == 40 and torch.isfinite(torch.tensor(info["final_psnr_heldout"]))
+    # After a split (here one that calls every Gaussian dynamic: 40 steps of a 40 px scene move
+    # too little for τ), with an exposure, the term reads K.R.'s velocity with its gradient.
+    tr.model.decompose(tau=-1.0, recompute=False)
+    out, g = render_model(tr.model, frame.camera, frame.time, 0.5, scene.dt)
+    assert tr.model.decomposed and g.dynamic.any() and "dynamic_velocity" in g.extras
+    tr.model.zero_grad(set_to_none=True)
+    term = tr.flow_term(frame, out, g)
+    assert torch.isfinite(term)
+    term.backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in tr.model.deform.parameters())

@@ -100,6 +100,7 @@ class GaussiansAt:
     # blurred. The renderer scales their opacities so that each splat keeps its 2D mass
     # (`blur_opacity_scale`).
     sweep: tuple[Tensor | None, Tensor] | None = None
+    # "dynamic_velocity": `(idx (D,), velocity (D, 3))` with its gradient, where K.R. computed it.
     extras: dict = field(default_factory=dict)
 
     @property
@@ -314,12 +315,15 @@ class KinematicsGS(nn.Module):
             sweep_all = (means.detach() @ A.T + b) * (dt * exposure)
             cov6 = motion_blur_covariance_packed(cov6, sweep_all)
         sweep = None if sweep_all is None else (None, sweep_all)
+        extras = {}
         if len(idx):
             d = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6_canonical[idx],
                              camera_motion if blur_camera else None, velocity)
             means = means.index_put((idx,), d.means)
             cov6 = cov6.index_put((idx,), d.covars6)
             velocities = None if d.velocity is None else velocities.index_put((idx,), d.velocity.detach())
+            if d.velocity is not None:  # differentiable, for the flow term (train/flow.py)
+                extras["dynamic_velocity"] = (idx, d.velocity)
             dx_all = dx_all.index_put((idx,), d.dx)
             if sweep_all is not None:  # (without K.R. the dynamic Gaussians are not blurred)
                 rows = d.sweep if d.sweep is not None else torch.zeros_like(d.means)
@@ -328,7 +332,7 @@ class KinematicsGS(nn.Module):
                 sweep = (idx, d.sweep)
         return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
-                           velocity=velocities, offsets_dx=dx_all, sweep=sweep)
+                           velocity=velocities, offsets_dx=dx_all, sweep=sweep, extras=extras)
 
     def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0,
                    velocity: bool = True) -> tuple[Tensor, GaussiansAt]:

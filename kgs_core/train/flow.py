@@ -6,7 +6,9 @@ explain: a moving object the field has lost track of gets no gradient back (docs
 one camera says where each pixel goes, whether or not the render is there yet. The term asks
 each deforming Gaussian that is visible at the frame's time (in front of the rendered depth at its
 pixel) to move, between this frame's time and the next frame's, as the flow at its pixel says.
-Flow is classical (OpenCV's DIS, computed once per run): nothing to download.
+Flow is classical (OpenCV's DIS, computed once per run): nothing to download. Where the flow
+from a frame to the next and the flow back disagree (occlusions, the smeared edges of a moving
+object, untextured walls) it is left out: a forward-backward check, as in Sundaram et al. 2010.
 """
 
 from __future__ import annotations
@@ -18,15 +20,34 @@ from torch import Tensor
 
 FLOW_PRESET = "medium"  # DIS preset: ~11 ms per 278x157 pair on two cores
 DEPTH_SLACK = 1.05  # a Gaussian counts as visible when no deeper than this x the rendered depth
+# Forward-backward check: a pixel's flow is kept where |F(p) + B(p + F(p))|^2 is at most
+# FB_RELATIVE (|F|^2 + |B|^2) + FB_ABSOLUTE px^2 (Sundaram et al.'s 0.01 and 0.5).
+FB_RELATIVE, FB_ABSOLUTE = 0.01, 0.5
+
+
+def consistent(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
+    """Where (H, W) the forward flow (H, W, 2) is confirmed by the backward flow sampled at the
+    pixel it points to (bilinear; pixels pointing outside the image are not confirmed)."""
+    import cv2
+
+    H, W = forward.shape[:2]
+    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    tx, ty = gx + forward[..., 0], gy + forward[..., 1]
+    back = cv2.remap(backward, tx, ty, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    err = ((forward + back) ** 2).sum(-1)
+    bound = FB_RELATIVE * ((forward ** 2).sum(-1) + (back ** 2).sum(-1)) + FB_ABSOLUTE
+    return (err <= bound) & (tx >= 0) & (tx <= W - 1) & (ty >= 0) & (ty <= H - 1)
 
 
 def frame_flows(frames: list) -> dict[str, tuple[int, Tensor]]:
     """`{frame id: (index of the next frame of the same camera in time, flow (H, W, 2) in pixels)}`
-    for every frame but each camera's last, from grayscale frames (DIS optical flow)."""
+    for every frame but each camera's last, from grayscale frames (DIS optical flow); NaN where
+    the forward-backward check fails."""
     try:
         import cv2
-    except ImportError as exc:  # an optional dependency: only this term needs it
-        raise RuntimeError("lambda_flow > 0 needs OpenCV: pip install opencv-python-headless") from exc
+    except ImportError as exc:  # a dependency of the package; a hand-made environment may lack it
+        raise RuntimeError("lambda_flow > 0 needs OpenCV: pip install opencv-python-headless "
+                           "(or train with --set lambda_flow=0)") from exc
     dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                                      "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                                      "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])
@@ -46,7 +67,9 @@ def frame_flows(frames: list) -> dict[str, tuple[int, Tensor]]:
         for a, b in zip(order[:-1], order[1:]):
             if grey(a).shape != grey(b).shape:
                 continue
-            out[frames[a].id] = (b, torch.from_numpy(dis.calc(grey(a), grey(b), None)))
+            forward = dis.calc(grey(a), grey(b), None)
+            forward[~consistent(forward, dis.calc(grey(b), grey(a), None))] = np.nan
+            out[frames[a].id] = (b, torch.from_numpy(forward))
             gray.pop(a)
     return out
 
@@ -73,7 +96,8 @@ def flow_residual(x_t: Tensor, x_next: Tensor, cam_t: tuple[Tensor, Tensor], cam
                   flow: Tensor, depth: Tensor) -> Tensor:
     """Per visible Gaussian, the image motion it makes from this frame to the next (`x_t`,
     `x_next` (N, 3) world positions; `cam_*` = (viewmat, K)) minus the flow at its pixel (M, 2);
-    `depth` (H, W, 1) is this frame's rendered depth (0 where nothing was drawn)."""
+    `depth` (H, W, 1) is this frame's rendered depth (0 where nothing was drawn). Gaussians whose
+    pixel touches a NaN flow (failed the forward-backward check) are left out."""
     uv_t, z_t = project(x_t, *cam_t)
     uv_n, _ = project(x_next, *cam_next)
     H, W = flow.shape[:2]
@@ -82,7 +106,8 @@ def flow_residual(x_t: Tensor, x_next: Tensor, cam_t: tuple[Tensor, Tensor], cam
     d = sample(depth.detach(), uv_t.detach())[:, 0]
     front = (d > 0) & (z_t.detach() <= DEPTH_SLACK * d)
     f = sample(flow, uv_t.detach()[front])
-    return (uv_n[front] - uv_t[front]) - f
+    ok = torch.isfinite(f).all(-1)
+    return (uv_n[front][ok] - uv_t[front][ok]) - f[ok]
 
 
 def charbonnier(r: Tensor) -> Tensor:
