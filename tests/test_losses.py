@@ -63,4 +63,3 @@ def test_coarse_l1_still_sees_how_far_a_displaced_object_is():
     near, far = square(14), square(20)
     assert l1(near, frame) == pytest.approx(float(l1(far, frame)))
     assert coarse_l1(near, frame, 8) < coarse_l1(far, frame, 8)
-

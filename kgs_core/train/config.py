@@ -299,7 +299,7 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         cfg.model = m = replace(m, tau=float(f"{(TAU_RMS_PX / ppu) ** 2:.3g}"))
         fitted["model.tau"] = (f"{m.tau:.3g}: an RMS image motion of {TAU_RMS_PX} px at {ppu:.0f} px per scene unit "
                                "(median focal length over median point depth)")
-    if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and "ingest" in (scene.extras or {}) and n_frames > 1:
+    if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and "ingest" in scene.extras and n_frames > 1:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
         fitted["lambda_flow"] = (f"{VIDEO_FLOW_WEIGHT}: a video ingest; optical flow between its frames guides the "
                                  "moving Gaussians (--set lambda_flow=0 turns it off)")
