@@ -112,6 +112,7 @@ class Split(Response):
     dynamic: int
     static: int
     dynamic_share: float
+    spawned: int = Field(description="Gaussians present for part of the clip (spawned in training), all dynamic")
     kept: int
     dynamic_kept: int
     static_kept: int

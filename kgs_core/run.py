@@ -99,6 +99,7 @@ class LoadedRun:
 
 def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     """A model sharing the networks of `model` with a level snapshot's Gaussians."""
+    from .model.dynamic import unbounded_lifespan
     from .model.gaussians import GaussianParams
 
     view = KinematicsGS.__new__(KinematicsGS)
@@ -109,6 +110,7 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     view.decomposed = model.decomposed
     view.dynamic = snap["dynamic"]
     view.variance = snap["variance"]
+    view.lifespan = snap["lifespan"] if "lifespan" in snap else unbounded_lifespan(len(view.params))
     view.min_scale = snap["min_scale"]
     view._knn = None
     view._knn_mean = None

@@ -77,7 +77,10 @@ class Trajectories:
                 vels.append(g.velocity.numpy())
             self.idx = idx.numpy()
             self.means, self.cov6, self.vels = np.stack(means), np.stack(covs), np.stack(vels)
-            self.rgba = rgba_of(g.sh, g.opacities)
+            # Opacities before the lifespan's presence factor, which `buffer` applies at its t
+            # (exact, not interpolated: it is a narrow Gaussian in time).
+            self.rgba = rgba_of(g.sh, m.params.opacities.detach()[idx])
+            self.lifespan = m.lifespan[idx].numpy()
             self.times = times
             self.ready.set()
         except Exception as exc:  # keep serving exact evaluations
@@ -106,7 +109,8 @@ class Trajectories:
                     "means": torch.from_numpy(np.ascontiguousarray(cut(self.means))), "scale": scale,
                     "cov6": torch.from_numpy(np.clip(cov6 / scale, -F16_MAX, F16_MAX, dtype=np.float32)),
                     "vels": torch.from_numpy(np.clip(cut(self.vels), -F16_MAX, F16_MAX, dtype=np.float32)),
-                    "rgba": self.rgba[sel], "index": self.idx[sel].astype(np.uint32)}
+                    "rgba": self.rgba[sel], "index": self.idx[sel].astype(np.uint32),
+                    "lifespan": self.lifespan[sel]}
                 self.means = self.cov6 = self.vels = None  # only the cut is read from here on
             return self._kept_samples
 
@@ -130,11 +134,24 @@ class Trajectories:
         buf, rec, vel = new_buffer(header, len(kept["index"]), velocity, kept["scale"])
         lerp_into(kept["means"], rec["position"])
         lerp_into(kept["cov6"], rec["covariance"])
-        rec["rgba"] = kept["rgba"]
+        rec["rgba"] = presence_rgba(kept["rgba"], kept["lifespan"], t)
         rec["index"] = kept["index"]
         if vel is not None:
             lerp_into(kept["vels"], vel)
         return bytes(buf)
+
+
+def presence_rgba(rgba: np.ndarray, lifespan: np.ndarray, t: float) -> np.ndarray:
+    """`rgba (N, 4) uint8` with the alpha of Gaussians present for part of the clip
+    (`lifespan (N, 2)`: centre, width; width inf for the others) scaled to their presence at
+    `t`, as `KinematicsGS.present` does."""
+    bounded = np.isfinite(lifespan[:, 1])
+    if not bounded.any():
+        return rgba
+    out = rgba.copy()
+    z = (t - lifespan[bounded, 0]) / lifespan[bounded, 1]
+    out[bounded, 3] = np.round(rgba[bounded, 3] * np.exp(-0.5 * z * z)).astype(np.uint8)
+    return out
 
 
 def _with_tau(model, tau: float):

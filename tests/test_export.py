@@ -150,6 +150,31 @@ def test_splatv_container_and_fit(tiny_run, tmp_path):
     assert json.loads(out.with_name(out.name + ".json").read_text())["fit"] == fit
 
 
+def test_splatv_carries_each_gaussians_lifespan(tiny_run):
+    """Gaussians present for part of the clip (spawned in training, `KinematicsGS.lifespan`)
+    play in splaTV with its own temporal opacity: the player's opacity and position at any time
+    are the model's, whatever each one's centre."""
+    import torch
+
+    from kgs_core.export.splatv import decode_splatv_words, evaluate_splatv, fit_splatv
+    from kgs_core.run import load_run
+
+    run = load_run(tiny_run)
+    m = run.model
+    some = torch.nonzero(m.dynamic).squeeze(1)[:6]
+    m.lifespan[some] = torch.tensor([[0.2, 0.05], [0.3, 0.1], [0.5, 0.05], [0.7, 0.2], [0.9, 0.05], [0.4, 0.3]])
+    src = open_source(run)
+    words, fit = fit_splatv(src, list(np.linspace(0, 1, 9)), progress=False)
+    d = decode_splatv_words(words)
+    for t in (0.2, 0.25, 0.35, 0.7, 0.95):
+        p, _, opacity = evaluate_splatv(d, t)
+        g = bake(src, t)
+        # uint8 opacity and half-float centre/width: within 1 % of full opacity.
+        np.testing.assert_allclose(opacity, g.opacities, atol=0.01)
+        assert np.linalg.norm(p - g.means, axis=1)[some.numpy()].max() <= fit.position_max * 1.001 + 1e-6
+    assert bake(src, 0.5).opacities[some[0]] < 1e-3 * float(m.params.opacities.detach()[some[0]])  # gone far from 0.2
+
+
 def test_splatv_cameras_are_display_sized_and_the_suffix_is_added(tiny_run, tmp_path):
     """splaTV reads fx against its window width: the cameras keep the training field of view at
     a display-sized width; `--out NAME` without the suffix writes NAME.splatv."""

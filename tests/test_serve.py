@@ -468,6 +468,37 @@ def test_trajectory_cache_gives_the_exact_set_at_its_samples_and_the_linear_mix_
     assert h["interpolated"] and len(idx) == len(ia) - 3 and not set(gone) & set(idx.tolist())
 
 
+def test_trajectory_cache_fades_gaussians_present_for_part_of_the_clip_as_the_model_does(copy_run):
+    """Spawned Gaussians (a bounded `lifespan`) come and go in time: the cache's interpolated
+    buffers give them the alpha the exact evaluation gives, at the lifespan's centre and away
+    from it."""
+    import torch
+
+    from kgs_core.run_view import RunView
+
+    view = RunView(copy_run)
+    lod = view.run.n_levels
+    m = view.run.model
+    some = torch.nonzero(m.dynamic).squeeze(1)[:4]
+    m.lifespan[some] = torch.tensor([[0.3, 0.05], [0.35, 0.02], [0.6, 0.1], [0.3, 0.3]])
+    m.params.opacity_logits.data[some] = 3.0  # opacity 0.953: alpha 243 where fully present
+    full = int(torch.sigmoid(torch.tensor(3.0)) * 255 + 0.5)
+    view.trajectories(lod, 0.0)
+    assert view._trajectories[(lod, view.version, 0.0)].ready.wait(60)
+    for t in (0.3, 0.33, 0.5):
+        h, rec, _ = unpack_buffer(view.dynamic_buffer(t))
+        he, rec_e, _ = unpack_buffer(view.dynamic_buffer(t, exact=True))
+        assert h["interpolated"] and not he["interpolated"]
+        assert np.array_equal(rec["index"], rec_e["index"])
+        alpha, alpha_e = rec["rgba"][:, 3].astype(int), rec_e["rgba"][:, 3].astype(int)
+        assert np.abs(alpha - alpha_e).max() <= 1
+        row = {int(i): k for k, i in enumerate(rec["index"])}
+        if t == 0.3:
+            assert alpha[row[int(some[0])]] == full
+        if t == 0.5:  # 7.5 widths from the second one's centre: gone; the last one (width 0.3) is not
+            assert alpha[row[int(some[1])]] == 0 and alpha[row[int(some[3])]] == round(full * np.exp(-0.5 * (2 / 3) ** 2))
+
+
 # ------------------------------------------------------------ hostile clients
 
 

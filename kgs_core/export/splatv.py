@@ -25,11 +25,13 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import struct
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from ..io import atomic_write_bytes
@@ -121,13 +123,32 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
     rot_coef[0, ~dyn] = q_ref[~dyn]
     scales[~dyn] = np.sqrt(np.maximum(ref_var[~dyn], 0.0))
 
+    # Gaussians present for part of the clip (`KinematicsGS.lifespan`): the player's own temporal
+    # opacity, A exp(-(dt / s)^2) with s = sqrt(2) x width, and A the opacity before that factor
+    # (the reference bake at TIME_CENTRE has it applied).
+    life = source.model.lifespan[torch.from_numpy(source.keep)].numpy().astype(np.float64)
+    bounded = np.isfinite(life[:, 1])
+    opacity = ref.opacities.astype(np.float64).copy()
+    opacity[bounded] = source.model.params.opacities.detach()[torch.from_numpy(source.keep)].numpy()[bounded]
+    centre, trbf = np.full(n, TIME_CENTRE), np.full(n, TRBF_SCALE)
+    centre[bounded], trbf[bounded] = life[bounded, 0], np.sqrt(2.0) * life[bounded, 1]
+    # The player's polynomials are in time from each Gaussian's own centre: re-expand the fitted
+    # ones (in time from TIME_CENTRE) about it, exactly (binomial shift).
+    delta = centre - TIME_CENTRE  # (N,)
+    shifted = np.zeros_like(pos_coef)
+    for j in range(4):
+        for k in range(j, 4):
+            shifted[j] += math.comb(k, j) * (delta ** (k - j))[:, None] * pos_coef[k]
+    pos_coef = shifted
+    rot_coef[0] = rot_coef[0] + delta[:, None] * rot_coef[1]
+
     words = np.zeros((n, 16), dtype=np.uint32)
     words[:, 0:3] = pos_coef[0].astype(np.float32).view(np.uint32)
     words[:, 3] = _pack_half2(rot_coef[0][:, 0], rot_coef[0][:, 1])
     words[:, 4] = _pack_half2(rot_coef[0][:, 2], rot_coef[0][:, 3])
     words[:, 5] = _pack_half2(scales[:, 0], scales[:, 1])
     words[:, 6] = _pack_half2(scales[:, 2], np.zeros(n))
-    rgba = np.clip(np.round(np.concatenate([ref.rgb, ref.opacities[:, None]], 1) * 255), 0, 255).astype(np.uint8)
+    rgba = np.clip(np.round(np.concatenate([ref.rgb, opacity[:, None]], 1) * 255), 0, 255).astype(np.uint8)
     words[:, 7] = rgba.view(np.uint32)[:, 0]
     motion = np.concatenate([pos_coef[1], pos_coef[2], pos_coef[3]], 1)  # (N, 9)
     motion = np.concatenate([motion, np.zeros((n, 1))], 1)
@@ -135,7 +156,7 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
         words[:, 8 + w] = _pack_half2(motion[:, 2 * w], motion[:, 2 * w + 1])
     words[:, 13] = _pack_half2(rot_coef[1][:, 0], rot_coef[1][:, 1])
     words[:, 14] = _pack_half2(rot_coef[1][:, 2], rot_coef[1][:, 3])
-    words[:, 15] = _pack_half2(np.full(n, TIME_CENTRE), np.full(n, TRBF_SCALE))
+    words[:, 15] = _pack_half2(centre, trbf)
 
     # Check the fit, as the player decodes it, at times between the fitted ones as well.
     check = np.linspace(times[0], times[-1], 2 * len(times) - 1) if len(times) > 1 else times

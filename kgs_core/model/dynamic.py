@@ -133,6 +133,10 @@ class KinematicsGS(nn.Module):
         self.decomposed = False  # before the split every Gaussian deforms
         self.dynamic = torch.zeros(n, dtype=torch.bool)
         self.variance = torch.zeros(n)
+        # (N, 2): each Gaussian's time of presence (centre, width; normalised time). Width inf,
+        # the paper's Gaussians: present at every time. Spawned ones (train/spawn.py) live
+        # around the frame they were made for: opacity x exp(-((t - centre) / width)^2 / 2).
+        self.lifespan = unbounded_lifespan(n)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
         self._knn: Tensor | None = None
         self._knn_mean: tuple | None = None  # (knn it was built from, W, W^T): see neighbour_mean
@@ -151,13 +155,14 @@ class KinematicsGS(nn.Module):
     # `add_gaussians` resize all of it in lock-step, and drop the kNN graph of the coarse-to-fine
     # step, which indexes the old set. Nothing else should assign `params`, `dynamic` or
     # `variance` with a new length.
-    def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor) -> None:
-        if not len(params) == len(dynamic) == len(variance):
+    def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor) -> None:
+        if not len(params) == len(dynamic) == len(variance) == len(lifespan):
             raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
-                             f"{len(variance)} values of K")
+                             f"{len(variance)} values of K, {len(lifespan)} lifespans")
         self.params = params
         self.dynamic = dynamic
         self.variance = variance
+        self.lifespan = lifespan
         self._knn = None
 
     def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None,
@@ -165,17 +170,19 @@ class KinematicsGS(nn.Module):
         """Keeps the Gaussians where `keep (N,) bool` is true (pruning): parameters, Adam
         moments, dynamic flags, K, and the (N, ...) tensors of `state` (a strategy's statistics,
         replaced in the dict)."""
-        self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep])
+        self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep],
+                        self.lifespan[keep])
         for k, v in (state or {}).items():
             state[k] = v[keep]
 
     def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None,
-                      state: dict[str, Tensor] | None = None) -> None:
+                      state: dict[str, Tensor] | None = None, lifespan: Tensor | None = None) -> None:
         """Appends Gaussians (densification: clones and split children); each inherits the dynamic
-        flag and K of its parent, `parents (M,)` indices into the current set, and starts with
-        zero Adam moments and zeros in `state`."""
+        flag, K and lifespan of its parent (or takes `lifespan (M, 2)` when given), `parents (M,)`
+        indices into the current set, and starts with zero Adam moments and zeros in `state`."""
+        life = self.lifespan[parents] if lifespan is None else lifespan
         self.set_params(append(self.params, optimizer, new), torch.cat([self.dynamic, self.dynamic[parents]]),
-                        torch.cat([self.variance, self.variance[parents]]))
+                        torch.cat([self.variance, self.variance[parents]]), torch.cat([self.lifespan, life]))
         for k, v in (state or {}).items():
             state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
 
@@ -207,7 +214,8 @@ class KinematicsGS(nn.Module):
             self.config.tau = tau
         if recompute:
             self.variance = self.temporal_variance()
-        self.dynamic = self.variance > self.config.tau
+        # A Gaussian present for part of the clip changes over time whatever its motion.
+        self.dynamic = (self.variance > self.config.tau) | self.lifespan[:, 1].isfinite()
         self.decomposed = True
         self._knn = None
         return self.dynamic
@@ -330,7 +338,7 @@ class KinematicsGS(nn.Module):
                 sweep = (None, sweep_all.index_put((idx,), rows))
             elif d.sweep is not None:
                 sweep = (idx, d.sweep)
-        return GaussiansAt(means=means, covars6=cov6, opacities=p.opacities, sh=p.sh(),
+        return GaussiansAt(means=means, covars6=cov6, opacities=self.present(p.opacities, t), sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocities, offsets_dx=dx_all, sweep=sweep, extras=extras)
 
@@ -347,10 +355,21 @@ class KinematicsGS(nn.Module):
             d = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
         else:
             d = Deformed(p.means[idx], cov6, torch.zeros(0, 3), torch.zeros(0, 3), None)
-        return idx, GaussiansAt(means=d.means, covars6=d.covars6, opacities=p.opacities[idx], sh=p.sh()[idx],
+        return idx, GaussiansAt(means=d.means, covars6=d.covars6, opacities=self.present(p.opacities, t)[idx],
+                                sh=p.sh()[idx],
                                 dynamic=torch.ones(len(idx), dtype=torch.bool),
                                 velocity=None if d.velocity is None else d.velocity.detach(), offsets_dx=d.dx,
                                 sweep=None if d.sweep is None else (None, d.sweep))
+
+    def present(self, opacities: Tensor, t: float) -> Tensor:
+        """`opacities (N,)` scaled by each Gaussian's presence at `t` (`lifespan`); unchanged
+        when every Gaussian is present at every time."""
+        width = self.lifespan[:, 1]
+        bounded = width.isfinite()
+        if not bounded.any():
+            return opacities
+        z = torch.where(bounded, (t - self.lifespan[:, 0]) / width, torch.zeros_like(width))
+        return opacities * torch.exp(-0.5 * z * z)
 
     def _deform(self, idx: Tensor, t: float, exposure: float | Tensor, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
@@ -434,6 +453,7 @@ class KinematicsGS(nn.Module):
             "decomposed": self.decomposed,
             "dynamic": self.dynamic.clone(),
             "variance": self.variance.clone(),
+            "lifespan": self.lifespan.clone(),
             "min_scale": self.min_scale,
             # The kNN graph is rebuilt only when the dynamic set changes, from the positions of
             # that moment; a resumed run must reuse it, not rebuild it from later positions.
@@ -453,9 +473,18 @@ class KinematicsGS(nn.Module):
             raise ValueError(f"model state field 'dynamic': expected a bool mask, got {state['dynamic'].dtype}")
         model.dynamic = state["dynamic"].clone()
         model.variance = state["variance"].clone()
+        life = state.get("lifespan")  # absent in runs saved before spawning existed
+        if life is not None:
+            _check_per_gaussian([("lifespan", life)], n)
+        model.lifespan = unbounded_lifespan(n) if life is None else life.clone()
         model.min_scale = float(state["min_scale"])
         model._knn = _checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model
+
+
+def unbounded_lifespan(n: int) -> Tensor:
+    """`(n, 2)` lifespans of Gaussians present at every time (centre 0, width inf)."""
+    return torch.tensor([0.0, float("inf")]).repeat(n, 1)
 
 
 def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
@@ -561,10 +590,12 @@ def otsu_tau(variance: Tensor, floor: float, bins: int = 128) -> float:
 
 def split_counts(model: KinematicsGS, static_only: bool = False) -> dict:
     """Gaussian counts; before the first split every Gaussian deforms (all dynamic), and in a
-    static run (`--ablate deform`) none does."""
+    static run (`--ablate deform`) none does. "spawned": those present for part of the clip
+    (train/spawn.py, and their clones)."""
     n = len(model)
     d = 0 if static_only else int(model.dynamic.sum()) if model.decomposed else n
-    return {"gaussians": n, "dynamic": d, "static": n - d, "dynamic_share": d / max(n, 1)}
+    return {"gaussians": n, "dynamic": d, "static": n - d, "dynamic_share": d / max(n, 1),
+            "spawned": int(model.lifespan[:, 1].isfinite().sum())}  # present for part of the clip
 
 
 def variance_histogram(variance: np.ndarray, bins: int = 64) -> dict:

@@ -74,6 +74,17 @@ class TrainConfig:
     # the image as their pixels do (train/flow.py; per pixel of disagreement, 0: off).
     # fit_to_scene turns it on for video ingests (VIDEO_FLOW_WEIGHT).
     lambda_flow: float = 0.0
+    # At each densification after the split, the `spawn_frames` training frames with the highest
+    # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
+    # present for about `spawn_life` frames around their frame's time, at the pixels the render
+    # still gets wrong where something moves on its own (train/spawn.py; 0: off). They bring
+    # back a moving person the field lost track of, but one walk run of four also warped the
+    # background by 1.4 dB, so it is off by default (docs/real-footage.md, "Spawned Gaussians";
+    # `--set spawn_frames=2` turns it on).
+    spawn_frames: int = 0
+    spawn_max: int = 200
+    spawn_life: float = 1.0  # frame intervals (the width of the presence's Gaussian in time)
+    spawn_from: float = 0.0  # no spawning before this fraction of the iterations (nor before the split)
     lambda_ani: float = 1e-4
     eps_ani: float = 1e-6
     lambda_tv: float = 1e-4  # K-Planes smoothness
@@ -135,6 +146,10 @@ class TrainConfig:
 
     def __post_init__(self):
         check_choices(self)
+        if self.spawn_frames < 0 or self.spawn_max < 1 or not self.spawn_life > 0 or not 0 <= self.spawn_from <= 1:
+            raise ValueError(f"spawn settings: spawn_frames >= 0, spawn_max >= 1, spawn_life > 0 (frames) and "
+                             f"0 <= spawn_from <= 1, got {self.spawn_frames!r}, {self.spawn_max!r}, "
+                             f"{self.spawn_life!r}, {self.spawn_from!r}")
         if self.exposure is not None and not 0 <= self.exposure <= 1:
             raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {self.exposure!r}")
         if not self.lambda_flow >= 0:

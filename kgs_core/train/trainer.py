@@ -31,6 +31,7 @@ from .densify import DensifyStrategy
 from .exposure import FittedExposure
 from .flow import charbonnier, flow_residual, frame_flows
 from .pose_refine import PoseCorrection
+from .spawn import SPAWN_LOSS_RATIO, independent_motion, spawn_unexplained
 
 
 class NonFiniteError(FloatingPointError):
@@ -150,7 +151,9 @@ class Trainer:
                               if cfg.camera_blur != "off" else None)
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
         # lambda_flow: each training frame's flow to the next of its camera (train/flow.py).
-        self.flows = frame_flows(scene.train_frames) if cfg.lambda_flow > 0 and not self.static_only else {}
+        # (Also what spawning reads: where something moves on its own, train/spawn.py.)
+        self.flows = (frame_flows(scene.train_frames) if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0)
+                      and not self.static_only else {})
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
 
@@ -246,7 +249,7 @@ class Trainer:
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if c.lambda_coarse > 0:
             loss = loss + c.lambda_coarse * coarse_l1(out.image, gt, c.coarse_factor)
-        if frame.id in self.flows and g.dynamic.any():
+        if c.lambda_flow > 0 and frame.id in self.flows and g.dynamic.any():
             loss = loss + c.lambda_flow * self.flow_term(frame, out, g)
         if not self.static_only:
             if c.lambda_reg > 0 and g.offsets_dx is not None:
@@ -358,6 +361,9 @@ class Trainer:
         c, model = self.cfg, self.model
         nxt = it + 1
         changed = self.strategy.step(model, self.opt, nxt)
+        if (changed and c.spawn_frames > 0 and model.decomposed and not self.static_only
+                and nxt >= c.spawn_from * c.iterations):
+            self.spawn(nxt)
         if not self.static_only and not self.no_split:
             if nxt == c.decompose_at or (model.decomposed and c.decompose_every and nxt > c.decompose_at
                                          and (nxt - c.decompose_at) % c.decompose_every == 0):
@@ -366,6 +372,34 @@ class Trainer:
             model._knn = None
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
+
+    def spawn(self, it: int) -> None:
+        """New dynamic Gaussians where the worst-fitted training frames stay unexplained and
+        something moves on its own (train/spawn.py). The pixels drawn depend on the seed and the
+        iteration only, so that a resumed run spawns as the uninterrupted one would."""
+        c, model = self.cfg, self.model
+        loss = torch.nan_to_num(self.frame_loss, nan=-1.0)
+        seen = loss[loss >= 0]
+        if len(seen) == 0:
+            return
+        # Only frames that fit far worse than the clip's typical one: a scene whose frames all
+        # fit about alike gets nothing.
+        worst = [i for i in torch.argsort(loss, descending=True)[: c.spawn_frames].tolist()
+                 if loss[i] > SPAWN_LOSS_RATIO * float(seen.median())]
+        for i in worst:
+            frame = self.scene.train_frames[i]
+            with torch.no_grad():
+                out, g = render_model(model, frame.camera, frame.time, self.exposure, self.scene.dt, self.background,
+                                      velocity=False, world_transform=self.world_transform(frame))
+            viewmat, K = camera_tensors(frame.camera)
+            moving = None
+            if frame.id in self.flows:
+                j, flow = self.flows[frame.id]
+                moving = independent_motion(out.depth, viewmat, K, *camera_tensors(self.scene.train_frames[j].camera),
+                                            flow)
+            spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image, out.depth,
+                              self.cache.get(frame), g.means, c.spawn_max, c.spawn_life * self.scene.dt,
+                              np.random.default_rng([c.seed, it, i]), moving)
 
     def split(self) -> None:
         """A static/dynamic split in training: K recomputed, then τ the configured one or
@@ -408,7 +442,8 @@ class Trainer:
         if keep.sum() >= 4:
             model.keep_gaussians(keep, self.opt, self.strategy.state)
         snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
-                "variance": model.variance.clone(), "min_scale": model.min_scale, "iteration": self.iteration + 1}
+                "variance": model.variance.clone(), "lifespan": model.lifespan.clone(), "min_scale": model.min_scale,
+                "iteration": self.iteration + 1}
         self.levels.append(snap)
         old, new = model.min_scale, self.level_min_scale(level_idx)
         with torch.no_grad():

@@ -1,0 +1,128 @@
+"""Spawning dynamic Gaussians where a training frame stays unexplained (train/spawn.py), and the
+lifespan that keeps them to the time they were made for."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_model import moving_model
+
+from kgs_core.model.dynamic import KinematicsGS
+from kgs_core.render import intrinsics, look_at
+from kgs_core.train.densify import DensifyStrategy
+from kgs_core.train.flow import project
+from kgs_core.train.spawn import independent_motion, spawn_unexplained, unexplained_pixels
+
+W = H = 64
+
+
+def scene_model() -> tuple[KinematicsGS, torch.Tensor, torch.Tensor]:
+    """A moving model of 400 Gaussians in front of a camera looking down +z."""
+    m = moving_model(n=400, seed=1)
+    return m, look_at((0.0, 0.0, -2.0), (0.0, 0.0, 0.0)), intrinsics(W, H)
+
+
+def test_unexplained_pixels_are_regions_not_edges():
+    image = torch.zeros(H, W, 3)
+    target = image.clone()
+    target[10:20, 30:42] = 0.8  # a missing object
+    target[40, :] = 1.0  # a one-pixel edge off by a pixel
+    target[50:52, 5:8] = 0.8  # too small to be worth Gaussians
+    mask = unexplained_pixels(image, target)
+    assert mask[10:20, 30:42].all()
+    assert mask.sum() == 10 * 12
+    assert not unexplained_pixels(image, image + 0.1).any()  # under the threshold
+
+
+def test_independent_motion_is_flow_the_still_scene_does_not_make():
+    """A wall at depth 2 seen by a camera that moves sideways: its flow is the parallax, and only
+    a patch whose flow differs from that is moving on its own; pixels without flow or without
+    anything drawn are not."""
+    K = intrinsics(W, H)
+    view0 = look_at((0.0, 0.0, -2.0), (0.0, 0.0, 0.0))
+    view1 = look_at((0.05, 0.0, -2.0), (0.05, 0.0, 0.0))
+    depth = torch.full((H, W, 1), 2.0)
+    parallax = -0.05 * float(K[0, 0]) / 2.0  # px: the camera moves +x, the wall moves -x on screen
+    flow = torch.zeros(H, W, 2)
+    flow[..., 0] = parallax
+    assert not independent_motion(depth, view0, K, view1, K, flow).any()
+    flow[10:20, 10:20, 1] += 3.0  # something moving down by 3 px
+    flow[40:44, 40:44] = float("nan")  # unreliable flow
+    depth[50:, :] = 0.0  # nothing drawn
+    moving = independent_motion(depth, view0, K, view1, K, flow)
+    assert moving[10:20, 10:20].all() and moving.sum() == 100
+
+
+def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from_it():
+    m, viewmat, K = scene_model()
+    t, life = 0.5, 0.05
+    strategy = DensifyStrategy()
+    strategy.reset(len(m))
+    opt = torch.optim.Adam([{"params": [v], "name": k} for k, v in m.params.items()], lr=1e-3)
+    with torch.no_grad():
+        g = m.at(t, velocity=False)
+    target = torch.zeros(H, W, 3)
+    target[20:36, 24:40] = torch.tensor([1.0, 0.2, 0.1])
+    depth = torch.full((H, W, 1), 3.0)
+    n0 = len(m)
+    added = spawn_unexplained(m, opt, strategy.state, t, viewmat, K, torch.zeros(H, W, 3), depth, target, g.means,
+                              max_new=50, life=life, rng=np.random.default_rng(0))
+    assert added == 50 and len(m) == n0 + 50
+    # Every per-Gaussian tensor grew in lock-step; the new ones are dynamic, coloured from the frame.
+    assert len(m.dynamic) == len(m.variance) == len(m.lifespan) == len(strategy.state["grad_sum"]) == len(m)
+    assert m.dynamic[n0:].all()
+    assert torch.allclose(m.lifespan[n0:], torch.tensor([t, life]).expand(50, 2))
+    assert torch.isinf(m.lifespan[:n0, 1]).all()
+    rgb = 0.5 + 0.28209479177387814 * m.params.sh0.detach()[n0:, 0]
+    assert torch.allclose(rgb, torch.tensor([1.0, 0.2, 0.1]).expand(50, 3), atol=1e-5)
+    # At t they land on the unexplained square (within a pixel: the field differs a little
+    # between a new Gaussian and its parent), in front of the background.
+    with torch.no_grad():
+        g = m.at(t, velocity=False)
+    uv, z = project(g.means[n0:], viewmat, K)
+    assert (uv[:, 0] > 23).all() and (uv[:, 0] < 40).all() and (uv[:, 1] > 19).all() and (uv[:, 1] < 36).all()
+    assert (z < 3.0).all()
+    # Present at their time, gone three widths away; the others are untouched.
+    assert torch.allclose(g.opacities[n0:], m.params.opacities.detach()[n0:])
+    far = m.at(t + 3 * life, velocity=False).opacities.detach()
+    assert (far[n0:] < 0.012 * m.params.opacities.detach()[n0:]).all()
+    assert torch.equal(far[:n0], m.params.opacities.detach()[:n0])
+
+
+def test_a_frame_the_render_explains_gets_nothing():
+    m, viewmat, K = scene_model()
+    with torch.no_grad():
+        g = m.at(0.3, velocity=False)
+    image = torch.rand(H, W, 3)
+    n0 = len(m)
+    assert spawn_unexplained(m, None, {}, 0.3, viewmat, K, image, torch.ones(H, W, 1), image, g.means, 50, 0.05,
+                             np.random.default_rng(0)) == 0
+    assert len(m) == n0
+
+
+def test_lifespans_survive_pruning_the_split_and_a_save():
+    m, viewmat, K = scene_model()
+    with torch.no_grad():
+        g = m.at(0.5, velocity=False)
+    target = torch.zeros(H, W, 3)
+    target[20:36, 24:40] = 1.0
+    spawn_unexplained(m, None, {}, 0.5, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 3.0), target, g.means,
+                      20, 0.05, np.random.default_rng(0))
+    bounded = m.lifespan[:, 1].isfinite()
+    # A split with a τ above every K keeps the ones present for part of the clip dynamic.
+    m.decompose(tau=1e9)
+    assert torch.equal(m.dynamic, bounded)
+    keep = torch.arange(len(m)) % 2 == 0
+    m.keep_gaussians(keep)
+    assert torch.equal(m.lifespan[:, 1].isfinite(), bounded[keep])
+    loaded = KinematicsGS.from_state(m.state())
+    assert torch.equal(loaded.lifespan, m.lifespan)
+    # A state saved before lifespans existed loads with every Gaussian present at every time.
+    old = m.state()
+    del old["lifespan"]
+    assert torch.isinf(KinematicsGS.from_state(old).lifespan[:, 1]).all()
+    bad = m.state()
+    bad["lifespan"] = bad["lifespan"][:-1]
+    with pytest.raises(ValueError, match="lifespan"):
+        KinematicsGS.from_state(bad)
