@@ -122,7 +122,9 @@ def test_lifespans_survive_pruning_the_split_and_a_save():
     old = m.state()
     del old["lifespan"]
     assert torch.isinf(KinematicsGS.from_state(old).lifespan[:, 1]).all()
-    bad = m.state()
-    bad["lifespan"] = bad["lifespan"][:-1]
-    with pytest.raises(ValueError, match="lifespan"):
-        KinematicsGS.from_state(bad)
+    for broken in (lambda x: x[:-1], lambda x: x[:, :1], lambda x: x.index_fill(1, torch.tensor([1]), float("nan")),
+                   lambda x: x.index_fill(1, torch.tensor([1]), 0.0), lambda x: x.index_fill(1, torch.tensor([0]), float("inf"))):
+        bad = m.state()
+        bad["lifespan"] = broken(bad["lifespan"])
+        with pytest.raises(ValueError, match="lifespan"):
+            KinematicsGS.from_state(bad)

@@ -153,8 +153,8 @@ class KinematicsGS(nn.Module):
     # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
     # dynamic flags, K, and a strategy's statistics held by the caller: `keep_gaussians` and
     # `add_gaussians` resize all of it in lock-step, and drop the kNN graph of the coarse-to-fine
-    # step, which indexes the old set. Nothing else should assign `params`, `dynamic` or
-    # `variance` with a new length.
+    # step, which indexes the old set. Nothing else should assign `params`, `dynamic`,
+    # `variance` or `lifespan` with a new length.
     def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor) -> None:
         if not len(params) == len(dynamic) == len(variance) == len(lifespan):
             raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
@@ -476,6 +476,11 @@ class KinematicsGS(nn.Module):
         life = state.get("lifespan")  # absent in runs saved before spawning existed
         if life is not None:
             _check_per_gaussian([("lifespan", life)], n)
+            ok = (life.dim() == 2 and life.shape[1] == 2 and life.dtype.is_floating_point
+                  and bool(torch.isfinite(life[:, 0]).all()) and bool((life[:, 1] > 0).all()))
+            if not ok:  # a NaN or non-positive width would make NaN opacities deep in the renderer
+                raise ValueError(f"model state field 'lifespan': expected ({n}, 2) floats, finite centres and "
+                                 f"widths > 0 (inf: always present), got {tuple(life.shape)} {life.dtype}")
         model.lifespan = unbounded_lifespan(n) if life is None else life.clone()
         model.min_scale = float(state["min_scale"])
         model._knn = _checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
