@@ -78,7 +78,7 @@ class TrainConfig:
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
     # present for about `spawn_life` frames around their frame's time, at the pixels the render
     # still gets wrong where something moves on its own (train/spawn.py; 0: off). They bring
-    # back a moving person the field lost track of, but one walk run of four also warped the
+    # back a moving person the field lost track of, but one walk run of five also warped the
     # background by 1.4 dB, so it is off by default (docs/real-footage.md, "Spawned Gaussians";
     # `--set spawn_frames=2` turns it on).
     spawn_frames: int = 0

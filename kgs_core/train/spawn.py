@@ -10,7 +10,7 @@ optical flow shows something moving on its own, new dynamic Gaussians in front o
 background, coloured from the frame, placed so that at that frame's time the deformation puts
 them on those pixels, and present only around that time (`KinematicsGS.lifespan`).
 
-An option, off by default: on walk it brings the lost person back, but in one run of four it
+An option, off by default: on walk it brings the lost person back, but in one run of five it
 also warped the background through the field (docs/real-footage.md, "Spawned Gaussians").
 """
 
