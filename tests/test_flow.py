@@ -114,3 +114,13 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
     assert torch.isfinite(term)
     term.backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in tr.model.deform.parameters())
+
+
+def test_unproject_inverts_project():
+    from kgs_core.render import intrinsics, look_at
+    from kgs_core.train.flow import project, unproject
+
+    viewmat, K = look_at((0.3, -0.2, -2.0), (0.0, 0.1, 0.0)), intrinsics(80, 60)
+    x = torch.randn(50, 3, generator=torch.Generator().manual_seed(0)) * 0.5
+    uv, z = project(x, viewmat, K)
+    assert torch.allclose(unproject(uv, z, viewmat, K), x, atol=1e-5)

@@ -82,6 +82,13 @@ def project(x: Tensor, viewmat: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     return uv[:, :2] / z.clamp_min(1e-6)[:, None], z
 
 
+def unproject(uv: Tensor, z: Tensor, viewmat: Tensor, K: Tensor) -> Tensor:
+    """World points (N, 3) at pixel coordinates `uv` (N, 2) and camera depths `z` (N,): the
+    inverse of `project`."""
+    cam = torch.stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z], -1)
+    return (cam - viewmat[:3, 3]) @ viewmat[:3, :3]  # R^T (p - t), row-wise
+
+
 def sample(image: Tensor, uv: Tensor) -> Tensor:
     """Bilinear samples (N, C) of `image` (H, W, C) at pixel coordinates `uv` (N, 2), pixel
     centres at integer coordinates (the rasteriser's convention)."""

@@ -24,7 +24,7 @@ from torch import Tensor
 from ..model.dynamic import KinematicsGS
 from ..model.gaussians import GaussianParams, set_param
 from ..render.sh import rgb_to_sh0
-from .flow import project
+from .flow import project, unproject
 
 ERROR_THRESHOLD = 0.15  # mean absolute colour error (0-1) that counts as unexplained
 MIN_REGION_PX = 30  # smaller unexplained regions (after the opening) are left to the loss
@@ -43,8 +43,7 @@ def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: 
     H, W = depth.shape[:2]
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     z = depth[..., 0]
-    cam = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1).reshape(-1, 3)
-    world = (cam - viewmat[:3, 3]) @ viewmat[:3, :3]
+    world = unproject(torch.stack([u, v], -1).reshape(-1, 2), z.reshape(-1), viewmat, K)
     uv_next, _ = project(world, next_viewmat, next_K)
     still = uv_next.reshape(H, W, 2) - torch.stack([u, v], -1)
     diff = (flow - still).norm(dim=-1)
@@ -108,17 +107,14 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     z_new = float(torch.median(z[over] if over.any() else z))
     bg = depth[ys, xs, 0].numpy()
     z_pix = np.where(bg > 0, np.minimum(z_new, 0.95 * bg), z_new)
-    # Back-projected to the world.
-    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    pc = torch.tensor(np.stack([(xs - cx) / fx * z_pix, (ys - cy) / fy * z_pix, z_pix], -1), dtype=torch.float32)
-    R, tr = viewmat[:3, :3], viewmat[:3, 3]
-    world = (pc - tr) @ R  # R^T (p - t), row-wise
+    pixels = torch.tensor(np.stack([xs, ys], -1), dtype=torch.float32)
+    world = unproject(pixels, torch.tensor(z_pix, dtype=torch.float32), viewmat, K)
     # Parent: the nearest dynamic Gaussian on screen.
-    d2 = ((torch.tensor(np.stack([xs, ys], -1), dtype=torch.float32)[:, None] - uv[None]) ** 2).sum(-1)
+    d2 = ((pixels[:, None] - uv[None]) ** 2).sum(-1)
     parents = dyn[d2.argmin(1)]
     p = model.params
     m = len(parents)
-    scale = torch.tensor(np.log(0.6 * SAMPLE_STRIDE * z_pix / fx), dtype=torch.float32)[:, None].repeat(1, 3)
+    scale = torch.tensor(np.log(0.6 * SAMPLE_STRIDE * z_pix / float(K[0, 0])), dtype=torch.float32)[:, None].repeat(1, 3)
     quats = torch.zeros(m, 4)
     quats[:, 0] = 1
     new = GaussianParams(
