@@ -75,12 +75,15 @@ def test_settings_follow_the_clip(walk):
     # A video ingest trains with the flow term; a scene that is not one, or an explicit 0, without.
     from dataclasses import replace
 
-    from kgs_core.train.config import VIDEO_FLOW_WEIGHT
+    from kgs_core.train.config import VIDEO_FLOW_WEIGHT, VIDEO_SPAWN_FRAMES
 
     assert cfg.lambda_flow == VIDEO_FLOW_WEIGHT > 0 and "lambda_flow" in cfg.fitted
-    assert make_config("fast", scene=walk, lambda_flow=0.0).lambda_flow == 0.0
+    assert cfg.spawn_frames == VIDEO_SPAWN_FRAMES > 0 and "spawn_frames" in cfg.fitted
+    off = make_config("fast", scene=walk, lambda_flow=0.0, spawn_frames=0)
+    assert off.lambda_flow == 0.0 and off.spawn_frames == 0
     no_ingest = replace(walk, extras={k: v for k, v in walk.extras.items() if k != "ingest"})
     assert make_config("fast", scene=no_ingest).lambda_flow == 0.0
+    assert make_config("fast", scene=no_ingest).spawn_frames == 0
 
 
 def test_equal_time_mean_covers_seeds_that_needed_no_retraining():

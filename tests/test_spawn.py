@@ -12,7 +12,7 @@ from kgs_core.model.dynamic import KinematicsGS
 from kgs_core.render import intrinsics, look_at
 from kgs_core.train.densify import DensifyStrategy
 from kgs_core.train.flow import project
-from kgs_core.train.spawn import independent_motion, spawn_unexplained, unexplained_pixels
+from kgs_core.train.spawn import NextFrame, independent_motion, spawn_unexplained, unexplained_pixels
 
 W = H = 64
 
@@ -88,6 +88,71 @@ def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from
     far = m.at(t + 3 * life, velocity=False).opacities.detach()
     assert (far[n0:] < 0.012 * m.params.opacities.detach()[n0:]).all()
     assert torch.equal(far[:n0], m.params.opacities.detach()[:n0])
+
+
+def test_a_spawned_gaussian_joins_a_parent_that_moves_like_its_pixel_not_the_nearest_one():
+    """Every Gaussian is "dynamic" (as on real footage, where K flags most of the background),
+    but only a group far from the unexplained patch moves as the flow there does; the rest stand
+    still. The new Gaussians copy that group, not the still Gaussians beside them, whose
+    neighbourhood of the field they would otherwise bend; with no Gaussian moving so, none is
+    added."""
+    m, viewmat, K = scene_model()
+    t = 0.5
+    with torch.no_grad():
+        m.params.features.copy_(torch.randn(m.params.features.shape, generator=torch.Generator().manual_seed(3)))
+        g = m.at(t, velocity=False)
+    uv, z = project(g.means.detach(), viewmat, K)
+    movers = torch.nonzero((uv[:, 0] > 50) & (uv[:, 0] < 63) & (uv[:, 1] < 63)).squeeze(1)
+    assert len(movers) >= 5
+    target = torch.zeros(H, W, 3)
+    target[22:34, 22:34] = 1.0  # the patch: the still Gaussians are the ones nearest it on screen
+    flow = torch.zeros(H, W, 2)
+    flow[18:38, 18:38, 1] = 3.0  # it moves 3 px down to the next frame (same camera)
+    depth = torch.full((H, W, 1), 5.0)
+
+    def spawn(model, moved):
+        at_next = g.means.detach().clone()
+        at_next[moved, 1] += 3.0 * z[moved] / float(K[1, 1])  # 3 px down
+        return spawn_unexplained(model, None, {}, t, viewmat, K, torch.zeros(H, W, 3), depth, target,
+                                 g.means.detach(), 40, 0.05, np.random.default_rng(0),
+                                 NextFrame(viewmat, K, flow, at_next))
+
+    n0 = len(m)
+    assert spawn(m, movers) == 36  # one per 2x2 pixels of the 12x12 patch
+    new_features = m.params.features.detach()[n0:]
+    parent_of = torch.cdist(new_features, m.params.features.detach()[:n0]).argmin(1)
+    assert torch.isin(parent_of, movers).all()
+    # Without the flow's evidence (no Gaussian moves like the patch), the patch gets nothing.
+    m2, _, _ = scene_model()
+    assert spawn(m2, torch.zeros(0, dtype=torch.long)) == 0 and len(m2) == n0
+
+
+@pytest.mark.parametrize("coarse_to_fine", [True, False])
+def test_spawned_gaussians_follow_the_field_without_training_it(coarse_to_fine):
+    """A Gaussian present for part of the clip is moved by the field like any dynamic one, but
+    its loss reaches only its own parameters: the field and the fine residual learn from the
+    Gaussians present at every time alone."""
+    m = moving_model(n=60, seed=2, coarse_to_fine=coarse_to_fine)
+    m.lifespan[:20] = torch.tensor([0.4, 0.05])
+    networks = [p for p in m.parameters() if p.requires_grad]
+
+    def grads(rows):
+        m.zero_grad(set_to_none=True)
+        m.params.means.grad = None
+        g = m.at(0.4, exposure=0.5)
+        idx, v = g.extras["dynamic_velocity"]  # (every Gaussian is dynamic here: idx is 0..N-1)
+        assert torch.equal(idx, torch.arange(len(m)))
+        (g.means[rows].square().sum() + g.covars6[rows].sum() + v[rows].square().sum()).backward()
+        field = sum(float(p.grad.abs().sum()) for p in networks if p.grad is not None)
+        return field, m.params.means.grad[rows].abs().sum(-1)
+
+    with torch.no_grad():
+        g = m.at(0.4)
+    assert (g.means[:20] - m.params.means[:20]).norm(dim=-1).min() > 1e-4  # the field moves them
+    field, own = grads(slice(0, 20))
+    assert field == 0.0 and (own > 0).all()
+    field, own = grads(slice(20, 60))
+    assert field > 0.0 and (own > 0).all()
 
 
 def test_a_frame_the_render_explains_gets_nothing():

@@ -282,14 +282,27 @@ class KinematicsGS(nn.Module):
             tt[0] = tt[0] + noise * torch.randn(n)
         raws = self.deform.at_times(x, tt)
         if not (self.decomposed and self.config.coarse_to_fine):
-            return raws
+            return self._followers_detached(idx, raws)
         # One sparse product for all times: (D, 9 M) offsets side by side.
         coarse = self.neighbour_mean(torch.cat([raw.cat() for raw in raws], 1)).split(9, 1)
         if shared_fine:
             fine = self.fine(self.params.features[idx], tt[0]).cat()
-            return [Offsets.split(c + fine) for c in coarse]
+            return self._followers_detached(idx, [Offsets.split(c + fine) for c in coarse])
         fine = self.fine(self.params.features[idx].repeat(len(times), 1), torch.cat(tt)).cat().split(n)
-        return [Offsets.split(c + f) for c, f in zip(coarse, fine)]
+        return self._followers_detached(idx, [Offsets.split(c + f) for c, f in zip(coarse, fine)])
+
+    def _followers_detached(self, idx: Tensor, offsets: list[Offsets]) -> list[Offsets]:
+        """`offsets` with the rows of Gaussians present for part of the clip (bounded
+        `lifespan`: spawned ones, train/spawn.py) cut from the graph: the field moves them, but
+        their loss does not train it. A Gaussian made to fill one frame pulls the field cells it
+        shares with the background towards that frame's motion; on walk that bent the sign
+        behind the person at every time (-0.7 dB on the frame in one seed of five,
+        docs/real-footage.md, "Spawned Gaussians")."""
+        bounded = self.lifespan[idx, 1].isfinite()
+        if not bounded.any():
+            return offsets
+        keep = bounded[:, None]
+        return [Offsets.split(torch.where(keep, o.cat().detach(), o.cat())) for o in offsets]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
         off = self.offsets(idx, t, noise)

@@ -78,9 +78,8 @@ class TrainConfig:
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
     # present for about `spawn_life` frames around their frame's time, at the pixels the render
     # still gets wrong where something moves on its own (train/spawn.py; 0: off). They bring
-    # back a moving person the field lost track of, but one walk run of five also warped the
-    # background by 1.4 dB, so it is off by default (docs/real-footage.md, "Spawned Gaussians";
-    # `--set spawn_frames=2` turns it on).
+    # back a moving person the field lost track of. fit_to_scene turns it on for video ingests
+    # (VIDEO_SPAWN_FRAMES; docs/real-footage.md, "Spawned Gaussians").
     spawn_frames: int = 0
     spawn_max: int = 200
     spawn_life: float = 1.0  # frame intervals (the width of the presence's Gaussian in time)
@@ -251,6 +250,11 @@ MAX_ITERATION_SCALE = 4.0
 # time), kitchen's by 0.5 / 0.3 (one seed); 0.01 lost 1-2 dB on walk (docs/real-footage.md,
 # "An optical-flow term").
 VIDEO_FLOW_WEIGHT = 0.003
+# Frames that get spawned Gaussians at each densification on real footage (a video ingest):
+# walk's worst tenth of training views +1.5 dB on five seeds (the person back where the field
+# lost him), the sharp camera unchanged (+0.03 dB frame, +0.09 mask), for 20 % more training
+# time on walk and 6 % on kitchen (docs/real-footage.md, "Spawned Gaussians").
+VIDEO_SPAWN_FRAMES = 2
 
 
 def scene_pixels_per_unit(scene) -> float | None:
@@ -294,7 +298,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     * model.deform_temporal: at least one temporal cell per four frames;
     * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units;
     * lambda_flow: VIDEO_FLOW_WEIGHT on a video ingest (real footage), where the photometric
-      loss alone loses moving objects (docs/real-footage.md, "An optical-flow term")."""
+      loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
+    * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
+      the field still loses (docs/real-footage.md, "Spawned Gaussians")."""
     n_frames = len(scene.train_frames)
     cam = scene.train_frames[0].camera
     pixels = cam.width * cam.height
@@ -318,6 +324,11 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
         fitted["lambda_flow"] = (f"{VIDEO_FLOW_WEIGHT}: a video ingest; optical flow between its frames guides the "
                                  "moving Gaussians (--set lambda_flow=0 turns it off)")
+    if "spawn_frames" not in explicit and cfg.spawn_frames == 0 and "ingest" in scene.extras and n_frames > 1:
+        cfg.spawn_frames = VIDEO_SPAWN_FRAMES
+        fitted["spawn_frames"] = (f"{VIDEO_SPAWN_FRAMES}: a video ingest; the worst-fitted frames get new dynamic "
+                                  "Gaussians where something moving is still missing (--set spawn_frames=0 turns "
+                                  "it off)")
     cfg.fitted = fitted
     return cfg
 

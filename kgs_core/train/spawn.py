@@ -10,11 +10,19 @@ optical flow shows something moving on its own, new dynamic Gaussians in front o
 background, coloured from the frame, placed so that at that frame's time the deformation puts
 them on those pixels, and present only around that time (`KinematicsGS.lifespan`).
 
-An option, off by default: on walk it brings the lost person back, but in one run of five it
-also warped the background through the field (docs/real-footage.md, "Spawned Gaussians").
+Two rules keep the new Gaussians from bending the background through the shared deformation
+field: each joins a parent that moves as the flow at its pixel says (not merely the nearest
+dynamic Gaussian, which on real footage is often a wall that K calls dynamic), and its loss does
+not train the field (`KinematicsGS._followers_detached`): it follows the field, present for a
+frame, and only its own parameters learn. With neither, one walk run in five lost 1.4 dB on the
+whole frame to a smeared wall; with the parent rule alone, one in five lost 0.7 dB to a smeared
+sign; with both, none of five. On for video ingests (`config.VIDEO_SPAWN_FRAMES`;
+docs/real-footage.md, "Spawned Gaussians").
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -32,6 +40,22 @@ SPAWN_LOSS_RATIO = 1.5  # a frame gets new Gaussians when its running loss is th
 INDEPENDENT_MOTION_PX = 1.0  # flow this far from the still scene's motion: something moves on its own
 MOTION_REACH_PX = 8  # an unexplained pixel counts as moving within this distance of independent motion
 SAMPLE_STRIDE = 2  # one new Gaussian per 2x2 pixels of an unexplained region
+# A parent moves like a pixel when its own image motion to the next frame is nearer the pixel's
+# flow than PARENT_MATCH x the distance between that flow and the motion the parent would make
+# standing still: its motion explains most of the pixel's independent motion.
+PARENT_MATCH = 0.5
+
+
+@dataclass
+class NextFrame:
+    """What the next training frame of the same camera says about motion: its camera
+    (`viewmat`, `K`), the optical flow to it (`flow` (H, W, 2) px, NaN where unreliable) and
+    the Gaussians' positions at its time (`means` (N, 3), read for the dynamic ones)."""
+
+    viewmat: Tensor
+    K: Tensor
+    flow: Tensor
+    means: Tensor
 
 
 def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: Tensor, next_K: Tensor,
@@ -64,22 +88,31 @@ def unexplained_pixels(image: Tensor, target: Tensor) -> np.ndarray:
 
 @torch.no_grad()
 def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, viewmat: Tensor, K: Tensor,
-                      image: Tensor, depth: Tensor, target: Tensor, dynamic_means: Tensor, max_new: int,
-                      life: float, rng: np.random.Generator, moving: np.ndarray | None = None) -> int:
+                      image: Tensor, depth: Tensor, target: Tensor, means: Tensor, max_new: int,
+                      life: float, rng: np.random.Generator, nxt: NextFrame | None = None) -> int:
     """Adds up to `max_new` dynamic Gaussians at the unexplained pixels of one training frame
     (`image`, `depth` (H, W, 1): its render at time `t`; `target`: the frame; `viewmat`, `K`:
-    its camera; `dynamic_means` (N, 3): every Gaussian's position at `t`, used for the dynamic
-    ones; `life`: their presence's width in time, `KinematicsGS.lifespan`; `moving` (H, W): where
-    the frame moves on its own, `independent_motion`, None: everywhere). Returns how many were
-    added.
+    its camera; `means` (N, 3): every Gaussian's position at `t`, used for the dynamic ones;
+    `life`: their presence's width in time, `KinematicsGS.lifespan`; `nxt`: the next frame of
+    the camera, None where there is none). Returns how many were added.
 
-    Each new Gaussian copies the nearest dynamic Gaussian on screen (its flag, K and fine-residual
-    features: it joins that object's motion), takes the frame's colour, sits at the median depth
-    of the dynamic Gaussians drawn over the region (in front of the background the render shows
-    there), and is sized to its pixel spacing. Its canonical position is its place at `t` minus
-    its parent's offset there, so that at `t` it lands near its pixel."""
+    With `nxt`, only pixels where something moves on its own (`independent_motion`, within
+    MOTION_REACH_PX) get Gaussians, and each copies the nearest dynamic Gaussian on screen whose
+    own image motion matches the flow there (PARENT_MATCH); a pixel without such a parent gets
+    none. The parent matters beyond its looks: the new Gaussian takes its K and fine-residual
+    features and sits beside it in canonical space, so the deformation field learns the new
+    Gaussian's motion in the parent's neighbourhood. A parent on the background ("dynamic" by a
+    small K) would have the field bend the background there. Without `nxt`, every unexplained
+    pixel counts and the parent is the nearest dynamic Gaussian on screen.
+
+    Each new Gaussian takes the frame's colour, sits at the median depth of its region's parents
+    (never behind the rendered background), and is sized to its pixel spacing. Its canonical
+    position is its place at `t` minus its parent's offset there, so that at `t` it lands near
+    its pixel."""
     mask = unexplained_pixels(image, target)
-    if moving is not None:  # only what moves on its own: not a background the model has yet to fit
+    moving = None
+    if nxt is not None:  # only what moves on its own: not a background the model has yet to fit
+        moving = independent_motion(depth, viewmat, K, nxt.viewmat, nxt.K, nxt.flow)
         mask &= ndimage.binary_dilation(moving, iterations=MOTION_REACH_PX)
     dyn = torch.nonzero(model.dynamic).squeeze(1)
     if mask.sum() < MIN_REGION_PX or len(dyn) == 0:
@@ -91,27 +124,34 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
         pick = rng.choice(len(ys), max_new, replace=False)
         ys, xs = ys[pick], xs[pick]
     # The dynamic Gaussians on screen, in front of the camera.
-    cam = dynamic_means[dyn] @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = cam[:, 2]
-    front = z > 1e-4
-    uv = (cam @ K.T)[:, :2] / z.clamp_min(1e-6)[:, None]
-    on = front & (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
+    uv, z = project(means[dyn], viewmat, K)
+    on = (z > 1e-4) & (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
     if not on.any():
         return 0
     dyn, uv, z = dyn[on], uv[on], z[on]
-    # Depth: the dynamic Gaussians drawn over the region (dilated), else every one on screen;
-    # never behind the rendered background.
-    near = ndimage.binary_dilation(mask, iterations=8)
-    px = uv.round().long()
-    over = torch.from_numpy(near)[px[:, 1], px[:, 0]]
-    z_new = float(torch.median(z[over] if over.any() else z))
+    pixels = torch.tensor(np.stack([xs, ys], -1), dtype=torch.float32)
+    d2 = ((pixels[:, None] - uv[None]) ** 2).sum(-1)
+    if nxt is not None:
+        # Each pixel's flow is that of the nearest pixel moving on its own (the unexplained
+        # pixels of a blurred object often fail the flow's forward-backward check themselves).
+        _, (iy, ix) = ndimage.distance_transform_edt(~moving, return_indices=True)
+        f = nxt.flow[torch.from_numpy(iy[ys, xs]), torch.from_numpy(ix[ys, xs])]  # (M, 2)
+        own = project(nxt.means[dyn], nxt.viewmat, nxt.K)[0] - uv  # (D, 2): each candidate's motion
+        still = project(means[dyn], nxt.viewmat, nxt.K)[0] - uv  # the same, had it stood still
+        matches = (own[None] - f[:, None]).norm(dim=-1) < PARENT_MATCH * (still[None] - f[:, None]).norm(dim=-1)
+        d2 = torch.where(matches, d2, torch.inf)
+        found = matches.any(1)
+        if not found.any():
+            return 0
+        pixels, d2, ys, xs = pixels[found], d2[found], ys[found.numpy()], xs[found.numpy()]
+    nearest = d2.argmin(1)
+    parents = dyn[nearest]
+    # Depth: the region's parents' (the object the new Gaussians join); never behind the
+    # rendered background.
+    z_new = float(torch.median(z[nearest]))
     bg = depth[ys, xs, 0].numpy()
     z_pix = np.where(bg > 0, np.minimum(z_new, 0.95 * bg), z_new)
-    pixels = torch.tensor(np.stack([xs, ys], -1), dtype=torch.float32)
     world = unproject(pixels, torch.tensor(z_pix, dtype=torch.float32), viewmat, K)
-    # Parent: the nearest dynamic Gaussian on screen.
-    d2 = ((pixels[:, None] - uv[None]) ** 2).sum(-1)
-    parents = dyn[d2.argmin(1)]
     p = model.params
     m = len(parents)
     scale = torch.tensor(np.log(0.6 * SAMPLE_STRIDE * z_pix / float(K[0, 0])), dtype=torch.float32)[:, None].repeat(1, 3)
@@ -127,8 +167,8 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     # t. Its coarse-to-fine neighbours and fine-residual features are then the parent's, so the
     # deformation moves it with the parent, and at t it lands on its pixel (up to how much the
     # field varies between the two).
-    shift = (dynamic_means[parents] - p.means.detach()[parents])
-    means = model.params.means.detach().clone()
-    means[n0:] = world - shift
-    model.params = set_param(model.params, optimizer, "means", means)
+    shift = (means[parents] - p.means.detach()[parents])
+    canonical = model.params.means.detach().clone()
+    canonical[n0:] = world - shift
+    model.params = set_param(model.params, optimizer, "means", canonical)
     return m

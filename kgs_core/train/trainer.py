@@ -31,7 +31,7 @@ from .densify import DensifyStrategy
 from .exposure import FittedExposure
 from .flow import charbonnier, flow_residual, frame_flows
 from .pose_refine import PoseCorrection
-from .spawn import SPAWN_LOSS_RATIO, independent_motion, spawn_unexplained
+from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
 
 
 class NonFiniteError(FloatingPointError):
@@ -287,18 +287,21 @@ class Trainer:
             x_next = self.model.params.means[idx] + g.offsets_dx[idx] + v * (nxt.time - frame.time)
         else:
             idx = torch.nonzero(g.dynamic).squeeze(1)
-            x_next = self.model.params.means[idx] + self.model.offsets(idx, nxt.time).dx
-        moved = self.world_transform(nxt)  # g.means carry this frame's pose correction; match it
-        if moved is not None:
-            x_next = x_next @ moved[0].T + moved[1]
-        res = flow_residual(g.means[idx], x_next, camera_tensors(frame.camera), camera_tensors(nxt.camera), flow,
-                            out.depth)
+            x_next = self.model.positions(idx, nxt.time)[0]
+        # (g.means carry this frame's pose correction; the next positions get the next frame's.)
+        res = flow_residual(g.means[idx], self.posed(x_next, nxt), camera_tensors(frame.camera),
+                            camera_tensors(nxt.camera), flow, out.depth)
         return charbonnier(res)
 
     def world_transform(self, frame: Frame):
         """The training frame's pose correction as a rigid motion of the Gaussians (None when
         poses are not refined)."""
         return None if self.pose_correction is None else self.pose_correction.world_transform(frame)
+
+    def posed(self, x: torch.Tensor, frame: Frame) -> torch.Tensor:
+        """World positions `x` (N, 3) under `frame`'s pose correction, as its render draws them."""
+        moved = self.world_transform(frame)
+        return x if moved is None else x @ moved[0].T + moved[1]
 
     def pick_frames(self, k: int, it: int = 0) -> list[int]:
         """Indices of the `k` training frames step `it` sees: within the warm-up's time window
@@ -392,14 +395,23 @@ class Trainer:
                 out, g = render_model(model, frame.camera, frame.time, self.exposure, self.scene.dt, self.background,
                                       velocity=False, world_transform=self.world_transform(frame))
             viewmat, K = camera_tensors(frame.camera)
-            moving = None
-            if frame.id in self.flows:
-                j, flow = self.flows[frame.id]
-                moving = independent_motion(out.depth, viewmat, K, *camera_tensors(self.scene.train_frames[j].camera),
-                                            flow)
             spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image, out.depth,
                               self.cache.get(frame), g.means, c.spawn_max, c.spawn_life * self.scene.dt,
-                              np.random.default_rng([c.seed, it, i]), moving)
+                              np.random.default_rng([c.seed, it, i]), self.next_frame(frame, g.means))
+
+    @torch.no_grad()
+    def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame | None:
+        """The next frame of `frame`'s camera as spawning reads it (train/spawn.py): its camera,
+        the flow to it, and `means` (every Gaussian at `frame`'s time) with the dynamic ones
+        moved to its time. None for a camera's last frame."""
+        if frame.id not in self.flows:
+            return None
+        j, flow = self.flows[frame.id]
+        nxt = self.scene.train_frames[j]
+        idx = torch.nonzero(self.model.dynamic).squeeze(1)
+        at_next = means.clone()
+        at_next[idx] = self.posed(self.model.positions(idx, nxt.time)[0], nxt)
+        return NextFrame(*camera_tensors(nxt.camera), flow, at_next)
 
     def split(self) -> None:
         """A static/dynamic split in training: K recomputed, then τ the configured one or
