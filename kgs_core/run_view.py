@@ -17,7 +17,7 @@ import torch
 
 from .edits import EditLayer, load_edits, save_edits
 from .export.bake import Baked, baked_from
-from .model.dynamic import split_counts, variance_histogram
+from .model.dynamic import presence, split_counts, variance_histogram
 from .run import LoadedRun, load_run
 from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, rgba_of
 
@@ -145,12 +145,11 @@ def presence_rgba(rgba: np.ndarray, lifespan: np.ndarray, t: float) -> np.ndarra
     """`rgba (N, 4) uint8` with the alpha of Gaussians present for part of the clip
     (`lifespan (N, 2)`: centre, width; width inf for the others) scaled to their presence at
     `t`, as `KinematicsGS.present` does."""
-    bounded = np.isfinite(lifespan[:, 1])
-    if not bounded.any():
+    if not np.isfinite(lifespan[:, 1]).any():
         return rgba
     out = rgba.copy()
-    z = (t - lifespan[bounded, 0]) / lifespan[bounded, 1]
-    out[bounded, 3] = np.round(rgba[bounded, 3] * np.exp(-0.5 * z * z)).astype(np.uint8)
+    factor = presence(torch.from_numpy(lifespan), t).numpy()
+    out[:, 3] = np.round(rgba[:, 3] * factor).astype(np.uint8)
     return out
 
 

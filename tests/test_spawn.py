@@ -193,3 +193,30 @@ def test_lifespans_survive_pruning_the_split_and_a_save():
         bad["lifespan"] = broken(bad["lifespan"])
         with pytest.raises(ValueError, match="lifespan"):
             KinematicsGS.from_state(bad)
+
+
+def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeypatch):
+    """Spawning's motion gate needs the flow to the next frame of the camera: a camera's last
+    frame, however badly it fits, gets no Gaussians; the worst of the others does, with its
+    next frame's flow."""
+    import kgs_core.train.trainer as trainer_module
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.synth.generate import synthesize
+    from kgs_core.train.config import make_config
+
+    scene = load_scene(synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0,
+                                  progress=False, overwrite=True))
+    cfg = make_config("fast", iterations=10)
+    cfg.spawn_frames = 2
+    tr = trainer_module.Trainer(scene, tmp_path / "r", cfg, progress=False)
+    tr.init_model()
+    tr.model.decompose(tau=-1.0, recompute=False)
+    calls = []
+    monkeypatch.setattr(trainer_module, "spawn_unexplained",
+                        lambda *args: calls.append((args[3], args[-1])) or 0)
+    tr.frame_loss = torch.tensor([0.01, 0.01, 0.5, 0.01, 0.01, 1.0])  # the last frame fits worst
+    tr.spawn(100)
+    frames = scene.train_frames
+    assert [t for t, _ in calls] == [frames[2].time]
+    nxt = calls[0][1]
+    assert nxt.flow is tr.flows[frames[2].id][1] and nxt.means.shape == (len(tr.model), 3)

@@ -377,12 +377,9 @@ class KinematicsGS(nn.Module):
     def present(self, opacities: Tensor, t: float) -> Tensor:
         """`opacities (N,)` scaled by each Gaussian's presence at `t` (`lifespan`); unchanged
         when every Gaussian is present at every time."""
-        width = self.lifespan[:, 1]
-        bounded = width.isfinite()
-        if not bounded.any():
+        if not self.lifespan[:, 1].isfinite().any():
             return opacities
-        z = torch.where(bounded, (t - self.lifespan[:, 0]) / width, torch.zeros_like(width))
-        return opacities * torch.exp(-0.5 * z * z)
+        return opacities * presence(self.lifespan, t)
 
     def _deform(self, idx: Tensor, t: float, exposure: float | Tensor, dt: float, noise: float, scales: Tensor,
                 cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
@@ -498,6 +495,15 @@ class KinematicsGS(nn.Module):
         model.min_scale = float(state["min_scale"])
         model._knn = _checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model
+
+
+def presence(lifespan: Tensor, t: float) -> Tensor:
+    """`(N,)` factor on each Gaussian's opacity at time `t` from its `lifespan (N, 2)` (centre,
+    width): exp(-((t - centre) / width)^2 / 2), 1 where the width is inf."""
+    width = lifespan[:, 1]
+    bounded = width.isfinite()
+    z = torch.where(bounded, (t - lifespan[:, 0]) / width, torch.zeros_like(width))
+    return torch.exp(-0.5 * z * z)
 
 
 def unbounded_lifespan(n: int) -> Tensor:

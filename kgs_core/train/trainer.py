@@ -385,6 +385,11 @@ class Trainer:
         seen = loss[loss >= 0]
         if len(seen) == 0:
             return
+        # Only frames with a flow to the next one of their camera: without it nothing says what
+        # moves on its own, and ungated spawning filled kitchen's not-yet-fitted background
+        # (docs/real-footage.md, "Spawned Gaussians"). So each camera's last frame gets none.
+        has_next = torch.tensor([f.id in self.flows for f in self.scene.train_frames])
+        loss = torch.where(has_next, loss, torch.full_like(loss, -1.0))
         # Only frames that fit far worse than the clip's typical one: a scene whose frames all
         # fit about alike gets nothing.
         worst = [i for i in torch.argsort(loss, descending=True)[: c.spawn_frames].tolist()
@@ -400,12 +405,10 @@ class Trainer:
                               np.random.default_rng([c.seed, it, i]), self.next_frame(frame, g.means))
 
     @torch.no_grad()
-    def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame | None:
+    def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame:
         """The next frame of `frame`'s camera as spawning reads it (train/spawn.py): its camera,
         the flow to it, and `means` (every Gaussian at `frame`'s time) with the dynamic ones
-        moved to its time. None for a camera's last frame."""
-        if frame.id not in self.flows:
-            return None
+        moved to its time. `frame` is not its camera's last."""
         j, flow = self.flows[frame.id]
         nxt = self.scene.train_frames[j]
         idx = torch.nonzero(self.model.dynamic).squeeze(1)
