@@ -449,3 +449,36 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
     m.keep_gaussians(torch.ones(8, dtype=torch.bool).index_fill_(0, torch.tensor([0]), False), opt)
     with pytest.raises(RuntimeError, match="statistics cover 8 Gaussians, the model has 7"):
         strategy._ensure(len(m))
+
+
+def test_kr_effect_measures_the_blur_and_says_when_it_does_nothing(tmp_path):
+    """`evaluate.kr_effect`: Gaussians the field moves, blurred over a whole frame interval,
+    change many pixels visibly, and against frames that show that blur the blurred render fits
+    them better (K.R. acts: no note). Over an exposure a thousand times shorter nothing changes
+    visibly, and the note says that K.R. does next to nothing."""
+    from kgs_core.data.images import write_image
+    from kgs_core.data.scene import Camera, Frame
+    from kgs_core.evaluate import KR_MIN_GAIN_DB, kr_effect, kr_effect_note, render_at
+
+    m = moving_model(n=300, velocity="physical")
+    with torch.no_grad():  # small opaque dots that the field moves by a few pixels per frame interval
+        m.deform.mlp[-1].weight.mul_(2.0)
+        m.params.log_scales.fill_(math.log(0.02))
+        m.params.opacity_logits.fill_(3.0)
+    cam = Camera(K=np.array([[200.0, 0, 48], [0, 200, 48], [0, 0, 1]]),
+                 viewmat=look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), dtype=torch.float64).numpy(), width=96, height=96)
+    frames = []
+    for i in range(3):
+        write_image(tmp_path / f"{i}.png", np.full((96, 96, 3), 0.5, np.float32))
+        frames.append(Frame(id=str(i), image_path=tmp_path / f"{i}.png", time=0.3 + 0.2 * i, camera=cam))
+    long = kr_effect(m, frames, exposure=1.0, dt=0.2)
+    short = kr_effect(m, frames, exposure=1e-3, dt=0.2)
+    assert long["frames"] == short["frames"] == 3
+    assert long["changed_share"] > 0.01, long  # visibly blurred
+    # Frames that show that blur (the blurred renders themselves): modelling it is what fits them.
+    for f in frames:
+        write_image(f.image_path, render_at(m, f, 1.0, 0.2)[0].image.detach().clamp(0, 1).numpy())
+    fits = kr_effect(m, frames, exposure=1.0, dt=0.2)
+    assert fits["gain_db"] > KR_MIN_GAIN_DB and kr_effect_note(fits) is None, fits
+    assert short["changed_share"] < 1e-3 and abs(short["gain_db"]) < 0.01, short
+    assert "does next to nothing" in kr_effect_note(short)

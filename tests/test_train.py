@@ -4,6 +4,7 @@ runs, resume continues where it stopped, the run directory loads without the tra
 from __future__ import annotations
 
 import json
+import math
 import warnings
 
 import numpy as np
@@ -546,3 +547,54 @@ def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(
     assert full.lambda_reg > 0 and full.lambda_ani > 0
     expected = (0 if ablate == "reg" else full.lambda_reg * reg) + (0 if ablate == "ani" else full.lambda_ani * ani)
     assert rest == pytest.approx(expected, rel=1e-3, abs=1e-7)
+
+
+def test_absgrad_densification_reads_the_absolute_pixel_gradients(scene, tmp_path, monkeypatch):
+    """`densify.absgrad`: the statistic is the norm of the per-pixel absolute screen gradients
+    (never below the plain one, above it where pixel contributions cancel); the trainer asks
+    the rasteriser for them until densification stops, and not after."""
+    from kgs_core.render import rasterize
+    from kgs_core.render.random_scene import random_scene
+    from kgs_core.train.densify import DensifyStrategy
+
+    s = random_scene(200, 32, 32, seed=9)
+    out = rasterize(s.means.clone().requires_grad_(True), s.opacities, s.viewmat, s.K, 32, 32, quats=s.quats,
+                    scales=s.scales, colors=s.colors, backend="cpu", absgrad=True)
+    (out.image * torch.randn(32, 32, 3, generator=torch.Generator().manual_seed(2))).sum().backward()
+    plain, absolute = DensifyStrategy(), DensifyStrategy(absgrad=True)
+    plain.accumulate(out, 32, 32)
+    absolute.accumulate(out, 32, 32)
+    vis = out.radii > 0
+    a, p = absolute.state["grad_sum"][vis], plain.state["grad_sum"][vis]
+    assert (a >= p - 1e-6).all() and bool((a > 1.5 * p + 1e-6).any())
+    assert absolute.wants_absgrad(0) and not absolute.wants_absgrad(absolute.stop) and not plain.wants_absgrad(0)
+
+    asked = []
+    original = DensifyStrategy.accumulate
+    monkeypatch.setattr(DensifyStrategy, "accumulate",
+                        lambda self, o, w, h: (asked.append("means2d_absgrad" in o.info), original(self, o, w, h)))
+    train(scene, tmp_path / "r", tiny_config(iterations=40, **{"densify.absgrad": True, "densify.start": 10,
+                                                                 "densify.every": 10, "densify.stop": 30}),
+          progress=False)
+    assert asked[:30] == [True] * 30 and not any(asked[30:]), asked
+
+
+@pytest.mark.parametrize("acts", [False, True])
+def test_kr_is_turned_off_mid_run_where_it_does_next_to_nothing(scene, tmp_path, monkeypatch, acts):
+    """At `kr_check_at` (after the split) the trainer measures K.R.'s effect. Where it does next
+    to nothing, the rest of the run trains without it, `run.json` says when and why, and the
+    saved model has K.R. back for viewing; where it acts, it stays, and its effect at the end is
+    measured too. (Which clips it does nothing on: `evaluate.kr_effect`'s own test.)"""
+    from kgs_core import evaluate
+
+    monkeypatch.setattr(evaluate, "KR_MIN_GAIN_DB", -math.inf if acts else math.inf)
+    trainer = Trainer(scene, tmp_path / "r", tiny_config(kr_check_at=0.75, **{"model.tau": 5e-7}), progress=False)
+    kinematic = {it: trainer.model.config.kinematic for it in trainer.iterate()}
+    info = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert info["kr_check"]["iteration"] == 90 and info["kr_check"]["kept"] is acts
+    if acts:
+        assert all(kinematic.values()) and "kr_effect" in info and "kr_note" not in info
+    else:
+        assert all(kinematic[it] for it in range(1, 90)) and not any(kinematic[it] for it in range(90, 121))
+        assert "turned off at iteration 90 of 120" in info["kr_note"] and "kr_effect" not in info
+    assert load_run(tmp_path / "r").model.config.kinematic

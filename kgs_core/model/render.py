@@ -22,7 +22,8 @@ def camera_tensors(cam: Camera) -> tuple[torch.Tensor, torch.Tensor]:
 def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0.0, dt: float = 1.0,
                  background: torch.Tensor | None = None, colors: torch.Tensor | None = None, noise: float = 0.0,
                  static: bool = False, camera_motion=None, velocity: bool = True,
-                 world_transform: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[Rendered, GaussiansAt]:
+                 world_transform: tuple[torch.Tensor, torch.Tensor] | None = None,
+                 absgrad: bool = False) -> tuple[Rendered, GaussiansAt]:
     """Renders `model` at time `t` from `cam`. `exposure` 0 renders sharp; `colors (N, C)`
     replaces the SH colours (e.g. a dynamic-flag channel); `static` skips the deformation
     (the static 3DGS baseline); `camera_motion` blurs along the camera's own motion as well
@@ -30,7 +31,8 @@ def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0
     opacities scaled to keep each splat's 2D mass (`blurred_opacities`); `velocity=False` when
     the caller does not read `g.velocity` (lets a sharp render skip the physical velocity's
     extra field samples); `world_transform = (R, t)` moves every Gaussian rigidly before
-    rasterising (a training camera's pose correction, `train/pose_refine.py`)."""
+    rasterising (a training camera's pose correction, `train/pose_refine.py`); `absgrad` asks
+    the rasteriser for the per-pixel absolute screen gradients after backward (`rasterize`)."""
     g = model.at_static() if static else model.at(t, exposure=exposure, dt=dt, noise=noise, camera_motion=camera_motion,
                                                   velocity=velocity)
     if world_transform is not None:
@@ -44,7 +46,7 @@ def render_model(model: KinematicsGS, cam: Camera, t: float, exposure: float = 0
     else:
         kw = dict(sh_coeffs=g.sh, sh_degree=model.config.sh_degree,
                   background=background if background is not None else torch.zeros(3))
-    out = rasterize(g.means, opacities, viewmat, K, cam.width, cam.height, covars=g.covars6, **kw)
+    out = rasterize(g.means, opacities, viewmat, K, cam.width, cam.height, covars=g.covars6, absgrad=absgrad, **kw)
     return out, g
 
 

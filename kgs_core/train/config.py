@@ -139,12 +139,20 @@ class TrainConfig:
     # one scalar fitted with the rest once K.R. acts (after the split), at lr_exposure.
     fit_exposure: bool = False
     lr_exposure: float = 2e-2
+    # At this fraction of the iterations (after the split, so that K.R. has trained a while)
+    # K.R.'s effect on the training renders is measured (`evaluate.kr_effect`), and K.R. is
+    # turned off for the rest of the run when its blur does next to nothing: then its velocity
+    # samples are pure cost (walk: the same scores in 16 % less time; docs/real-footage.md,
+    # "What K.R.'s blur does on real footage"). 0 never checks.
+    kr_check_at: float = 0.4
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).
     fitted: dict = field(default_factory=dict)
 
     def __post_init__(self):
         check_choices(self)
+        if not 0 <= self.kr_check_at <= 1:
+            raise ValueError(f"kr_check_at must be a fraction in [0, 1], got {self.kr_check_at}")
         if self.spawn_frames < 0 or self.spawn_max < 1 or not self.spawn_life > 0 or not 0 <= self.spawn_from <= 1:
             raise ValueError(f"spawn settings: spawn_frames >= 0, spawn_max >= 1, spawn_life > 0 (frames) and "
                              f"0 <= spawn_from <= 1, got {self.spawn_frames!r}, {self.spawn_max!r}, "

@@ -32,6 +32,11 @@ class DensifyStrategy:
     percent_dense: float = 0.01  # "small" (cloned, not split): largest scale below this share of the extent
     opacity_reset_at: tuple = (3000,)  # iterations at which every opacity is capped at 0.01
     max_gaussians: int = 60_000  # the budget: beyond it only the largest gradients densify
+    # AbsGS's statistic: the norm of the per-pixel absolute screen gradients summed, instead of
+    # the norm of their sum. A large Gaussian over detail (a blurred-out moving person) gets
+    # pixel gradients that cancel in the sum and so is never split; their absolute values do
+    # not cancel. Its values run larger: AbsGS pairs it with a threshold about 4x the usual.
+    absgrad: bool = False
     extent: float = 1.0  # the scene's extent, normalised scene units
 
     def __post_init__(self):
@@ -50,8 +55,12 @@ class DensifyStrategy:
         elif have != n:  # someone resized the Gaussians without passing `state` along
             raise RuntimeError(f"densification statistics cover {have} Gaussians, the model has {n}")
 
+    def wants_absgrad(self, it: int) -> bool:
+        """Whether step `it`'s render must leave the absolute gradients `accumulate` reads."""
+        return self.absgrad and it < self.stop
+
     def accumulate(self, out: Rendered, width: int, height: int) -> None:
-        g = out.means2d.grad
+        g = out.info.get("means2d_absgrad") if self.absgrad else out.means2d.grad
         if g is None:
             return
         self._ensure(len(g))

@@ -156,6 +156,8 @@ class Trainer:
                       and not self.static_only else {})
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
+        # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
+        self.kr_check: dict | None = None
 
     # ------------------------------------------------------------ setup
 
@@ -244,7 +246,7 @@ class Trainer:
         exposure = self.exposure if self.fitted_exposure is None else self.fitted_exposure.value()
         out, g = render_model(model, frame.camera, t, exposure, scene.dt, self.background,
                               noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False,
-                              world_transform=self.world_transform(frame))
+                              world_transform=self.world_transform(frame), absgrad=self.strategy.wants_absgrad(it))
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if c.lambda_coarse > 0:
@@ -375,6 +377,32 @@ class Trainer:
             model._knn = None
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
+        if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
+            self.check_kr(nxt)
+
+    def check_kr(self, it: int) -> None:
+        """Measures what K.R.'s blur does to the training renders now and, when it does next to
+        nothing (`evaluate.kr_effect_note`), turns K.R. off for the rest of the run. Left alone:
+        runs without a split yet, the paper's K.R. form (whose basis would have to be
+        re-interpreted), a fitted exposure or camera blur (both ride on K.R.'s blur)."""
+        from ..evaluate import kr_effect, kr_effect_note
+
+        m = self.model
+        if (not m.config.kinematic or m.config.kr_form != "convolve" or not m.decomposed or self.static_only
+                or self.no_split or self.exposure <= 0 or self.fitted_exposure is not None
+                or self.camera_motion is not None or not m.dynamic.any()):
+            return
+        effect = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
+        note = kr_effect_note(effect)
+        self.kr_check = {"iteration": it, "kept": note is None,
+                         **{k: round(v, 4) if isinstance(v, float) else v for k, v in effect.items()}}
+        if note is not None:
+            # At exposure 0 the convolve form is the plain deformed covariance: the model renders
+            # sharp exactly as before, and the training renders lose a blur they hardly had.
+            m.config.kinematic = False
+            self.kr_check["note"] = f"K.R. turned off at iteration {it} of {self.cfg.iterations}: {note}"
+            if self.progress:
+                tqdm.write(f"note: {self.kr_check['note']}")
 
     def spawn(self, it: int) -> None:
         """New dynamic Gaussians where the worst-fitted training frames stay unexplained and
@@ -532,6 +560,7 @@ class Trainer:
             "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
             "frame_loss": self.frame_loss.clone(),
             "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
+            "kr_check": self.kr_check,
         })
         return path
 
@@ -556,6 +585,7 @@ class Trainer:
         self.log_rows = state["log"]
         if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
+        self.kr_check = state.get("kr_check")
         torch.set_rng_state(state["rng"]["torch"])
         random.setstate(state["rng"]["python"])
 
@@ -642,6 +672,11 @@ class Trainer:
         self.info = info
 
     def save_final(self, info: dict) -> None:
+        dropped_kr = self.kr_check is not None and not self.kr_check["kept"]
+        if dropped_kr:
+            # Trained without K.R. since the check, saved with it: at exposure 0 it renders the
+            # same, and the viewers read its velocities (ellipsoids, the exposure slider).
+            self.model.config.kinematic = True
         counts = split_counts(self.model, self.static_only)
         save_torch(self.run_dir / "model.pt", {"model": self.model.state(), "levels": self.levels})
         save_decomposition(self.run_dir, self.model.variance)
@@ -662,7 +697,33 @@ class Trainer:
             info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
         if self.events:
             info["guard_events"] = self.events
+        self.measure_kr(info, dropped_kr)
         write_run_json(self.run_dir, info)
+
+    def measure_kr(self, info: dict, dropped: bool) -> None:
+        """What K.R. did: the mid-run check's record (`kr_check`; its note when it turned K.R.
+        off), and at the end of a run that trained with K.R. throughout, its effect on the
+        training renders (`evaluate.kr_effect`), with a note when it does next to nothing, so
+        that a clip whose blur the method cannot use shows in the run instead of costing time
+        silently."""
+        from ..evaluate import kr_effect, kr_effect_note
+
+        if self.kr_check is not None:
+            info["kr_check"] = {k: v for k, v in self.kr_check.items() if k != "note"}
+            if dropped:
+                info["kr_note"] = self.kr_check["note"]
+                return
+        m = self.model
+        if (not m.config.kinematic or self.static_only or self.no_split or self.exposure <= 0
+                or not m.decomposed or not m.dynamic.any()):
+            return
+        info["kr_effect"] = {k: round(v, 4) if isinstance(v, float) else v
+                             for k, v in kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt).items()}
+        note = kr_effect_note(info["kr_effect"])
+        if note:
+            info["kr_note"] = note
+            if self.progress:
+                print(f"note: {note}")
 
 
 def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str = "held-out PSNR") -> None:
