@@ -82,10 +82,10 @@ def kr_effect_note(effect: dict) -> str | None:
     if effect["gain_db"] >= KR_MIN_GAIN_DB:
         return None
     return (f"K.R.'s blur (exposure {effect['exposure']:g}) changes {effect['changed_share']:.2%} of the training "
-            f"pixels visibly and moves their PSNR against the blurry frames by {effect['gain_db']:+.3f} dB, so K.R. "
-            "does next to nothing on this clip: the blur it models, each moving Gaussian's own motion within the "
-            "exposure, hardly shows (a hand-held camera's blur is mostly its own motion, which K.R. does not model); "
-            "--ablate kr trains without it")
+            f"pixels visibly and moves their PSNR against the blurry frames by {round(effect['gain_db'], 3) or 0.0:+.3f} "
+            "dB, so K.R. does next to nothing on this clip: the blur it models, each moving Gaussian's own motion "
+            "within the exposure, hardly shows (a hand-held camera's blur is mostly its own motion, which K.R. does "
+            "not model); --ablate kr trains without it")
 
 
 def dynamic_mask_render(model: KinematicsGS, frame: Frame, dt: float) -> np.ndarray:
@@ -276,7 +276,7 @@ def metrics_markdown(m: dict, info: dict) -> str:
     if m.get("heldout", {}).get("kind"):
         lines += ["", f"Held-out views: {m['heldout']['kind']}."]
     if info.get("kr_note"):
-        lines += ["", f"K.R.: {info['kr_note']}."]
+        lines += ["", f"Kinematic refinement: {info['kr_note']}."]
     lines += ["", f"LPIPS: {m['lpips_note']}.", f"Decomposition IoU against the ground-truth dynamic masks: {f(m['decomposition_iou'], 3)}",
               f"Velocity end-point error against ground-truth motion (still held-out camera, dynamic mask): "
               f"{f(m.get('velocity_epe_px'), 3)} px per frame interval", "",
