@@ -59,7 +59,8 @@ def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: flo
     the clip, each rendered at `exposure` and at 0. `changed_share`: the share of pixels whose
     two renders differ by more than one 8-bit level in some channel; `psnr_blurred` /
     `psnr_sharp`: each render against the (blurry) training frame, and `gain_db` their
-    difference, what modelling the blur buys on the inputs."""
+    difference, what modelling the blur buys on the inputs. Rounded to 4 decimals, as
+    `run.json` keeps them."""
     picks = [frames[round(i * (len(frames) - 1) / max(count - 1, 1))] for i in range(min(count, len(frames)))]
     changed = pixels = 0
     err_blur = err_sharp = 0.0
@@ -73,8 +74,9 @@ def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: flo
         err_blur += float(((blurred - gt) ** 2).mean()) / len(picks)
         err_sharp += float(((sharp - gt) ** 2).mean()) / len(picks)
     to_db = lambda mse: -10 * math.log10(max(mse, 1e-12))  # noqa: E731
-    return {"frames": len(picks), "exposure": exposure, "changed_share": changed / max(pixels, 1),
-            "psnr_blurred": to_db(err_blur), "psnr_sharp": to_db(err_sharp), "gain_db": to_db(err_blur) - to_db(err_sharp)}
+    measured = {"changed_share": changed / max(pixels, 1), "psnr_blurred": to_db(err_blur),
+                "psnr_sharp": to_db(err_sharp), "gain_db": to_db(err_blur) - to_db(err_sharp)}
+    return {"frames": len(picks), "exposure": exposure, **{k: round(v, 4) for k, v in measured.items()}}
 
 
 def kr_effect_note(effect: dict) -> str | None:

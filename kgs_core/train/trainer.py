@@ -394,8 +394,7 @@ class Trainer:
             return
         effect = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
         note = kr_effect_note(effect)
-        self.kr_check = {"iteration": it, "kept": note is None,
-                         **{k: round(v, 4) if isinstance(v, float) else v for k, v in effect.items()}}
+        self.kr_check = {"iteration": it, "kept": note is None, **effect}
         if note is not None:
             # At exposure 0 the convolve form is the plain deformed covariance: the model renders
             # sharp exactly as before, and the training renders lose a blur they hardly had.
@@ -717,8 +716,7 @@ class Trainer:
         if (not m.config.kinematic or self.static_only or self.no_split or self.exposure <= 0
                 or not m.decomposed or not m.dynamic.any()):
             return
-        info["kr_effect"] = {k: round(v, 4) if isinstance(v, float) else v
-                             for k, v in kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt).items()}
+        info["kr_effect"] = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
         note = kr_effect_note(info["kr_effect"])
         if note:
             info["kr_note"] = note
