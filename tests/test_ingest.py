@@ -24,6 +24,7 @@ def test_sfm_recovers_camera_centres(room_video, tmp_path):
     video, gt = room_video
     report = ingest(video, tmp_path / "scene", max_size=None, exposure=0.0, holdout_every=0, progress=False)
     assert report.mapper == "keyframes" and report.attempts[0]["outcome"] == "ok"
+    assert report.lens["probe"]["images"] >= 2 and "lens_probe" in report.attempts[0]["stages"]
     assert report.registered_fraction >= 0.9
     assert report.mean_reprojection_error_px < 1.5
     scene = load_scene(tmp_path / "scene")
@@ -313,3 +314,29 @@ def test_lens_refit_keeps_a_lens_the_mapper_fits():
     assert not report["kept"] and "under 3%" in report["reason"], report
     assert report["iterations"] == LENS_PROBE_ITERATIONS  # the probe found nothing to gain: stopped there
     assert refit is rec
+
+
+def test_lens_refit_follows_the_keyframe_probe():
+    """The keyframe model's probe decides whether the whole model is refitted: a probe that
+    gained nothing skips the refit (the model returned as it is, the probe in the report), one
+    that gained goes on to the whole model's refit."""
+    from kgs_core.data.sfm import LENS_PROBE_ITERATIONS, lens_gain, refine_lens
+
+    whole = synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0])
+    # Keyframe models: other draws of the views, through a lens SIMPLE_RADIAL describes / the same lens.
+    _, flat = refine_lens(synthetic_reconstruction("SIMPLE_RADIAL", [200.0, 160.0, 90.0, 0.05], seed=1),
+                          iterations=LENS_PROBE_ITERATIONS)
+    _, steep = refine_lens(synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0],
+                                                    seed=1), iterations=LENS_PROBE_ITERATIONS)
+    assert lens_gain(flat) < 0.03 < lens_gain(steep)
+
+    skipped, report = refine_lens(whole, probe=flat)
+    assert skipped is whole and not report["kept"] and "keyframe model" in report["reason"], report
+    assert report["probe"] is flat and "after_px" not in report
+
+    refit, report = refine_lens(whole, probe=steep)
+    assert report["kept"] and refit is not whole and report["probe"] is steep
+    # A probe without a result (its adjustment failed) decides nothing.
+    assert lens_gain({"before_px": 1.0, "kept": False, "reason": "the adjustment failed"}) is None
+    assert refine_lens(whole, probe={"before_px": 1.0, "kept": False})[1]["kept"]
+

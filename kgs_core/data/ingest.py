@@ -345,7 +345,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             timings = {} if reused else dict(meta["seconds"])
             t0 = time.perf_counter()
             result = run_sfm(folder / "database.db", images, work, names_a, names_b, scores, mapper,
-                             progress=progress)
+                             progress=progress, probe_lens=lens == "opencv")
             timings["mapping"] = time.perf_counter() - t0
             if result is None:
                 raise SceneError(f"structure from motion found no model in {video} ({len(names_a)} frames): too "
@@ -356,7 +356,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             if lens == "opencv":
                 t0 = time.perf_counter()
                 announce("lens")
-                rec, lens_report = refine_lens(rec)
+                rec, lens_report = refine_lens(rec, probe=result.lens_probe)
                 timings["lens"] = time.perf_counter() - t0
         n = len(names_a)
         reg = {im.name: im for im in rec.images.values() if im.has_pose}
