@@ -39,9 +39,10 @@ from .sfm import LENSES, MAPPERS, extract_and_match, refine_lens, run_sfm
 from .video import count_frames, decode_video
 
 AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
-# Seconds per frame at 320 px on two cores (docs/data.md, "Ingest speed"): decode and write,
-# features, sequential matching, keyframe mapping. Only for the estimate printed at the start.
-SECONDS_PER_FRAME_320 = {"decode": 0.024, "features": 0.026, "matching": 0.02, "mapping": 0.06}
+# Seconds per frame at 320 px on two cores (docs/results.md, "Ingest": walk, kitchen and kitchen
+# x2 end to end): decode and write, features, sequential matching, keyframe mapping with the lens
+# refit. Only for the estimate printed at the start.
+SECONDS_PER_FRAME_320 = {"decode": 0.018, "features": 0.024, "matching": 0.017, "mapping": 0.045}
 FIXED_CAMERA_FOV_DEG = 60.0  # assumed horizontal field of view when no SfM runs
 PNG_LEVEL = 1  # zlib level for frames: level 6 (PIL's default) took 4x as long for files ~1.3x smaller
 
