@@ -380,6 +380,13 @@ class Trainer:
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
 
+    def kr_acts(self) -> bool:
+        """Whether K.R. shapes the renders now: on, after a split with dynamic Gaussians, and
+        the training exposure above 0."""
+        m = self.model
+        return (m.config.kinematic and m.decomposed and not self.static_only and not self.no_split
+                and self.exposure > 0 and bool(m.dynamic.any()))
+
     def check_kr(self, it: int) -> None:
         """Measures what K.R.'s blur does to the training renders now and, when it does next to
         nothing (`evaluate.kr_effect_note`), turns K.R. off for the rest of the run. Left alone:
@@ -388,9 +395,8 @@ class Trainer:
         from ..evaluate import kr_effect, kr_effect_note
 
         m = self.model
-        if (not m.config.kinematic or m.config.kr_form != "convolve" or not m.decomposed or self.static_only
-                or self.no_split or self.exposure <= 0 or self.fitted_exposure is not None
-                or self.camera_motion is not None or not m.dynamic.any()):
+        if (not self.kr_acts() or m.config.kr_form != "convolve" or self.fitted_exposure is not None
+                or self.camera_motion is not None):
             return
         effect = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
         note = kr_effect_note(effect)
@@ -712,11 +718,9 @@ class Trainer:
             if dropped:
                 info["kr_note"] = self.kr_check["note"]
                 return
-        m = self.model
-        if (not m.config.kinematic or self.static_only or self.no_split or self.exposure <= 0
-                or not m.decomposed or not m.dynamic.any()):
+        if not self.kr_acts():
             return
-        info["kr_effect"] = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
+        info["kr_effect"] = kr_effect(self.model, self.scene.train_frames, self.exposure, self.scene.dt)
         note = kr_effect_note(info["kr_effect"])
         if note:
             info["kr_note"] = note
