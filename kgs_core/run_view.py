@@ -153,13 +153,16 @@ def presence_rgba(rgba: np.ndarray, lifespan: np.ndarray, t: float) -> np.ndarra
     return out
 
 
-def _with_tau(model, tau: float):
-    """A shallow copy of `model` split at `tau` (networks and Gaussians shared). Readers keep
-    whichever snapshot they started with, so a τ change never mutates a model in use."""
+def split_copy(model, tau: float):
+    """A copy of `model` split at `tau` in place (`KinematicsGS.decompose`: a Gaussian that
+    changes sides keeps its average place, as a re-split in training keeps it), with its own
+    canonical Gaussians and the networks shared. Readers keep whichever snapshot they started
+    with, so a τ change never mutates a model in use."""
     m = copy.copy(model)
     m.config = copy.copy(model.config)
     if m.decomposed:
-        m.decompose(tau, recompute=False)
+        m.params = model.params.detach_clone()
+        m.decompose(tau, recompute=False, in_place=True)
     return m
 
 
@@ -211,7 +214,7 @@ class RunView:
             if not 1 <= lod <= self.run.n_levels:
                 raise ValueError(f"lod must be in 1..{self.run.n_levels}, got {lod}")
             if lod not in self._models:
-                self._models[lod] = _with_tau(self.run.level(lod), self.tau)
+                self._models[lod] = split_copy(self.run.level(lod), self.tau)
             return lod, self._models[lod]
 
     def state(self, lod: int | None):
@@ -317,7 +320,8 @@ class RunView:
             raise ValueError(f"tau must be a positive number, got {tau}")
         with self.lock:
             self.tau = float(tau)
-            self._models = {lod: _with_tau(m, self.tau) for lod, m in self._models.items()}
+            # (From the run's own models, so that moves in place do not add up over τ changes.)
+            self._models = {lod: split_copy(self.run.level(lod), self.tau) for lod in self._models}
             self._invalidate()
         return self.split()
 

@@ -380,6 +380,54 @@ def test_temporal_variance_is_the_papers_k_of_the_fields_offsets():
     assert torch.equal(m.decompose(tau, recompute=True), expected > tau)
 
 
+def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
+    """A split in place moves a Gaussian that turns static to its time-averaged deformed mean,
+    rotation and scale (exactly: a static Gaussian has no field), leaves untouched those that
+    stay static, and keeps the average position of the rest closer than a plain split does;
+    with keep_static no static Gaussian turns dynamic."""
+    from kgs_core.model.dynamic import residual_covariance
+
+    def average_state(m):
+        off = m.mean_offsets()
+        return m.params.means.detach() + off[:, :3], off
+
+    plain, moved = moving_model(n=64), moving_model(n=64)
+    x0, off0 = average_state(moved)
+    assert float(off0[:, :3].norm(dim=-1).median()) > 0.05  # the field's mean offsets are not small
+    k = moved.temporal_variance()
+    tau = float(k.median())
+    for m, in_place in ((plain, False), (moved, True)):
+        m.variance = k.clone()
+        m.decompose(tau, recompute=False, in_place=in_place)
+    turned = ~moved.dynamic
+    assert torch.equal(turned, ~plain.dynamic) and 20 < int(turned.sum()) < 44
+    x1, _ = average_state(moved)
+    torch.testing.assert_close(x1[turned], x0[turned], atol=1e-6, rtol=0)
+    jumped = (average_state(plain)[0] - x0).norm(dim=-1)
+    assert float(jumped[turned].min()) > 1e-3  # ... where a plain split makes them jump
+    # Their covariance is the deformed one at the mean offsets.
+    with torch.no_grad():
+        was = residual_covariance(plain.params.quats[turned], plain.scales()[turned],
+                                  Offsets.split(off0[turned]), moved.config.lambda_s)
+        now = covariance_from_quat_scale(moved.params.quats[turned], moved.scales()[turned])
+    torch.testing.assert_close(now, was, atol=1e-6, rtol=1e-4)
+    # The ones that stay dynamic: on average nearer where they were than after a plain split.
+    stay = moved.dynamic
+    assert float((x1 - x0)[stay].norm(dim=-1).mean()) < 0.5 * float(jumped[stay].mean() + 1e-9) or \
+        float(jumped[stay].max()) == 0.0
+    # A second split: Gaussians static on both sides stay bit for bit.
+    before = {k: v.detach().clone() for k, v in moved.params.items()}
+    moved.decompose(2 * tau, recompute=False, in_place=True)
+    still = turned & ~moved.dynamic
+    assert int(still.sum()) > 0
+    for name, value in moved.params.items():
+        assert torch.equal(value.detach()[still], before[name][still]), name
+    # keep_static (training's re-splits): a lower τ turns none of the static ones dynamic.
+    static = ~moved.dynamic
+    assert torch.equal(~moved.decompose(0.0, recompute=False, keep_static=True), static)
+    assert moved.decompose(0.0, recompute=False).all()
+
+
 def test_paper_form_of_kr_matches_eqs_9_to_14_worked_by_hand():
     """`refine_covariance` (`--kr-form paper`) on cases worked out by hand from the paper's
     eqs. 9-14: velocity along z, so the basis is u_x = e_y, u_y = -e_x, u_z = e_z (appendix A.1

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from fastapi.testclient import TestClient
 from PIL import Image
 from starlette.websockets import WebSocketDisconnect
@@ -431,6 +432,27 @@ def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
     assert np.array_equal(rec_n["index"], rec_v["index"])
     assert np.allclose(rec_n["position"].astype(np.float64), rec_v["position"].astype(np.float64), atol=1e-3)
     assert np.allclose(rec_n["covariance"].astype(np.float64), rec_v["covariance"].astype(np.float64), atol=1e-3)
+
+
+def test_live_tau_keeps_gaussians_that_turn_static_where_they_were_drawn(copy_run):
+    """A higher τ in the viewer turns Gaussians static in place: each is drawn at its
+    time-averaged position, not at its canonical mean; the run's own model is not touched, and
+    τ changes do not add up."""
+    from kgs_core.run_view import RunView
+
+    view = RunView(copy_run)
+    lod, m0 = view.model(None)
+    own = view.run.level(lod).params.means.detach().clone()
+    average = own + m0.mean_offsets()[:, :3]
+    tau = view.tau
+    for _ in range(2):  # the same τ twice, from the run's own model both times
+        view.set_tau(tau * 10)
+        _, m1 = view.model(lod)
+        turned = m0.dynamic & ~m1.dynamic
+        assert int(turned.sum()) > 0
+        torch.testing.assert_close(m1.params.means[turned], average[turned], atol=1e-6, rtol=0)
+        assert float((average - own)[turned].norm(dim=-1).max()) > 1e-4  # a plain split would move them
+    assert torch.equal(view.run.level(lod).params.means.detach(), own)
 
 
 def test_trajectory_cache_gives_the_exact_set_at_its_samples_and_the_linear_mix_between(copy_run):

@@ -161,16 +161,18 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def tau_sweep(run, scene, taus: list[float]) -> None:
-    """Prints the full model re-split at each τ from its stored K (no retraining)."""
+    """Prints the full model re-split at each τ from its stored K, in place as the viewer's
+    live τ does (`run_view.split_copy`; no retraining)."""
     from kgs_core.evaluate import evaluate_model
+    from kgs_core.run_view import split_copy
 
-    print("\n## tau sweep on the full model (re-split from the stored K, no retraining)")
+    print("\n## tau sweep on the full model (re-split in place from the stored K, no retraining)")
     print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
     print("| --: | ------: | ------------: | --------------: | --------: |")
     for tau in taus:
-        run.model.decompose(tau, recompute=False)
-        m = evaluate_model(run.model, scene)
-        share = float(run.model.dynamic.float().mean())
+        model = split_copy(run.model, tau)
+        m = evaluate_model(model, scene)
+        share = float(model.dynamic.float().mean())
         print(f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
               f"{fmt(m['decomposition_iou'])} |", flush=True)
 

@@ -17,11 +17,20 @@ from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from ..render import packed_covariance
-from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
+from ..render.covariance import normalize_quats, pack_covariance, quat_to_rotmat, unpack_covariance
 from ..schema import check_choices, from_fields, json_object
 from .deformation import DeformationField, FineResidual, Offsets
 from .gaussians import GaussianParams, append, select
-from .kinematics import Basis, motion_blur_covariance, motion_blur_covariance_packed, refine_covariance, safe_norm, so3_exp
+from .kinematics import (
+    Basis,
+    motion_blur_covariance,
+    motion_blur_covariance_packed,
+    quat_multiply,
+    refine_covariance,
+    rotvec_to_quat,
+    safe_norm,
+    so3_exp,
+)
 
 Velocity = Literal["paper", "physical"]
 KRForm = Literal["convolve", "paper"]
@@ -208,17 +217,71 @@ class KinematicsGS(nn.Module):
         return out
 
     @torch.no_grad()
-    def decompose(self, tau: float | None = None, recompute: bool = True) -> Tensor:
-        """Splits into static (`K <= tau`) and dynamic (`K > tau`); returns the dynamic mask."""
+    def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
+                  keep_static: bool = False) -> Tensor:
+        """Splits into static (`K <= tau`) and dynamic (`K > tau`); returns the dynamic mask.
+
+        `keep_static`: a Gaussian already static stays static whatever its K (a re-split in
+        training): a static Gaussian's K is the field's motion where it sits, which was never
+        fitted to it, and turning such Gaussians dynamic cost kitchen 1.5 dB at once
+        (docs/method.md, "Splits in place").
+
+        `in_place`: each Gaussian whose rendered offsets the split changes (it changes sides,
+        or its kNN neighbours do) has its canonical mean, rotation and scale moved by the
+        difference of its time-averaged offsets, so that on average over the clip it renders
+        where it did. Without it a dynamic Gaussian that turns static jumps by its mean offset:
+        K measures how much the offset varies, not how large it is, and on real footage the
+        field's mean offsets (median 0.14 scene units on walk, about 90 px) are larger than
+        their variation (docs/method.md, "Splits in place")."""
         if tau is not None:
             self.config.tau = tau
         if recompute:
             self.variance = self.temporal_variance()
         # A Gaussian present for part of the clip changes over time whatever its motion.
-        self.dynamic = (self.variance > self.config.tau) | self.lifespan[:, 1].isfinite()
+        dynamic = (self.variance > self.config.tau) | self.lifespan[:, 1].isfinite()
+        if keep_static and self.decomposed:
+            dynamic &= self.dynamic
+        unchanged = self.decomposed and torch.equal(dynamic, self.dynamic)
+        before = self.mean_offsets() if in_place and not unchanged else None
+        self.dynamic = dynamic
         self.decomposed = True
-        self._knn = None
+        if not unchanged:
+            # (The same set keeps its graph: a run's stored graph is the one it trained with,
+            # and one rebuilt from the means as they are now differs from it.)
+            self._knn = None
+        if before is not None:
+            # (The kNN graph built for `after` is kept, as training keeps it while means move.)
+            self.move_canonical(before - self.mean_offsets())
         return self.dynamic
+
+    @torch.no_grad()
+    def mean_offsets(self) -> Tensor:
+        """`(N, 9)`: each Gaussian's rendered offsets (dx, dr, ds) averaged over
+        `variance_times` evenly spaced times; zeros for the static ones."""
+        n = len(self.params)
+        out = torch.zeros(n, 9)
+        idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
+        if len(idx):
+            T = self.config.variance_times
+            acc = torch.zeros(len(idx), 9)
+            for t in torch.linspace(0, 1, T).tolist():
+                acc += self.offsets_at(idx, [t])[0].cat()
+            out[idx] = acc / T
+        return out
+
+    @torch.no_grad()
+    def move_canonical(self, d: Tensor) -> None:
+        """Applies offsets `d (N, 9)` = (dx, dr, ds) to the canonical Gaussians as the field
+        applies them (`residual_covariance`): means + dx, rotation R(q) exp(dr), scales times
+        exp(lambda_s ds). Rows of zeros are left untouched, bit for bit."""
+        rows = torch.nonzero(d.abs().sum(-1) > 0).squeeze(1)
+        if not len(rows):
+            return
+        p, d = self.params, d[rows]
+        p.means[rows] += d[:, :3]
+        p.quats[rows] = quat_multiply(normalize_quats(p.quats[rows]), rotvec_to_quat(d[:, 3:6]))
+        scales = self.scales()[rows] * torch.exp(self.config.lambda_s * d[:, 6:9])
+        p.log_scales[rows] = torch.log((scales - self.min_scale).clamp_min(1e-8))
 
     def static_field_dx(self, t: float, count: int) -> Tensor:
         """`(S, 3)` the field's position offsets at `t` for `S <= count` static Gaussians drawn

@@ -83,6 +83,25 @@ def principal_roll(ux: Tensor, uy: Tensor, sigma: Tensor, eps: float = 1e-30) ->
     return ct * ux + st * uy, ct * uy - st * ux
 
 
+def rotvec_to_quat(w: Tensor) -> Tensor:
+    """Unit quaternions `(N, 4)` wxyz of the rotation vectors `(N, 3)`: `R(q) = so3_exp(w)`."""
+    theta = w.norm(dim=-1, keepdim=True)
+    half = 0.5 * theta
+    # sin(theta/2)/theta, with its series below 1e-4 rad
+    k = torch.where(theta < 1e-4, 0.5 - theta * theta / 48, torch.sin(half) / theta.clamp_min(1e-12))
+    return torch.cat([torch.cos(half), k * w], -1)
+
+
+def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product `a b` of quaternions `(N, 4)` wxyz: `R(a b) = R(a) R(b)`."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
 def so3_exp(w: Tensor) -> Tensor:
     """Rotation matrices `(N, 3, 3)` from rotation vectors `(N, 3)` (Rodrigues), with Taylor
     series below 1e-3 rad so that values and gradients stay accurate near 0."""

@@ -54,6 +54,13 @@ class TrainConfig:
     # static/dynamic decomposition
     decompose_at: int = 3000  # end of the warm-up in which every Gaussian deforms
     decompose_every: int = 2000  # re-run the split on this schedule (0 = never)
+    # Each split keeps every Gaussian where it renders on average (`KinematicsGS.decompose`,
+    # in_place); False: Gaussians that change sides jump by their mean offset.
+    split_in_place: bool = True
+    # A re-split may turn static Gaussians dynamic (True, the paper's re-split), or only
+    # dynamic ones static (False): the field's motion where a static Gaussian sits was never
+    # fitted to it (docs/method.md, "Splits in place").
+    resplit_to_dynamic: bool = False
     # True: each split in training picks τ from the distribution of K (`otsu_tau`), never below
     # model.tau; False: model.tau as it is (given with --tau, the split uses it).
     tau_auto: bool = True

@@ -185,7 +185,7 @@ class Trainer:
         model = load_run(parent).model
         # Split at this config's τ: from the stored K, or (a parent stopped before its split)
         # from K computed now.
-        model.decompose(self.cfg.model.tau, recompute=not model.decomposed)
+        model.decompose(self.cfg.model.tau, recompute=not model.decomposed, in_place=self.cfg.split_in_place)
         model.params.requires_grad_(True)
         model.train()
         self.model = model
@@ -455,7 +455,8 @@ class Trainer:
         model = self.model
         model.variance = model.temporal_variance()
         tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
-        model.decompose(tau, recompute=False)
+        model.decompose(tau, recompute=False, in_place=self.cfg.split_in_place,
+                        keep_static=not self.cfg.resplit_to_dynamic)
 
     @torch.no_grad()
     def importance(self) -> torch.Tensor:
