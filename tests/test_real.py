@@ -84,6 +84,10 @@ def test_settings_follow_the_clip(walk):
     no_ingest = replace(walk, extras={k: v for k, v in walk.extras.items() if k != "ingest"})
     assert make_config("fast", scene=no_ingest).lambda_flow == 0.0
     assert make_config("fast", scene=no_ingest).spawn_frames == 0
+    # ... and with one-way re-splits (a static Gaussian stays static); elsewhere both ways.
+    assert cfg.resplit_to_dynamic is False and "resplit_to_dynamic" in cfg.fitted
+    assert make_config("fast", scene=no_ingest).resplit_to_dynamic is True
+    assert make_config("fast", scene=walk, resplit_to_dynamic=True).resplit_to_dynamic is True
 
 
 def test_equal_time_mean_covers_seeds_that_needed_no_retraining():

@@ -58,9 +58,10 @@ class TrainConfig:
     # in_place); False: Gaussians that change sides jump by their mean offset.
     split_in_place: bool = True
     # A re-split may turn static Gaussians dynamic (True, the paper's re-split), or only
-    # dynamic ones static (False): the field's motion where a static Gaussian sits was never
-    # fitted to it (docs/method.md, "Splits in place").
-    resplit_to_dynamic: bool = False
+    # dynamic ones static (False, fitted for video ingests: there the field's motion where a
+    # static Gaussian sits, never fitted to it, is as often the unobservable motion of an
+    # untextured wall as a moving object's; docs/method.md, "Splits in place").
+    resplit_to_dynamic: bool = True
     # True: each split in training picks τ from the distribution of K (`otsu_tau`), never below
     # model.tau; False: model.tau as it is (given with --tau, the split uses it).
     tau_auto: bool = True
@@ -315,7 +316,8 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     * lambda_flow: VIDEO_FLOW_WEIGHT on a video ingest (real footage), where the photometric
       loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
-      the field still loses (docs/real-footage.md, "Spawned Gaussians")."""
+      the field still loses (docs/real-footage.md, "Spawned Gaussians");
+    * resplit_to_dynamic: False on a video ingest (docs/method.md, "Splits in place")."""
     n_frames = len(scene.train_frames)
     cam = scene.train_frames[0].camera
     pixels = cam.width * cam.height
@@ -344,6 +346,11 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         fitted["spawn_frames"] = (f"{VIDEO_SPAWN_FRAMES}: a video ingest; the worst-fitted frames get new dynamic "
                                   "Gaussians where something moving is still missing (--set spawn_frames=0 turns "
                                   "it off)")
+    if "resplit_to_dynamic" not in explicit and cfg.resplit_to_dynamic and "ingest" in scene.extras and n_frames > 1:
+        cfg.resplit_to_dynamic = False
+        fitted["resplit_to_dynamic"] = ("False: a video ingest; a re-split turns no static Gaussian dynamic, since "
+                                        "the field's motion where it sits was never fitted to it "
+                                        "(--set resplit_to_dynamic=true allows it)")
     cfg.fitted = fitted
     return cfg
 
