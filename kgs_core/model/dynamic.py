@@ -221,10 +221,10 @@ class KinematicsGS(nn.Module):
                   keep_static: bool = False) -> Tensor:
         """Splits into static (`K <= tau`) and dynamic (`K > tau`); returns the dynamic mask.
 
-        `keep_static`: a Gaussian already static stays static whatever its K (a re-split in
-        training): a static Gaussian's K is the field's motion where it sits, which was never
-        fitted to it, and turning such Gaussians dynamic cost kitchen 1.5 dB at once
-        (docs/method.md, "Splits in place").
+        `keep_static`: a Gaussian already static stays static whatever its K (training's
+        re-splits on a video ingest, `TrainConfig.resplit_to_dynamic`): a static Gaussian's K
+        is the field's motion where it sits, which was never fitted to it, and turning such
+        Gaussians dynamic cost kitchen 1.5 dB at once (docs/method.md, "Splits in place").
 
         `in_place`: each Gaussian whose rendered offsets the split changes (it changes sides,
         or its kNN neighbours do) has its canonical mean, rotation and scale moved by the
