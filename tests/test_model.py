@@ -413,8 +413,10 @@ def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
     torch.testing.assert_close(now, was, atol=1e-6, rtol=1e-4)
     # The ones that stay dynamic: on average nearer where they were than after a plain split.
     stay = moved.dynamic
-    assert float((x1 - x0)[stay].norm(dim=-1).mean()) < 0.5 * float(jumped[stay].mean() + 1e-9) or \
-        float(jumped[stay].max()) == 0.0
+    # (Their kNN neighbours changed: a plain split moved them by 0.01 on average here, in place
+    # by 0.0007, not 0, since moving a canonical mean also moves the field's value there.)
+    assert float(jumped[stay].mean()) > 1e-3
+    assert float((x1 - x0)[stay].norm(dim=-1).mean()) < 0.2 * float(jumped[stay].mean())
     # A second split: Gaussians static on both sides stay bit for bit.
     before = {k: v.detach().clone() for k, v in moved.params.items()}
     moved.decompose(2 * tau, recompute=False, in_place=True)
