@@ -110,6 +110,31 @@ def test_placement_environment(monkeypatch):
     assert configure_process() is None and "GOMP_SPINCOUNT" not in os.environ
 
 
+def test_parallel_map_keeps_the_order_on_several_threads(monkeypatch):
+    import threading
+    import time
+
+    from kgs_core.progress import listen
+    from kgs_core.threads import parallel_map
+
+    monkeypatch.setenv("KGS_THREADS", "2")
+    threads, heard = set(), []
+
+    def slow_square(x):
+        threads.add(threading.get_ident())
+        time.sleep(0.01 * (x % 3))  # later items may finish first
+        return x * x
+
+    with listen(lambda stage, done, total: heard.append((stage, done, total))):
+        assert parallel_map(slow_square, list(range(12)), desc="squares") == [x * x for x in range(12)]
+    assert len(threads) == 2
+    assert heard[-1] == ("squares", 12, 12)
+    heard.clear()
+    with listen(lambda *a: heard.append(a)):
+        assert parallel_map(slow_square, [3]) == [9] and parallel_map(slow_square, []) == []
+    assert heard == []  # no name, no bar and nothing announced
+
+
 def test_a_fresh_process_gets_the_placement_and_explicit_settings_win():
     """What libgomp will read: the entry points (`kgs-app`, the job worker) call this before
     torch is imported."""

@@ -31,7 +31,8 @@ import numpy as np
 from PIL import Image
 
 from ..io import atomic_directory
-from ..progress import announce, progress_bar
+from ..progress import announce
+from ..threads import parallel_map
 from .formats import write_nerfies
 from .formats.colmap import camera_from_colmap
 from .scene import Camera, Frame, Scene, SceneError
@@ -140,13 +141,16 @@ def decode_frames(folder: Path, video: Path, eval_video: Path | None, every: int
             raise SceneError(f"frame counts differ: {video} has {len(frames_a)}, {eval_video} has {len(frames_b)} "
                              "(synchronised videos must have one frame per time step)")
     (folder / "images").mkdir(parents=True)
-    names_a, names_b, scores = [], [], {}
-    for tag, frames, names in (("a", frames_a, names_a), ("b", frames_b, names_b)):
-        for i, img in enumerate(frames):
-            name = f"f{i:05d}_{tag}.png"
-            Image.fromarray(img).save(folder / "images" / name, compress_level=PNG_LEVEL)
-            names.append(name)
-            scores[name] = round(sharpness(img), 2)
+    names_a = [f"f{i:05d}_a.png" for i in range(len(frames_a))]
+    names_b = [f"f{i:05d}_b.png" for i in range(len(frames_b))]
+
+    def save(job: tuple[str, np.ndarray]) -> float:
+        name, img = job
+        Image.fromarray(img).save(folder / "images" / name, compress_level=PNG_LEVEL)
+        return round(sharpness(img), 2)
+
+    jobs = list(zip(names_a, frames_a)) + list(zip(names_b, frames_b))
+    scores = dict(zip([name for name, _ in jobs], parallel_map(save, jobs)))
     return {"names_a": names_a, "names_b": names_b, "sharpness": scores,
             "seconds": {"decode": round(time.perf_counter() - t0, 2)}}
 
@@ -387,36 +391,33 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
         out = Path(out)
         with atomic_directory(out, overwrite=overwrite) as tmp:
             (tmp / "rgb" / "1x").mkdir(parents=True)
-            frames = []
-            bar = progress_bar(total=n_a + n_b, desc="undistort and write", show=progress)
-            for names, cam_id in ((names_a, 0), (names_b, 1)):
-                for nm in names:
-                    if nm not in reg:
-                        continue
-                    bar.update()
-                    im = reg[nm]
-                    i = int(nm[1:6])
-                    cam = rec.cameras[im.camera_id]
-                    K, dist = camera_from_colmap(cam, f"{video}: SfM camera")
+
+            def write_frame(nm: str, cam_id: int) -> Frame:
+                im = reg[nm]
+                i = int(nm[1:6])
+                cam = rec.cameras[im.camera_id]
+                K, dist = camera_from_colmap(cam, f"{video}: SfM camera")
+                width, height = int(cam.width), int(cam.height)
+                fid = f"c{cam_id}_{i:05d}"
+                dst = tmp / "rgb" / "1x" / f"{fid}.png"
+                if undistort and np.any(dist != 0):
+                    cam, pixels = undistort_frame(cam, images / nm)
+                    K, dist = camera_from_colmap(cam, f"{video}: undistorted camera")
                     width, height = int(cam.width), int(cam.height)
-                    fid = f"c{cam_id}_{i:05d}"
-                    dst = tmp / "rgb" / "1x" / f"{fid}.png"
-                    if undistort and np.any(dist != 0):
-                        cam, pixels = undistort_frame(cam, images / nm)
-                        K, dist = camera_from_colmap(cam, f"{video}: undistorted camera")
-                        width, height = int(cam.width), int(cam.height)
-                        Image.fromarray(pixels).save(dst, compress_level=PNG_LEVEL)
-                    else:
-                        shutil.copyfile(images / nm, dst)
-                    viewmat = np.eye(4)
-                    cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-                    viewmat[:3] = np.asarray(cfw.matrix())
-                    held = cam_id == 1 or (holdout_every and i % holdout_every == holdout_every // 2)
-                    frames.append(Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
-                                        camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
-                                        exposure=exposure if cam_id == 0 else 0.0, split="test" if held else "train",
-                                        camera_id=cam_id))
-            bar.close()
+                    Image.fromarray(pixels).save(dst, compress_level=PNG_LEVEL)
+                else:
+                    shutil.copyfile(images / nm, dst)
+                viewmat = np.eye(4)
+                cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+                viewmat[:3] = np.asarray(cfw.matrix())
+                held = cam_id == 1 or (holdout_every and i % holdout_every == holdout_every // 2)
+                return Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
+                             camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
+                             exposure=exposure if cam_id == 0 else 0.0, split="test" if held else "train",
+                             camera_id=cam_id)
+
+            todo = [(nm, cam_id) for names, cam_id in ((names_a, 0), (names_b, 1)) for nm in names if nm in reg]
+            frames = parallel_map(lambda job: write_frame(*job), todo, desc="undistort and write", progress=progress)
             timings["write"] = time.perf_counter() - t0
             timings["total"] = time.perf_counter() - t_start
             report.seconds = {k: round(v, 2) for k, v in timings.items()}

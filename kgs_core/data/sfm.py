@@ -68,7 +68,7 @@ def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = 1600
     extraction.use_gpu = False
-    chunk = 32  # extraction is called in chunks only so that the progress bar moves
+    chunk = 96  # extraction is called in chunks only so that the progress bar moves (each call costs ~0.1 s)
     with progress_bar(total=len(names_a) + len(names_b), desc="features", show=progress) as bar:
         for names in (names_a, names_b):  # one camera per video
             reader = pycolmap.ImageReaderOptions()
@@ -169,8 +169,8 @@ def keyframe_names(names_a: list[str], names_b: list[str], step: int) -> list[st
 
 
 class KeyframesFellApart(RuntimeError):
-    """The keyframes formed several models, none with half of them (the mapper's random seed
-    decides this as much as the frames do: docs/data.md, "Ingest speed")."""
+    """The keyframes formed models, none with half of them: fragments, or one small model (the
+    mapper's random seed decides this as much as the frames do: docs/data.md, "Ingest speed")."""
 
 
 def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b: list[str],
@@ -200,11 +200,11 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     models = pycolmap.incremental_mapping(db, images, out / "keyframes", options=opts)
     model = _largest(models)
     stages["keyframes"] = time.perf_counter() - t0
-    if model is None or model.num_reg_images() < max(3, len(keyframes) // 2):
-        if len(models) > 1:
-            raise KeyframesFellApart(f"the keyframes fell apart into {len(models)} models, the largest "
-                                     f"{model.num_reg_images()} of {len(keyframes)}")
+    if model is None:
         return None
+    if model.num_reg_images() < max(3, len(keyframes) // 2):
+        raise KeyframesFellApart(f"the keyframes fell apart into {len(models)} model(s), the largest "
+                                 f"{model.num_reg_images()} of {len(keyframes)}")
     if lens_probe is not None:
         # A quarter of the frames or fewer, so a fraction of the whole model's cost (0.5 s against
         # 7-14 s on a 672-frame clip); how far it predicts the whole refit: refine_lens, docs/data.md.
@@ -242,8 +242,12 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
             rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=keypoints, camera_id=camera_id,
                                                             image_id=im.image_id), pose)
     (out / "all").mkdir(parents=True, exist_ok=True)
-    rec = pycolmap.triangulate_points(rec, db, images, out / "all",
-                                      options=_pipeline_options(pycolmap.IncrementalPipelineOptions))
+    triangulation = _pipeline_options(pycolmap.IncrementalPipelineOptions)
+    # One round of its point refinement, not COLMAP's five: the adjustment below refines points,
+    # poses and lens together anyway. On a 672-frame clip 15-16 s against 20-21 s, and the same
+    # error after the adjustment (1.0975 against 1.0982 px; docs/data.md).
+    triangulation.ba_global_max_refinements = 1
+    rec = pycolmap.triangulate_points(rec, db, images, out / "all", options=triangulation)
     drop_outlier_points(rec)  # before the adjustment too: a few wild points would drag it
     stages["triangulate"] = time.perf_counter() - t0
     if adjust:
@@ -257,6 +261,7 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
         # Five iterations reach the reprojection error of 10 and 25 (1.02 px on a 672-frame
         # clip) in 10 s against 17 and 44; without it, 1.07 px (docs/data.md, "Ingest speed").
         ba.ceres.solver_options.max_num_iterations = 5
+        use_iterative_schur(ba)
         pycolmap.bundle_adjustment(rec, ba)
         quiet_colmap()
         drop_outlier_points(rec)
@@ -281,6 +286,18 @@ MAX_TANGENTIAL = 0.1  # |p1|, |p2|
 # ... and only when it lowers the mean reprojection error by this fraction: four more parameters
 # always fit a little better, and a lens the mappers' model describes should stay as it is.
 MIN_LENS_GAIN = 0.03
+
+
+def use_iterative_schur(ba) -> None:
+    """Solves `ba`'s linear systems by preconditioned conjugate gradients on the Schur complement.
+    Ceres' automatic choice for 50-1,000 images is a sparse direct factorisation, which on a video's
+    banded camera graph and two cores took 13.8 s for the five iterations over 672 frames, against
+    4.3 s this way, to the same reprojection error (1.0076 / 1.0077 px; docs/data.md)."""
+    from pycolmap._core import pyceres
+
+    ba.ceres.auto_select_solver_type = False
+    ba.ceres.solver_options.linear_solver_type = pyceres.LinearSolverType.ITERATIVE_SCHUR
+    ba.ceres.solver_options.preconditioner_type = pyceres.PreconditionerType.SCHUR_JACOBI
 
 
 def opencv_params(cam) -> list[float] | None:
@@ -357,6 +374,7 @@ def refine_lens(rec, iterations: int = LENS_ITERATIONS, probe: dict | None = Non
     ba.refine_focal_length = True
     ba.refine_extra_params = True
     ba.print_summary = False
+    use_iterative_schur(ba)
     # A probe of LENS_PROBE_ITERATIONS first: where it gains less than a third of MIN_LENS_GAIN,
     # the rest cannot reach it (on a 672-frame clip: 0.1 % after 5 iterations, 0.2 % after 10;
     # on walk 13.9 % and 15.0 %), and stopping there saves half the refit's 13 s.
@@ -435,7 +453,7 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
             mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int = 4,
             progress: bool = True, probe_lens: bool = False) -> SfmResult | None:
     """Maps the frames of `db` with `mapper`. `auto` tries keyframes (once more with another seed
-    when they fall apart into fragments), keyframes twice as dense, then incremental, and keeps
+    when they fall apart or pose too few frames), keyframes twice as dense, then incremental, and keeps
     the first model that poses at least `min_registered` of the training frames (else the one
     that posed the most). Returns None when no mapper produced a model. With `probe_lens`, a
     keyframe model also gets the lens refit's probe (`SfmResult.lens_probe`)."""
@@ -468,16 +486,18 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
                 rec = map_incremental(db, images, out, scores)
         except KeyframesFellApart as exc:
             rec, error = None, str(exc)
-            if mapper == "auto" and seed == 0:
-                # Whether a keyframe graph falls apart depends on the mapper's seed as much as on
-                # the frames: on one kitchen x2 frame set seeds 0 and 1 gave fragments, 2 and 3 a
-                # model of all 168 keyframes, in 13-16 s, where the denser retry and the
-                # incremental mapper take minutes (docs/data.md, "Ingest speed").
-                order.insert(0, (name, step, KEYFRAME_RETRY_SEED))
         except RuntimeError as exc:  # pycolmap raises RuntimeError on a failed solve
             rec, error = None, str(exc)
         posed = {im.name for im in rec.images.values() if im.has_pose} if rec is not None else set()
         fraction = sum(n in posed for n in names_a) / max(len(names_a), 1)
+        if mapper == "auto" and name == "keyframes" and seed == 0 and fraction < min_registered and (
+                rec is not None or error is not None):
+            # Whether a keyframe graph falls apart or falls short depends on the mapper's seed as
+            # much as on the frames: on one kitchen x2 frame set seeds 0 and 1 gave fragments, 2
+            # and 3 a model of all 168 keyframes, in 13-16 s, where the denser keyframes and the
+            # incremental mapper took minutes (docs/data.md, "Ingest speed"). Keyframes that
+            # formed no model at all (too few of them) are not retried.
+            order.insert(0, (name, step, KEYFRAME_RETRY_SEED))
         attempts.append({"mapper": name, **({"keyframe_step": step, "seed": seed} if name == "keyframes" else {}),
                          "seconds": round(time.perf_counter() - t0, 2),
                          "registered_fraction": round(fraction, 4),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +11,16 @@ from PIL import Image
 
 from ..io import atomic_file
 from ..progress import progress_bar
+from ..threads import cores_available, requested_cores
 from .scene import SceneError
+
+
+def downscale(img: np.ndarray, max_size: int | None) -> np.ndarray:
+    """`img` (bicubic) so that its long side is at most `max_size`; as it is when it already is."""
+    if max_size and max(img.shape[:2]) > max_size:
+        s = max_size / max(img.shape[:2])
+        img = np.asarray(Image.fromarray(img).resize((round(img.shape[1] * s), round(img.shape[0] * s)), Image.BICUBIC))
+    return img
 
 
 def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_size: int | None = None,
@@ -20,9 +31,12 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"video not found: {path}")
-    frames = []
+    frames, pending = [], deque()
+    workers = requested_cores() or cores_available()
     try:
-        with av.open(str(path)) as container:
+        # The downscale costs twice the decoding (7.5 against 3.7 ms a frame at 960x540 -> 320),
+        # so it runs on a thread per core while this one decodes; a few frames in flight at most.
+        with av.open(str(path)) as container, ThreadPoolExecutor(workers) as pool:
             if not container.streams.video:
                 raise SceneError(f"{path}: no video stream")
             stream = container.streams.video[0]
@@ -31,13 +45,12 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
                                                 stage="decode", show=progress)):
                 if k % every:
                     continue
-                img = fr.to_ndarray(format="rgb24")
-                if max_size and max(img.shape[:2]) > max_size:
-                    s = max_size / max(img.shape[:2])
-                    img = np.asarray(Image.fromarray(img).resize((round(img.shape[1] * s), round(img.shape[0] * s)), Image.BICUBIC))
-                frames.append(img)
-                if max_frames and len(frames) >= max_frames:
+                pending.append(pool.submit(downscale, fr.to_ndarray(format="rgb24"), max_size))
+                if len(pending) > 2 * workers:
+                    frames.append(pending.popleft().result())
+                if max_frames and len(frames) + len(pending) >= max_frames:
                     break
+            frames.extend(f.result() for f in pending)
     except SceneError:
         raise
     except Exception as exc:  # av.error.InvalidDataError and friends
