@@ -16,7 +16,7 @@ import sys
 import threading
 from pathlib import Path
 
-from kgs_core.threads import cores_available, placement_env, placement_off, requested_cores
+from kgs_core.threads import cores_to_use, placement_env, placement_off
 
 from .registry import ACTIVE, CANCELLABLE, JobStatus, Workspace
 
@@ -71,7 +71,7 @@ class JobRunner:
         cores back when the others end, and gives way to the server's own rendering."""
         if placement_off():
             return None
-        return max(1, (requested_cores() or cores_available()) // max(1, jobs))
+        return max(1, cores_to_use() // max(1, jobs))
 
     def _watch(self, table: str, id_: str, proc: subprocess.Popen, on_done) -> None:
         rc = proc.wait()

@@ -47,6 +47,12 @@ def requested_cores() -> int | None:
     return int(raw) if raw.isdigit() and int(raw) > 0 else None
 
 
+def cores_to_use() -> int:
+    """The cores this process computes on: `KGS_THREADS` when it names a number, else every
+    available one."""
+    return requested_cores() or cores_available()
+
+
 def omp_threads() -> int | None:
     """`OMP_NUM_THREADS` as a count: None when unset or not a plain number (e.g. a nested "4,2")."""
     raw = os.environ.get("OMP_NUM_THREADS", "").strip()
@@ -60,7 +66,7 @@ def configure_process() -> int | None:
         return None
     if "KGS_OMP_FROM_USER" not in os.environ:  # inherited by child processes: set once, at the top
         os.environ["KGS_OMP_FROM_USER"] = "1" if "OMP_NUM_THREADS" in os.environ else "0"
-    for key, value in placement_env(requested_cores() or cores_available()).items():
+    for key, value in placement_env(cores_to_use()).items():
         os.environ.setdefault(key, value)
     threads = omp_threads()
     if threads and "torch" in sys.modules:  # too late for libgomp's wait policy, not for the count
@@ -77,7 +83,7 @@ def parallel_map(fn, items: list, desc: str | None = None, progress: bool = Fals
 
     from .progress import progress_bar
 
-    workers = min(requested_cores() or cores_available(), max(1, len(items)))
+    workers = min(cores_to_use(), max(1, len(items)))
     bar = progress_bar(total=len(items), desc=desc, show=progress) if desc is not None else None
     out = []
     with ThreadPoolExecutor(workers) as pool:

@@ -11,7 +11,7 @@ from PIL import Image
 
 from ..io import atomic_file
 from ..progress import progress_bar
-from ..threads import cores_available, requested_cores
+from ..threads import cores_to_use
 from .scene import SceneError
 
 
@@ -32,7 +32,7 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
     if not path.is_file():
         raise SceneError(f"video not found: {path}")
     frames, pending = [], deque()
-    workers = requested_cores() or cores_available()
+    workers = cores_to_use()
     try:
         # The downscale costs twice the decoding (7.5 against 3.7 ms a frame at 960x540 -> 320),
         # so it runs on a thread per core while this one decodes; a few frames in flight at most.
