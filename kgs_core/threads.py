@@ -83,17 +83,12 @@ def parallel_map(fn, items: list, desc: str | None = None, progress: bool = Fals
 
     from .progress import progress_bar
 
-    workers = min(cores_to_use(), max(1, len(items)))
-    bar = progress_bar(total=len(items), desc=desc, show=progress) if desc is not None else None
-    out = []
-    with ThreadPoolExecutor(workers) as pool:
-        for result in pool.map(fn, items):
-            out.append(result)
-            if bar is not None:
-                bar.update()
-    if bar is not None:
-        bar.close()
-    return out
+    with ThreadPoolExecutor(min(cores_to_use(), max(1, len(items)))) as pool:
+        results = pool.map(fn, items)
+        if desc is None:
+            return list(results)
+        with progress_bar(results, total=len(items), desc=desc, show=progress) as bar:
+            return list(bar)
 
 
 def machine_busy_seconds() -> float | None:
