@@ -104,8 +104,19 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
         ("keyframes", 64), ("keyframes", 32), ("incremental", None)]
     assert [a["outcome"] for a in result.attempts[:2]] == ["no model", "no model"]
     assert result.attempts[2]["registered_fraction"] >= 0.9
-    # Keyframes every 4th frame (4 of 16) pose 15 of the 16 frames, short of the 95 % asked for,
-    # with either seed; every 2nd frame poses them all: the retries, without the incremental mapper.
+    # A keyframe model that poses too few frames (here: every 4th frame's, made to lose three
+    # frames whatever the seed) is mapped once more with another seed, then every 2nd frame is
+    # keyframed: the retries, without the incremental mapper.
+    real = sfm.map_keyframes
+
+    def short_at_step_4(db, images, out, names_a, names_b, step, *args, **kw):
+        rec = real(db, images, out, names_a, names_b, step, *args, **kw)
+        if step == 4:
+            for frame_id in sorted(rec.reg_frame_ids())[-3:]:
+                rec.deregister_frame(frame_id)
+        return rec
+
+    monkeypatch.setattr(sfm, "map_keyframes", short_at_step_4)
     result = run_sfm(folder / "database.db", folder / "images", tmp_path / "work2", meta["names_a"], [],
                      meta["sharpness"], "auto", keyframe_step=4, progress=False)
     steps = [(a["mapper"], a.get("keyframe_step"), a.get("seed")) for a in result.attempts]
@@ -113,6 +124,38 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
         result.attempts
     assert max(a["registered_fraction"] for a in result.attempts[:2]) < 0.95 <= result.attempts[2]["registered_fraction"]
     assert result.mapper == "keyframes"
+
+
+def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tmp_path, monkeypatch):
+    """A frame that shares no verified pair with any keyframe (as a quarter of the frames do
+    with keyframes every 8th frame, where sequential matching pairs only frames a power of two
+    apart) is posed in a second pass, through its matches to frames the first pass posed. Here
+    every odd frame's pairs with the keyframes (every 4th frame) are hidden."""
+    from kgs_core.data import sfm
+    from kgs_core.data.ingest import frame_set
+
+    monkeypatch.setattr(sfm, "MIN_KEYFRAMES", 0)
+    video, gt = room_video
+    folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
+    names = meta["names_a"]
+    with sfm._open_db(folder / "database.db") as d:
+        index = {im.image_id: names.index(im.name) for im in d.read_all_images()}
+    real = sfm._verified_partners
+
+    def without_odd_keyframe_pairs(d):
+        partners = real(d)
+        return {i: [j for j in js if not ((index[i] % 2 and index[j] % 4 == 0) or (index[j] % 2 and index[i] % 4 == 0))]
+                for i, js in partners.items()}
+
+    monkeypatch.setattr(sfm, "_verified_partners", without_odd_keyframe_pairs)
+    stages = {}
+    rec = sfm.map_keyframes(folder / "database.db", folder / "images", tmp_path / "work", names, [], 4,
+                            progress=False, stages=stages)
+    assert rec.num_reg_images() == len(names)
+    passes = stages["register_passes"]
+    assert len(passes) >= 2 and passes[0] <= len(names) // 2 - 4 and sum(passes) == len(names) - 4, passes
+    rec.update_point_3d_errors()
+    assert rec.compute_mean_reprojection_error() < 1.5
 
 
 def test_auto_mapper_maps_keyframes_that_fell_apart_again_with_another_seed(room_video, tmp_path, monkeypatch):

@@ -1,11 +1,11 @@
 """Structure from motion for video frames, with pycolmap: features, sequential matching, and three
 mappers that trade speed for robustness.
 
-- `keyframes` (the default): incremental SfM on every k-th frame only, then every other frame
-  posed by absolute-pose RANSAC against that model's points (through its verified matches to the
-  keyframes), points triangulated from all frames, and one global bundle adjustment. Mapping cost
-  grows with the keyframes, not with every frame: the incremental mapper's repeated global
-  bundle adjustments are what made long clips slow.
+- `keyframes` (the default): incremental SfM on every 4th or 8th frame only, then every other
+  frame posed by absolute-pose RANSAC against that model's points (through its verified matches
+  to the frames posed before it, in passes), points triangulated from all frames, and one global
+  bundle adjustment. Mapping cost grows with the keyframes, not with every frame: the
+  incremental mapper's repeated global bundle adjustments are what made long clips slow.
 - `global`: GLOMAP (`pycolmap.global_mapping`): rotation averaging and global positioning, fast
   and with the most self-consistent poses where it works, but it fails outright on some clips.
 - `incremental`: COLMAP's incremental mapper, started from the sharpest half of the frames and
@@ -14,8 +14,9 @@ mappers that trade speed for robustness.
 `auto` tries keyframes, then incremental, and records every attempt. Frames are named so that the
 two synchronised videos interleave in time (`f00012_a`, `f00012_b`); sequential matching orders
 images by name and, with `quadratic_overlap`, pairs each image with the ones 1, 2, 4, 8, ...
-positions later. Keyframes therefore sit on a power-of-two grid: every keyframe pair at one grid
-step is a matched pair (sharpest-in-a-window keyframes left the keyframe graph disconnected).
+positions later (only those: COLMAP 4's quadratic overlap has no linear part). Keyframes
+therefore sit on a power-of-two grid: every keyframe pair at one grid step is a matched pair
+(sharpest-in-a-window keyframes left the keyframe graph disconnected).
 """
 
 from __future__ import annotations
@@ -34,6 +35,11 @@ MAPPERS = ("auto", "keyframes", "global", "incremental")
 MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
 MAX_REPROJECTION_ERROR_PX = 4.0
 MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
+# Keyframes every 8th frame where that still leaves this many per camera, else every 4th. The
+# keyframe model's cost grows faster than its size (COLMAP adjusts the whole model each time it
+# grows by a tenth): on a 336 + 336 frame clip, 84 keyframes mapped in 5-8 s and 168 in 26-72 s,
+# with every frame posed either way (docs/data.md, "Ingest speed").
+LONG_CLIP_KEYFRAMES = 32
 KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with this seed (run_sfm)
 
 
@@ -160,6 +166,11 @@ def keyframe_time_budget(keyframes: int) -> int:
     return int(30 + keyframes // 4)
 
 
+def default_keyframe_step(frames: int) -> int:
+    """The keyframe step for a clip of `frames` training frames (LONG_CLIP_KEYFRAMES)."""
+    return 8 if frames / 8 >= LONG_CLIP_KEYFRAMES else 4
+
+
 def keyframe_names(names_a: list[str], names_b: list[str], step: int) -> list[str]:
     """Every `step`-th training frame from the first, with its synchronised twin: a power-of-two
     step keeps neighbouring keyframes among the pairs that sequential matching verified."""
@@ -177,9 +188,11 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
                   step: int = 4, progress: bool = True, stages: dict | None = None, adjust: bool = True,
                   seed: int = 0, lens_probe: dict | None = None):
     """Incremental SfM on the keyframes (the mapper's random `seed`), absolute pose for every other
-    frame, triangulation from all frames and (with `adjust`) one global bundle adjustment. None
+    frame (`_register_rest`), triangulation from all frames and (with `adjust`) one global bundle
+    adjustment. None
     when the keyframes form no model, KeyframesFellApart when they form only fragments.
-    `stages` receives the seconds of each step; `lens_probe`, when given, the report of the lens
+    `stages` receives the seconds of each step, and the frames posed in each registration pass
+    (`register_passes`); `lens_probe`, when given, the report of the lens
     refit's probe on the keyframe model (`refine_lens`, LENS_PROBE_ITERATIONS)."""
     import pycolmap
 
@@ -215,18 +228,10 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     posed = {im.name: (im.camera_id, _cam_from_world(im)) for im in model.images.values() if im.has_pose}
     with _open_db(db) as d:
         by_name = {im.name: im for im in d.read_all_images()}
-        keyframe_ids = [by_name[n].image_id for n in posed]
-        observed = {}  # (keyframe image id, keypoint index) -> 3D point id
-        for im in model.images.values():
-            if im.has_pose:
-                for j, p in enumerate(im.points2D):
-                    if p.has_point3D():
-                        observed[(im.image_id, j)] = p.point3D_id
         rest = [n for n in names_a + names_b if n not in posed]
-        for name in progress_bar(rest, desc="register", show=progress):
-            pose = _absolute_pose(d, model, by_name[name], keyframe_ids, observed)
-            if pose is not None:
-                posed[name] = (by_name[name].camera_id, pose)
+        more, passes = _register_rest(d, model, [by_name[n] for n in rest], progress)
+        posed.update(more)
+        stages["register_passes"] = passes
         stages["register"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         # A reconstruction of every posed frame, its keypoints and poses; points triangulated
@@ -245,7 +250,9 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     triangulation = _pipeline_options(pycolmap.IncrementalPipelineOptions)
     # One round of its point refinement, not COLMAP's five: the adjustment below refines points,
     # poses and lens together anyway. On a 672-frame clip 15-16 s against 20-21 s, and the same
-    # error after the adjustment (1.0975 against 1.0982 px; docs/data.md).
+    # error after the adjustment (1.0975 against 1.0982 px; docs/data.md). Its track merging is
+    # most of what is left (11-17 s there), and worth keeping: triangulated without it, walk
+    # trained 2.0-3.5 dB lower on the sharp camera (docs/data.md, "Ingest speed").
     triangulation.ba_global_max_refinements = 1
     rec = pycolmap.triangulate_points(rec, db, images, out / "all", options=triangulation)
     drop_outlier_points(rec)  # before the adjustment too: a few wild points would drag it
@@ -419,22 +426,71 @@ def _cam_from_world(im):
     return im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
 
 
-def _absolute_pose(d, model, image, keyframe_ids: list[int], observed: dict):
-    """The pose of one database image from its verified matches to the posed keyframes' 3D
-    points (LO-RANSAC PnP and refinement), or None."""
+def _verified_partners(d) -> dict[int, list[int]]:
+    """image id -> the images it has a verified two-view geometry with."""
     import pycolmap
 
-    corr = {}  # keypoint index -> 3D point id (first keyframe match wins)
-    for kid in keyframe_ids:
-        if not d.exists_two_view_geometry(image.image_id, kid):
-            continue
-        matches = d.read_two_view_geometry(image.image_id, kid).inlier_matches
+    pair_ids, counts = d.read_two_view_geometry_num_inliers()
+    partners: dict[int, list[int]] = {}
+    for pair_id, count in zip(pair_ids, counts):
+        if count > 0:
+            a, b = pycolmap.pair_id_to_image_pair(int(pair_id))
+            partners.setdefault(a, []).append(b)
+            partners.setdefault(b, []).append(a)
+    return partners
+
+
+def _register_rest(d, model, images: list, progress: bool) -> tuple[dict, list[int]]:
+    """`({name: (camera id, cam_from_world)}, frames posed in each pass)` for the `images` that
+    absolute pose can place against `model`'s points, in passes. The first pass uses each image's
+    verified matches to the model's images; each later pass also uses its matches to the images
+    posed in earlier passes, through the 3D points of their PnP inliers. Sequential matching pairs a frame only with the frames a
+    power of two positions away, so with keyframes every 8th frame, a frame 3 or 5 frames from
+    both neighbouring keyframes shares no verified pair with either (a quarter of kitchen x2's
+    frames), but it does with the frames 1 or 2 away, which the first pass poses."""
+    partners = _verified_partners(d)
+    observed = {}  # (posed image id, keypoint index) -> 3D point id
+    for im in model.images.values():
+        if im.has_pose:
+            for j, p in enumerate(im.points2D):
+                if p.has_point3D():
+                    observed[(im.image_id, j)] = p.point3D_id
+    references = {im.image_id for im in model.images.values() if im.has_pose}
+    posed, passes, remaining = {}, [], list(images)
+    while remaining:
+        found = {}
+        desc = "register" if not passes else f"register, pass {len(passes) + 1}"
+        for image in progress_bar(remaining, desc=desc, show=progress):
+            pose = _absolute_pose(d, model, image, [p for p in partners.get(image.image_id, ()) if p in references],
+                                  observed)
+            if pose is not None:
+                found[image.name] = (image, *pose)
+        if not found:
+            break
+        for name, (image, cam_from_world, inliers) in found.items():
+            posed[name] = (image.camera_id, cam_from_world)
+            references.add(image.image_id)
+            observed.update(((image.image_id, kp), pid) for kp, pid in inliers)
+        remaining = [im for im in remaining if im.name not in found]
+        passes.append(len(found))
+    return posed, passes
+
+
+def _absolute_pose(d, model, image, references: list[int], observed: dict):
+    """`(cam_from_world, [(keypoint index, 3D point id) of the inliers])` of one database image,
+    from its verified matches to the posed `references` whose keypoints see 3D points
+    (`observed`), by LO-RANSAC PnP and refinement; or None."""
+    import pycolmap
+
+    corr = {}  # keypoint index -> 3D point id (first reference's match wins)
+    for rid in references:
+        matches = d.read_two_view_geometry(image.image_id, rid).inlier_matches
         if matches is None or len(matches) == 0:
             continue
-        for a, b in np.asarray(matches):
-            pid = observed.get((kid, int(b)))
+        for mine, theirs in np.asarray(matches):  # (read in the order asked: this image's keypoint first)
+            pid = observed.get((rid, int(theirs)))
             if pid is not None:
-                corr.setdefault(int(a), pid)
+                corr.setdefault(int(mine), pid)
     if len(corr) < MIN_CORRESPONDENCES:
         return None
     idx = np.fromiter(corr, int)
@@ -446,11 +502,12 @@ def _absolute_pose(d, model, image, keyframe_ids: list[int], observed: dict):
     found = pycolmap.estimate_and_refine_absolute_pose(points2d, points3d, camera)
     if found is None or found["num_inliers"] < MIN_CORRESPONDENCES:
         return None
-    return found["cam_from_world"]
+    inliers = idx[np.asarray(found["inlier_mask"], bool)]
+    return found["cam_from_world"], [(int(k), corr[int(k)]) for k in inliers]
 
 
 def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: list[str], scores: dict[str, float],
-            mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int = 4,
+            mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int | None = None,
             progress: bool = True, probe_lens: bool = False) -> SfmResult | None:
     """Maps the frames of `db` with `mapper`. `auto` tries keyframes (once more with another seed
     when they fall apart or pose too few frames), keyframes twice as dense, then incremental, and keeps
@@ -460,6 +517,7 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
     quiet_colmap()
+    keyframe_step = keyframe_step or default_keyframe_step(len(names_a))
     # auto: keyframes; when their model falls short, keyframes twice as dense (more overlap between
     # neighbours, still far cheaper than mapping every frame); then every frame incrementally.
     # Each entry: (mapper, keyframe step, the mapper's random seed).
@@ -502,7 +560,8 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
                          "seconds": round(time.perf_counter() - t0, 2),
                          "registered_fraction": round(fraction, 4),
                          "outcome": error or ("no model" if rec is None else "ok"),
-                         **({"stages": {k: round(v, 2) for k, v in stages.items()}} if stages else {})})
+                         **({"stages": {k: round(v, 2) if isinstance(v, float) else v for k, v in stages.items()}}
+                            if stages else {})})
         if rec is not None and (best is None or fraction > best[1]):
             best = (SfmResult(rec=rec, mapper=name, lens_probe=probe or None), fraction)
         if rec is not None and fraction >= min_registered:
