@@ -135,7 +135,7 @@ def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tm
     from kgs_core.data.ingest import frame_set
 
     monkeypatch.setattr(sfm, "MIN_KEYFRAMES", 0)
-    video, gt = room_video
+    video, _ = room_video
     folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
     names = meta["names_a"]
     with sfm._open_db(folder / "database.db") as d:

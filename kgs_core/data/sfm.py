@@ -11,7 +11,8 @@ mappers that trade speed for robustness.
 - `incremental`: COLMAP's incremental mapper, started from the sharpest half of the frames and
   then extended to all of them. The slowest, and the fallback when the others fail.
 
-`auto` tries keyframes, then incremental, and records every attempt. Frames are named so that the
+`auto` tries keyframes (a second seed when they fall short), keyframes twice as dense, then
+incremental, and records every attempt. Frames are named so that the
 two synchronised videos interleave in time (`f00012_a`, `f00012_b`); sequential matching orders
 images by name and, with `quadratic_overlap`, pairs each image with the ones 1, 2, 4, 8, ...
 positions later (only those: COLMAP 4's quadratic overlap has no linear part). Keyframes
@@ -189,11 +190,10 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
                   seed: int = 0, lens_probe: dict | None = None):
     """Incremental SfM on the keyframes (the mapper's random `seed`), absolute pose for every other
     frame (`_register_rest`), triangulation from all frames and (with `adjust`) one global bundle
-    adjustment. None
-    when the keyframes form no model, KeyframesFellApart when they form only fragments.
-    `stages` receives the seconds of each step, and the frames posed in each registration pass
-    (`register_passes`); `lens_probe`, when given, the report of the lens
-    refit's probe on the keyframe model (`refine_lens`, LENS_PROBE_ITERATIONS)."""
+    adjustment. None when the keyframes form no model; KeyframesFellApart when none of their
+    models holds half of them. `stages` receives the seconds of each step, and the frames posed
+    in each registration pass (`register_passes`); `lens_probe`, when given, the report of the
+    lens refit's probe on the keyframe model (`refine_lens`, LENS_PROBE_ITERATIONS)."""
     import pycolmap
 
     stages = {} if stages is None else stages
