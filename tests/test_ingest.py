@@ -126,6 +126,34 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
     assert result.mapper == "keyframes"
 
 
+@pytest.mark.parametrize("second_camera, first_step", [(True, 8), (False, 4)])
+def test_long_clips_keyframe_every_8th_frame_only_with_a_second_camera(second_camera, first_step, tmp_path,
+                                                                        monkeypatch):
+    """From 256 frames per camera auto starts from keyframes every 8th frame when a second camera
+    gives each keyframe its same-time twin; one video starts from every 4th, where every 8th fell
+    apart in most draws (docs/data.md, "Ingest speed")."""
+    from kgs_core.data import sfm
+
+    steps = []
+
+    def no_model(db, images, out, names_a, names_b, step, *args, **kw):
+        steps.append(step)
+        return None
+
+    monkeypatch.setattr(sfm, "map_keyframes", no_model)
+    monkeypatch.setattr(sfm, "map_incremental", lambda *args: None)
+    names_a = [f"f{i:05d}_a.png" for i in range(300)]
+    names_b = [n.replace("_a.", "_b.") for n in names_a] if second_camera else []
+    assert sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a, names_b, {},
+                       "auto", progress=False) is None
+    assert steps == [first_step, first_step // 2]
+    # A shorter clip starts from every 4th frame either way.
+    steps.clear()
+    sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a[:200], names_b[:200], {},
+                "auto", progress=False)
+    assert steps[0] == 4
+
+
 def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tmp_path, monkeypatch):
     """A frame that shares no verified pair with any keyframe (as a quarter of the frames do
     with keyframes every 8th frame, where sequential matching pairs only frames a power of two

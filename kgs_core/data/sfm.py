@@ -36,10 +36,13 @@ MAPPERS = ("auto", "keyframes", "global", "incremental")
 MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
 MAX_REPROJECTION_ERROR_PX = 4.0
 MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
-# Keyframes every 8th frame where that still leaves this many per camera, else every 4th. The
-# keyframe model's cost grows faster than its size (COLMAP adjusts the whole model each time it
-# grows by a tenth): on a 336 + 336 frame clip, 84 keyframes mapped in 5-8 s and 168 in 26-72 s,
-# with every frame posed either way (docs/data.md, "Ingest speed").
+# Keyframes every 8th frame where that still leaves this many per camera and a second camera
+# gives each keyframe its same-time twin, else every 4th. The keyframe model's cost grows faster
+# than its size (COLMAP adjusts the whole model each time it grows by a tenth): on a 336 + 336
+# frame clip, 84 keyframes mapped in 5-8 s and 168 in 26-72 s, with every frame posed either way.
+# Without the twins every 8th frame leaves neighbouring keyframes too few shared matches (a median
+# of 38 inliers) to grow the model: it fell apart in 4 of 6 draws on two one-camera inputs, every
+# 4th in 1 of 6 (docs/data.md, "Ingest speed").
 LONG_CLIP_KEYFRAMES = 32
 KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with this seed (run_sfm)
 
@@ -175,9 +178,10 @@ def keyframe_time_budget(keyframes: int) -> int:
     return int(30 + keyframes // 4)
 
 
-def default_keyframe_step(frames: int) -> int:
-    """The keyframe step for a clip of `frames` training frames (LONG_CLIP_KEYFRAMES)."""
-    return 8 if frames / 8 >= LONG_CLIP_KEYFRAMES else 4
+def default_keyframe_step(frames: int, second_camera: bool) -> int:
+    """The keyframe step for a clip of `frames` training frames, with or without a synchronised
+    `second_camera` (LONG_CLIP_KEYFRAMES)."""
+    return 8 if second_camera and frames / 8 >= LONG_CLIP_KEYFRAMES else 4
 
 
 def keyframe_names(names_a: list[str], names_b: list[str], step: int) -> list[str]:
@@ -525,7 +529,7 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
     quiet_colmap()
-    keyframe_step = keyframe_step or default_keyframe_step(len(names_a))
+    keyframe_step = keyframe_step or default_keyframe_step(len(names_a), bool(names_b))
     # auto: keyframes; when their model falls short, keyframes twice as dense (more overlap between
     # neighbours, still far cheaper than mapping every frame); then every frame incrementally.
     # Each entry: (mapper, keyframe step, the mapper's random seed).
