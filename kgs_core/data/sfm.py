@@ -42,7 +42,8 @@ MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
 # frame clip, 84 keyframes mapped in 5-8 s and 168 in 26-72 s, with every frame posed either way.
 # Without the twins every 8th frame leaves neighbouring keyframes too few shared matches (a median
 # of 38 inliers) to grow the model: it fell apart in 4 of 6 draws on two one-camera inputs, every
-# 4th in 1 of 6 (docs/data.md, "Ingest speed").
+# 4th in 1 of those 6 (and in 2 of 3 more in whole ingests of the harder one, where every 2nd
+# frame then posed it; docs/data.md, "Ingest speed").
 LONG_CLIP_KEYFRAMES = 32
 KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with this seed (run_sfm)
 
