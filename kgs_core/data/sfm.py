@@ -457,10 +457,11 @@ def _register_rest(d, model, images: list, progress: bool) -> tuple[dict, list[i
     """`({name: (camera id, cam_from_world)}, frames posed in each pass)` for the `images` that
     absolute pose can place against `model`'s points, in passes. The first pass uses each image's
     verified matches to the model's images; each later pass also uses its matches to the images
-    posed in earlier passes, through the 3D points of their PnP inliers. Sequential matching pairs a frame only with the frames a
-    power of two positions away, so with keyframes every 8th frame, a frame 3 or 5 frames from
-    both neighbouring keyframes shares no verified pair with either (a quarter of kitchen x2's
-    frames), but it does with the frames 1 or 2 away, which the first pass poses."""
+    posed in earlier passes, through the 3D points of their PnP inliers. Sequential matching
+    pairs a frame only with the frames a power of two positions away, so with keyframes every 8th
+    frame, a frame 3 or 5 frames from both neighbouring keyframes shares no verified pair with
+    either (a quarter of kitchen x2's frames), but it does with the frames 1 or 2 away, which the
+    first pass poses."""
     partners = _verified_partners(d)
     observed = {}  # (posed image id, keypoint index) -> 3D point id
     for im in model.images.values():
