@@ -72,6 +72,15 @@ def test_settings_follow_the_clip(walk):
     assert mine.model.tau == 1e-3 and mine.model.deform_temporal == 8
     assert "model.tau" not in mine.fitted and "model.deform_temporal" not in mine.fitted
     assert make_config("fast").fitted == {}
+    # FLoD's first level at the demo's fraction of the image width (0.02 units there; the same
+    # 0.02 was 16 px on walk at 320 px), fitted only where there is more than one level.
+    from kgs_core.train.config import LOD_LAMBDA_WIDTH
+
+    paper = make_config("paper", scene=walk)
+    width = walk.train_frames[0].camera.width
+    assert paper.lod_lambda * ppu == pytest.approx(LOD_LAMBDA_WIDTH * width, rel=1e-2) and "lod_lambda" in paper.fitted
+    assert "lod_lambda" not in cfg.fitted and cfg.lod_lambda == make_config("fast").lod_lambda
+    assert make_config("paper", scene=walk, lod_lambda=0.05).lod_lambda == 0.05
     # A video ingest trains with the flow term; a scene that is not one, or an explicit 0, without.
     from dataclasses import replace
 

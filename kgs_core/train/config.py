@@ -260,6 +260,11 @@ REFERENCE_FRAMES = 60
 # 0.62 px there. fit_to_scene converts this into each scene's units, so that "dynamic" means the
 # same image motion on every scene (docs/method.md).
 TAU_RMS_PX = 0.62
+# FLoD's first-level minimum scale as a fraction of the image width: the 0.02 normalised units
+# the paper preset starts from are 2.8 px on the 128-px demo scene (138.6 px per unit). In units
+# it does not transfer: on walk at 320 px the same 0.02 is 16 px, so the levels that densify
+# (the first three) kept every Gaussian 4-16 px wide (docs/real-footage.md, "The paper preset").
+LOD_LAMBDA_WIDTH = 0.0217
 MAX_ITERATION_SCALE = 4.0
 # The flow term's weight on real footage (a video ingest): 0.003 raised walk's sharp-camera
 # PSNR by 1.0 dB in the dynamic-region mask and 0.3 dB on the frame (three seeds, no extra
@@ -313,6 +318,8 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
     * model.deform_temporal: at least one temporal cell per four frames;
     * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units;
+    * lod_lambda (with more than one FLoD level): the first level's minimum scale as the same
+      fraction of the image width as on the demo (LOD_LAMBDA_WIDTH), in this scene's units;
     * lambda_flow: VIDEO_FLOW_WEIGHT on a video ingest (real footage), where the photometric
       loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
@@ -337,6 +344,12 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         cfg.model = m = replace(m, tau=float(f"{(TAU_RMS_PX / ppu) ** 2:.3g}"))
         fitted["model.tau"] = (f"{m.tau:.3g}: an RMS image motion of {TAU_RMS_PX} px at {ppu:.0f} px per scene unit "
                                "(median focal length over median point depth)")
+    if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
+        px = LOD_LAMBDA_WIDTH * cam.width
+        cfg.lod_lambda = float(f"{px / ppu:.3g}")
+        fitted["lod_lambda"] = (f"{cfg.lod_lambda:.3g}: FLoD's first level at a minimum scale of {px:.1f} px "
+                                f"({LOD_LAMBDA_WIDTH:.2%} of the image width, as on the demo) at {ppu:.0f} px per "
+                                "scene unit")
     if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and "ingest" in scene.extras and n_frames > 1:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
         fitted["lambda_flow"] = (f"{VIDEO_FLOW_WEIGHT}: a video ingest; optical flow between its frames guides the "
