@@ -73,7 +73,7 @@ def test_settings_follow_the_clip(walk):
     assert "model.tau" not in mine.fitted and "model.deform_temporal" not in mine.fitted
     assert make_config("fast").fitted == {}
     # FLoD's first level at the demo's fraction of the image width (0.02 units there; the same
-    # 0.02 was 16 px on walk at 320 px), fitted only where there is more than one level.
+    # 0.02 is 16 px on walk at 320 px), fitted only where there is more than one level.
     from kgs_core.train.config import LOD_LAMBDA_WIDTH
 
     paper = make_config("paper", scene=walk)
