@@ -219,6 +219,25 @@ def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields
         KinematicsGS.from_state(bad)
 
 
+def test_log_scores_the_trained_model_before_that_counts_events(scene, tmp_path):
+    """An evaluation that falls on an opacity reset, a split and a level change (the paper
+    preset's 3,000) scores the model its iterations trained, not the near-transparent one the
+    reset leaves (logged after it: ~10 dB lower); the checkpoint of that count keeps the state
+    after the events, which a resume continues from."""
+    events = {"decompose_at": 30, "lod_fractions": (0.5, 1.0), "checkpoint_every": 30, "model.tau": 1e-9}
+    plain = tiny_config(iterations=60, eval_every=30, **events)
+    reset = tiny_config(iterations=60, eval_every=30, **events, **{"densify.opacity_reset_at": (30,)})
+    train(scene, tmp_path / "plain", plain, progress=False)
+    train(scene, tmp_path / "reset", reset, progress=False)
+    a, b = read_log(tmp_path / "plain"), read_log(tmp_path / "reset")
+    assert [r["iteration"] for r in b] == [0, 30, 60]
+    assert b[1]["psnr_heldout"] == pytest.approx(a[1]["psnr_heldout"], abs=1e-3)
+    assert b[1]["psnr_heldout"] > b[0]["psnr_heldout"] + 1.0, b
+    ckpt = torch.load(tmp_path / "reset" / "checkpoints" / "ckpt_000030.pt", weights_only=False)
+    assert torch.sigmoid(ckpt["model"]["params"]["opacity_logits"]).max() <= 0.0101
+    assert len(ckpt["levels"]) == 1  # the level change of 30 happened before the checkpoint
+
+
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):
     import shutil
 

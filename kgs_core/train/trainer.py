@@ -492,7 +492,7 @@ class Trainer:
             model.keep_gaussians(keep, self.opt, self.strategy.state)
         snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
                 "variance": model.variance.clone(), "lifespan": model.lifespan.clone(), "min_scale": model.min_scale,
-                "iteration": self.iteration + 1}
+                "iteration": self.iteration}
         self.levels.append(snap)
         old, new = model.min_scale, self.level_min_scale(level_idx)
         with torch.no_grad():
@@ -520,6 +520,11 @@ class Trainer:
         if self.on_log:
             self.on_log(row)
         return row
+
+    def log_progress(self, bar, loss: float, wall0: float) -> None:
+        row = self.log(self.iteration, loss, wall0)
+        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"],
+                        dynamic=f"{row['dynamic_share']:.0%}")
 
     def check_gradients(self, it: int) -> None:
         """NaN/Inf in any gradient: an error naming the parameter (a Gaussian attribute, a
@@ -653,13 +658,21 @@ class Trainer:
                     continue
                 if self.threads is not None:
                     self.threads.observe(time.perf_counter() - t0)
-                self.after_step(self.iteration)
                 self.iteration += 1
                 self.train_seconds += time.perf_counter() - t0
-                if self.iteration % cfg.eval_every == 0 or self.iteration == cfg.iterations:
-                    row = self.log(self.iteration, loss, wall0)
-                    bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"],
-                                    dynamic=f"{row['dynamic_share']:.0%}")
+                # Logged before the events scheduled at this count (densification, an opacity
+                # reset, a split, a FLoD level change), so that the row scores what the
+                # iterations trained: after them, the paper preset's opacity reset at 3,000
+                # (every opacity capped at 0.01) logged a near-empty render, a 10 dB fall. The
+                # last row comes after them: it scores the model that is saved.
+                last = self.iteration == cfg.iterations
+                if self.iteration % cfg.eval_every == 0 and not last:
+                    self.log_progress(bar, loss, wall0)
+                t0 = time.perf_counter()
+                self.after_step(self.iteration - 1)
+                self.train_seconds += time.perf_counter() - t0
+                if last:
+                    self.log_progress(bar, loss, wall0)
                 if self.iteration % cfg.checkpoint_every == 0:
                     self.checkpoint()
                 if self.on_step:
