@@ -219,11 +219,12 @@ def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields
         KinematicsGS.from_state(bad)
 
 
-def test_log_scores_the_trained_model_before_that_counts_events(scene, tmp_path):
+def test_log_and_level_snapshot_see_the_trained_model_before_that_counts_events(scene, tmp_path):
     """An evaluation that falls on an opacity reset, a split and a level change (the paper
     preset's 3,000) scores the model its iterations trained, not the near-transparent one the
-    reset leaves (logged after it: ~10 dB lower); the checkpoint of that count keeps the state
-    after the events, which a resume continues from."""
+    reset leaves (logged after it: ~10 dB lower); the level that ends there is pruned and kept
+    as trained (after the reset its snapshot had every opacity at 0.01); the checkpoint of that
+    count keeps the state after the events, which a resume continues from."""
     events = {"decompose_at": 30, "lod_fractions": (0.5, 1.0), "checkpoint_every": 30, "model.tau": 1e-9}
     plain = tiny_config(iterations=60, eval_every=30, **events)
     reset = tiny_config(iterations=60, eval_every=30, **events, **{"densify.opacity_reset_at": (30,)})
@@ -236,6 +237,11 @@ def test_log_scores_the_trained_model_before_that_counts_events(scene, tmp_path)
     ckpt = torch.load(tmp_path / "reset" / "checkpoints" / "ckpt_000030.pt", weights_only=False)
     assert torch.sigmoid(ckpt["model"]["params"]["opacity_logits"]).max() <= 0.0101
     assert len(ckpt["levels"]) == 1  # the level change of 30 happened before the checkpoint
+    level = ckpt["levels"][0]["params"]
+    level_plain = torch.load(tmp_path / "plain" / "checkpoints" / "ckpt_000030.pt", weights_only=False)["levels"][0]["params"]
+    assert torch.sigmoid(level["opacity_logits"]).max() > 0.1
+    for k, v in level_plain.items():
+        assert torch.equal(level[k], v), k
 
 
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):

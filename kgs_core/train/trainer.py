@@ -365,6 +365,12 @@ class Trainer:
     def after_step(self, it: int) -> None:
         c, model = self.cfg, self.model
         nxt = it + 1
+        # A FLoD level ends before this count's densification and opacity reset: its prune reads
+        # the importance of the model its iterations trained, and its snapshot keeps that model.
+        # (The paper preset's first level ends at its opacity reset, 3,000; after the reset the
+        # level-1 snapshot had every opacity at 0.01, and the prune read a near-empty render.)
+        if nxt in self.level_ends[:-1]:
+            self.next_level(self.level_ends.index(nxt) + 1)
         changed = self.strategy.step(model, self.opt, nxt)
         if (changed and c.spawn_frames > 0 and model.decomposed and not self.static_only
                 and nxt >= c.spawn_from * c.iterations):
@@ -375,8 +381,6 @@ class Trainer:
                 self.split()
         elif changed:
             model._knn = None
-        if nxt in self.level_ends[:-1]:
-            self.next_level(self.level_ends.index(nxt) + 1)
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
 
