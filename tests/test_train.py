@@ -244,6 +244,24 @@ def test_log_and_level_snapshot_see_the_trained_model_before_that_counts_events(
         assert torch.equal(level[k], v), k
 
 
+def test_spawning_on_an_opacity_reset_count_renders_the_trained_model(scene, tmp_path, monkeypatch):
+    """Densification, spawning and an opacity reset on one count (a fast schedule whose reset
+    falls on a densification count, e.g. 3,000 iterations): spawning renders the model as
+    trained, and the reset comes after it, as the checkpoint of that count shows."""
+    seen = {}
+
+    def record(self, it):
+        seen[it] = float(torch.sigmoid(self.model.params.opacity_logits.detach()).max())
+
+    monkeypatch.setattr(Trainer, "spawn", record)
+    cfg = tiny_config(iterations=70, decompose_at=30, spawn_frames=2, **{"densify.opacity_reset_at": (60,),
+                                                                          "model.tau": 1e-9})
+    train(scene, tmp_path / "run", cfg, progress=False)
+    assert sorted(seen) == [60] and seen[60] > 0.1, seen  # (at 30 the split comes after densification)
+    ckpt = torch.load(tmp_path / "run" / "checkpoints" / "ckpt_000060.pt", weights_only=False)
+    assert torch.sigmoid(ckpt["model"]["params"]["opacity_logits"]).max() <= 0.0101
+
+
 def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):
     import shutil
 

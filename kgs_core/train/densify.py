@@ -71,16 +71,22 @@ class DensifyStrategy:
         self.state["count"][vis] += 1
 
     def step(self, model: KinematicsGS, optimizer, it: int) -> bool:
-        """Returns True when the set of Gaussians changed."""
-        changed = False
+        """Densifies and prunes when `it` is a densification count. Returns True when the set
+        of Gaussians changed. (The opacity reset is `reset_opacities`, which the trainer runs
+        after every other event of the count.)"""
         if self.start <= it < self.stop and it % self.every == 0 and it > 0:
             self._densify_and_prune(model, optimizer)
-            changed = True
-        if it in self.opacity_reset_at:
-            op = model.params.opacity_logits.detach()
-            cap = torch.logit(torch.tensor(0.01))
-            model.params = set_param(model.params, optimizer, "opacity_logits", torch.minimum(op, cap))
-        return changed
+            return True
+        return False
+
+    def reset_opacities(self, model: KinematicsGS, optimizer, it: int) -> bool:
+        """Caps every opacity at 0.01 when `it` is an opacity-reset count; True when it did."""
+        if it not in self.opacity_reset_at:
+            return False
+        op = model.params.opacity_logits.detach()
+        cap = torch.logit(torch.tensor(0.01))
+        model.params = set_param(model.params, optimizer, "opacity_logits", torch.minimum(op, cap))
+        return True
 
     @torch.no_grad()
     def _densify_and_prune(self, model: KinematicsGS, optimizer) -> None:

@@ -365,10 +365,11 @@ class Trainer:
     def after_step(self, it: int) -> None:
         c, model = self.cfg, self.model
         nxt = it + 1
-        # A FLoD level ends before this count's densification and opacity reset: its prune reads
-        # the importance of the model its iterations trained, and its snapshot keeps that model.
-        # (The paper preset's first level ends at its opacity reset, 3,000; after the reset the
-        # level-1 snapshot had every opacity at 0.01, and the prune read a near-empty render.)
+        # Every event of this count reads the model its iterations trained, so the opacity reset
+        # comes last: the paper preset's first FLoD level ends at its reset (3,000), and after
+        # the reset the level-1 snapshot had every opacity at 0.01 and its importance prune read
+        # a near-empty render; spawning, on a densification count that is also the reset's,
+        # would render it too. A level also ends before densification adds to it.
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
         changed = self.strategy.step(model, self.opt, nxt)
@@ -383,6 +384,7 @@ class Trainer:
             model._knn = None
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
+        self.strategy.reset_opacities(model, self.opt, nxt)
 
     def kr_acts(self) -> bool:
         """Whether K.R. shapes the renders now: on, after a split with dynamic Gaussians, and
