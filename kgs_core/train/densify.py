@@ -79,14 +79,12 @@ class DensifyStrategy:
             return True
         return False
 
-    def reset_opacities(self, model: KinematicsGS, optimizer, it: int) -> bool:
-        """Caps every opacity at 0.01 when `it` is an opacity-reset count; True when it did."""
-        if it not in self.opacity_reset_at:
-            return False
-        op = model.params.opacity_logits.detach()
-        cap = torch.logit(torch.tensor(0.01))
-        model.params = set_param(model.params, optimizer, "opacity_logits", torch.minimum(op, cap))
-        return True
+    def reset_opacities(self, model: KinematicsGS, optimizer, it: int) -> None:
+        """Caps every opacity at 0.01 when `it` is an opacity-reset count."""
+        if it in self.opacity_reset_at:
+            op = model.params.opacity_logits.detach()
+            cap = torch.logit(torch.tensor(0.01))
+            model.params = set_param(model.params, optimizer, "opacity_logits", torch.minimum(op, cap))
 
     @torch.no_grad()
     def _densify_and_prune(self, model: KinematicsGS, optimizer) -> None:
