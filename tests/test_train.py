@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 import warnings
 
 import numpy as np
@@ -164,6 +165,30 @@ def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
         for k in pa[group]:
             diff = (pa[group][k] - pb[group][k]).abs().float()
             assert diff.median() < 2e-5, (group, k, float(diff.median()), float(diff.max()))
+
+
+def test_resumed_wall_clock_continues_from_the_checkpoint(scene, tmp_path):
+    """A resumed run's wall clock goes on from where its checkpoint was saved. It once went on
+    from the last log row's, so the time between that row and the stop was lost: a resumed
+    log read less wall time than training time. Here the run is held 1.8 s after its row at
+    40 and stopped at 50; that time must stay in the log's wall clock."""
+    cfg = tiny_config(iterations=60, eval_every=40, checkpoint_every=60)
+    calls = {"n": 0}
+
+    def stop_after():
+        calls["n"] += 1
+        if calls["n"] > 44:  # after the row at 40: wall time that is not training
+            time.sleep(0.3)
+        return calls["n"] > 50
+
+    part = Trainer(scene, tmp_path / "run", cfg, progress=False, should_stop=stop_after).run()
+    assert part["iteration"] == 50
+    train(scene, tmp_path / "run", cfg, resume=True, progress=False)
+    rows = {r["iteration"]: r for r in read_log(tmp_path / "run")}
+    assert set(rows) == {0, 40, 60}
+    wall = rows[60]["wall_seconds"] - rows[40]["wall_seconds"]
+    trained = rows[60]["train_seconds"] - rows[40]["train_seconds"]
+    assert wall >= trained + 1.8, (wall, trained)
 
 
 def test_importance_pass_leaves_no_gradients(scene, tmp_path):

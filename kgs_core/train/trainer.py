@@ -129,6 +129,8 @@ class Trainer:
         self.eval_set = evaluation_frames(scene, cfg.eval_frames)
         self.iteration = 0
         self.train_seconds = 0.0
+        self.resumed_wall_seconds = 0.0  # restore: where the wall clock of a resumed run starts
+        self.wall_start = time.time()  # iterate sets it again, less the resumed time
         self.info: dict | None = None  # the run's info, set when training ends
         self.levels: list[dict] = []
         self.log_rows: list[dict] = []
@@ -511,10 +513,14 @@ class Trainer:
 
     # ------------------------------------------------------------ logging and checkpoints
 
-    def log(self, it: int, loss: float, wall0: float) -> dict:
+    def wall_seconds(self) -> float:
+        """Wall time spent on this run, the time before a resume included."""
+        return time.time() - self.wall_start
+
+    def log(self, it: int, loss: float) -> dict:
         p, p_dyn = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
         counts = split_counts(self.model, self.static_only)
-        row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(time.time() - wall0, 3),
+        row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(self.wall_seconds(), 3),
                "loss": loss, "psnr_heldout": p, "psnr_heldout_dynamic": p_dyn, "gaussians": counts["gaussians"],
                "dynamic_share": counts["dynamic_share"], "exposure": round(self.exposure, 5)}
         self.log_rows.append(row)
@@ -527,8 +533,8 @@ class Trainer:
             self.on_log(row)
         return row
 
-    def log_progress(self, bar, loss: float, wall0: float) -> None:
-        row = self.log(self.iteration, loss, wall0)
+    def log_progress(self, bar, loss: float) -> None:
+        row = self.log(self.iteration, loss)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"],
                         dynamic=f"{row['dynamic_share']:.0%}")
 
@@ -569,7 +575,8 @@ class Trainer:
     def checkpoint(self) -> Path:
         path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"
         save_torch(path, {
-            "iteration": self.iteration, "train_seconds": self.train_seconds, "model": self.model.state(),
+            "iteration": self.iteration, "train_seconds": self.train_seconds, "wall_seconds": self.wall_seconds(),
+            "model": self.model.state(),
             "opt": self.opt.state_dict(), "net_opt": self.net_opt.state_dict(), "levels": self.levels,
             "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
             "strategy": dict(self.strategy.state),
@@ -600,6 +607,9 @@ class Trainer:
         self.train_seconds = state["train_seconds"]
         self.levels = state["levels"]
         self.log_rows = state["log"]
+        # The wall time a resume continues from: the checkpoint's own (checkpoints of older
+        # runs kept only their last log row's, which lost the time from that row to the save).
+        self.resumed_wall_seconds = state.get("wall_seconds", self.log_rows[-1]["wall_seconds"] if self.log_rows else 0.0)
         if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
@@ -641,11 +651,12 @@ class Trainer:
                 print(f"note: {note}")
         write_run_json(self.run_dir, info)
         (self.run_dir / "error.txt").unlink(missing_ok=True)
+        # Set once: restoring a checkpoint after a non-finite step (`recover`) keeps the clock.
+        self.wall_start = time.time() - self.resumed_wall_seconds
         if cfg.on_nonfinite == "restore" and not ckpts:
             self.checkpoint()  # a good state to fall back to before the first scheduled checkpoint
-        wall0 = time.time() - (self.log_rows[-1]["wall_seconds"] if self.log_rows else 0.0)
         if not self.log_rows:
-            self.log(0, float("nan"), wall0)
+            self.log(0, float("nan"))
         bar = tqdm(total=cfg.iterations, initial=self.iteration, disable=not self.progress, desc="train", unit="it",
                    dynamic_ncols=True)
         loss = float("nan")
@@ -673,12 +684,12 @@ class Trainer:
                 # last row comes after them: it scores the model that is saved.
                 last = self.iteration == cfg.iterations
                 if self.iteration % cfg.eval_every == 0 and not last:
-                    self.log_progress(bar, loss, wall0)
+                    self.log_progress(bar, loss)
                 t0 = time.perf_counter()
                 self.after_step(self.iteration - 1)
                 self.train_seconds += time.perf_counter() - t0
                 if last:
-                    self.log_progress(bar, loss, wall0)
+                    self.log_progress(bar, loss)
                 if self.iteration % cfg.checkpoint_every == 0:
                     self.checkpoint()
                 if self.on_step:
