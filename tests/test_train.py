@@ -170,8 +170,9 @@ def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
 def test_resumed_wall_clock_continues_from_the_checkpoint(scene, tmp_path):
     """A resumed run's wall clock goes on from where its checkpoint was saved. It once went on
     from the last log row's, so the time between that row and the stop was lost: a resumed
-    log read less wall time than training time. Here the run is held 1.8 s after its row at
-    40 and stopped at 50; that time must stay in the log's wall clock."""
+    log read less wall time than training time. Here the run is held 0.3 s at each of its
+    last seven stop checks (2.1 s, all after its row at 40) and stopped at 50; that time must
+    stay in the log's wall clock (1.8 s of it asserted, for margin)."""
     cfg = tiny_config(iterations=60, eval_every=40, checkpoint_every=60)
     calls = {"n": 0}
 
