@@ -99,7 +99,7 @@ class LoadedRun:
 
 def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     """A model sharing the networks of `model` with a level snapshot's Gaussians."""
-    from .model.dynamic import unbounded_lifespan
+    from .model.dynamic import checked_knn, unbounded_lifespan
     from .model.gaussians import GaussianParams
 
     view = KinematicsGS.__new__(KinematicsGS)
@@ -112,7 +112,8 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     view.variance = snap["variance"]
     view.lifespan = snap["lifespan"] if "lifespan" in snap else unbounded_lifespan(len(view.params))
     view.min_scale = snap["min_scale"]
-    view._knn = None
+    # The graph the level trained with (snapshots from before it was kept: rebuilt).
+    view._knn = checked_knn(snap.get("knn"), int(view.dynamic.sum()))
     view._knn_mean = None
     return view
 

@@ -501,6 +501,99 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
         strategy._ensure(len(m))
 
 
+def test_densification_carries_the_coarse_to_fine_graph_instead_of_rebuilding_it():
+    """Adding and pruning Gaussians keeps every dynamic Gaussian's kNN neighbours, though the
+    canonical means have moved since the graph was built: a clone (here at its parent's very
+    spot) changes no other Gaussian's offsets, and a split child takes its parent's row with
+    itself in its parent's place. A rebuilt graph would give Gaussians other neighbours, and so
+    other coarse offsets under fine residuals fitted to the old ones."""
+    from kgs_core.model.gaussians import GaussianParams
+
+    m = moving_model(n=40)
+    m.dynamic[:4] = False  # the graph indexes the dynamic subset
+    m._knn = None
+    graph = m.knn_index().clone()
+    with torch.no_grad():  # training moves the canonical means after the graph is built
+        m.params.means.add_(0.1 * torch.randn(40, 3, generator=torch.Generator().manual_seed(3)))
+    dyn = torch.nonzero(m.dynamic).squeeze(1)
+    before = m.offsets(dyn, 0.3).cat().detach()
+    parents = torch.tensor([2, 10, 17])  # a static one and two dynamic ones (rows 6 and 13)
+    m.add_gaussians(GaussianParams(*(v.detach()[parents].clone() for _, v in m.params.items())), parents)
+    knn = m.knn_index()
+    assert torch.equal(knn[:36], graph) and len(knn) == 38
+    for row, parent_row in ((36, 6), (37, 13)):
+        assert torch.equal(knn[row], torch.where(graph[parent_row] == parent_row, row, graph[parent_row]))
+    after = m.offsets(torch.nonzero(m.dynamic).squeeze(1), 0.3).cat().detach()
+    assert torch.allclose(after[:36], before, atol=1e-6)
+    assert torch.allclose(after[36:], before[[6, 13]], atol=1e-6)  # each clone moves as its parent
+    # Gaussian 10 (row 6) leaves with the clone appended for it (Gaussian 41, row 36) as its heir;
+    # Gaussian 20 (row 16) leaves with none: its neighbours average themselves in its place.
+    keep = torch.ones(43, dtype=torch.bool)
+    keep[[10, 20]] = False
+    heirs = torch.full((43,), -1, dtype=torch.long)
+    heirs[10] = 41
+    m.keep_gaussians(keep, heirs=heirs)
+    old_row = torch.tensor([r for r in range(38) if r not in (6, 16)])  # old row of each new row
+    new_of_old = torch.full((38,), -1, dtype=torch.long)
+    new_of_old[old_row] = torch.arange(36)
+    new_of_old[6] = new_of_old[36]
+    expected = new_of_old[torch.cat([graph, knn[36:]])[old_row]]
+    expected = torch.where(expected >= 0, expected, torch.arange(36)[:, None])
+    assert torch.equal(m.knn_index(), expected)
+
+
+def test_a_re_split_carries_the_graph_of_the_gaussians_that_stay_dynamic():
+    """At a re-split the Gaussians that stay dynamic keep their neighbours (one turned static is
+    replaced by the row's own Gaussian), and only those that turn dynamic get their nearest
+    dynamic neighbours by canonical mean."""
+    m = moving_model(n=30, knn_radius=0.0)
+    m.dynamic[:6] = False
+    m._knn = None
+    graph = m.knn_index().clone()  # rows for Gaussians 6..29
+    with torch.no_grad():  # training moves the canonical means after the graph is built
+        m.params.means.add_(0.2 * torch.randn(30, 3, generator=torch.Generator().manual_seed(4)))
+    dynamic = m.dynamic.clone()
+    dynamic[[1, 3]] = True  # turn dynamic
+    dynamic[[10, 20]] = False  # turn static
+    m.variance = dynamic.float()
+    m.decompose(tau=0.5, recompute=False)
+    members = torch.nonzero(dynamic).squeeze(1)
+    new_row = torch.full((30,), -1, dtype=torch.long)
+    new_row[members] = torch.arange(len(members))
+    knn = m.knn_index()
+    for r, g in enumerate(members.tolist()):
+        if g in (1, 3):
+            pts = m.params.means.detach()[members]
+            nearest = (pts - pts[r]).norm(dim=-1).argsort()[:8]
+            assert set(knn[r].tolist()) == set(nearest.tolist())
+        else:
+            old = new_row[6 + graph[g - 6]]  # old row j was Gaussian 6 + j
+            assert torch.equal(knn[r], torch.where(old >= 0, old, r))
+
+
+def test_a_split_childs_sibling_rows_point_at_the_first_child():
+    """Adaptive density control passes the split parents' heirs on: the Gaussians that
+    averaged a split parent average its first child, and no row points at a removed one."""
+    from kgs_core.train.densify import DensifyStrategy
+
+    m = moving_model(n=30)
+    graph = m.knn_index().clone()
+    with torch.no_grad():
+        m.params.log_scales[5] = math.log(0.2)  # large: split, not cloned
+    strategy = DensifyStrategy(grad_threshold=1e-4, max_gaussians=10_000, prune_opacity=0.0, extent=10.0)
+    strategy.reset(30)
+    strategy.state["grad_sum"][5], strategy.state["count"][5] = 1.0, 1.0
+    strategy._densify_and_prune(m, None)
+    assert len(m) == 31 and int(m.dynamic.sum()) == 31  # 30 - the parent + two children
+    knn = m.knn_index()
+    first_child = 29  # rows 0-4 and 6-29 close up to 0-28; the children follow, first one first
+    pointed = (graph == 5).any(1)
+    pointed[5] = False
+    rows = torch.arange(30)[~(torch.arange(30) == 5)]
+    assert torch.equal((knn[:29] == first_child).any(1), pointed[rows])
+    assert int(knn.max()) < 31
+
+
 def test_kr_effect_measures_the_blur_and_says_when_it_does_nothing(tmp_path):
     """`evaluate.kr_effect`: Gaussians the field moves, blurred over a whole frame interval,
     change many pixels visibly, and against frames that show that blur the blurred render fits

@@ -161,39 +161,83 @@ class KinematicsGS(nn.Module):
 
     # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
     # dynamic flags, K, and a strategy's statistics held by the caller: `keep_gaussians` and
-    # `add_gaussians` resize all of it in lock-step, and drop the kNN graph of the coarse-to-fine
-    # step, which indexes the old set. Nothing else should assign `params`, `dynamic`,
-    # `variance` or `lifespan` with a new length.
-    def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor) -> None:
+    # `add_gaussians` resize all of it in lock-step, the kNN graph of the coarse-to-fine step
+    # included. Nothing else should assign `params`, `dynamic`, `variance` or `lifespan` with a
+    # new length.
+    #
+    # The graph is carried through, not rebuilt: a dynamic Gaussian's fine residual is fitted to
+    # the coarse offset its neighbours give it, and a graph rebuilt from the canonical means as
+    # they have moved since gives many of them other neighbours. On the paper preset's walk run
+    # that alone cost 3.0 dB at each densification (docs/real-footage.md, "The paper preset on
+    # walk").
+    def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor,
+                   knn: Tensor | None = None) -> None:
+        """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
         if not len(params) == len(dynamic) == len(variance) == len(lifespan):
             raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
                              f"{len(variance)} values of K, {len(lifespan)} lifespans")
+        if knn is not None and len(knn) != int(dynamic.sum()):
+            raise ValueError(f"kNN graph out of step: {len(knn)} rows for {int(dynamic.sum())} dynamic Gaussians")
         self.params = params
         self.dynamic = dynamic
         self.variance = variance
         self.lifespan = lifespan
-        self._knn = None
+        self._knn = knn
 
     def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None,
-                       state: dict[str, Tensor] | None = None) -> None:
+                       state: dict[str, Tensor] | None = None, heirs: Tensor | None = None) -> None:
         """Keeps the Gaussians where `keep (N,) bool` is true (pruning): parameters, Adam
-        moments, dynamic flags, K, and the (N, ...) tensors of `state` (a strategy's statistics,
-        replaced in the dict)."""
+        moments, dynamic flags, K, the kNN graph, and the (N, ...) tensors of `state` (a
+        strategy's statistics, replaced in the dict).
+
+        In the graph a removed neighbour is replaced by its heir, `heirs (N,)` (a split parent's
+        child; -1: none), or else by the row's own Gaussian (as `knn_radius` does)."""
         self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep],
-                        self.lifespan[keep])
+                        self.lifespan[keep], self._graph_after_keep(keep, heirs))
         for k, v in (state or {}).items():
             state[k] = v[keep]
 
     def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None,
                       state: dict[str, Tensor] | None = None, lifespan: Tensor | None = None) -> None:
         """Appends Gaussians (densification: clones and split children); each inherits the dynamic
-        flag, K and lifespan of its parent (or takes `lifespan (M, 2)` when given), `parents (M,)`
-        indices into the current set, and starts with zero Adam moments and zeros in `state`."""
+        flag, K, kNN neighbours and lifespan of its parent (or takes `lifespan (M, 2)` when
+        given), `parents (M,)` indices into the current set, and starts with zero Adam moments and
+        zeros in `state`."""
         life = self.lifespan[parents] if lifespan is None else lifespan
+        knn = self._graph_after_add(parents)
         self.set_params(append(self.params, optimizer, new), torch.cat([self.dynamic, self.dynamic[parents]]),
-                        torch.cat([self.variance, self.variance[parents]]), torch.cat([self.lifespan, life]))
+                        torch.cat([self.variance, self.variance[parents]]), torch.cat([self.lifespan, life]), knn)
         for k, v in (state or {}).items():
             state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
+
+    def _graph_after_keep(self, keep: Tensor, heirs: Tensor | None) -> Tensor | None:
+        if self._knn is None:
+            return None
+        # Each Gaussian's row in the new dynamic set (-1: not in it), then each removed one's heir's.
+        kept_dynamic = keep & self.dynamic
+        new_row = torch.full((len(keep),), -1, dtype=torch.long)
+        new_row[kept_dynamic] = torch.arange(int(kept_dynamic.sum()))
+        if heirs is not None:
+            inherit = ~keep & (heirs >= 0)
+            new_row[inherit] = new_row[heirs[inherit]]
+        return self._carried_rows(new_row, kept_dynamic)
+
+    def _carried_rows(self, new_row: Tensor, stays: Tensor) -> Tensor:
+        """The graph's rows of the dynamic Gaussians where `stays (N,)`, re-indexed by `new_row
+        (N,)` (each Gaussian's row in the new dynamic set, or the one that takes its place; -1:
+        none, and the row's own Gaussian takes it)."""
+        rows = new_row[self.dynamic][self._knn[stays[self.dynamic]]]
+        return torch.where(rows >= 0, rows, new_row[stays & self.dynamic][:, None])
+
+    def _graph_after_add(self, parents: Tensor) -> Tensor | None:
+        if self._knn is None:
+            return None
+        # New dynamic Gaussians follow every old one in the dynamic set, in their order: each
+        # takes its parent's row with itself in its parent's place.
+        parent_rows = (torch.cumsum(self.dynamic, 0) - 1)[parents[self.dynamic[parents]]]
+        own = len(self._knn) + torch.arange(len(parent_rows))
+        rows = self._knn[parent_rows]
+        return torch.cat([self._knn, torch.where(rows == parent_rows[:, None], own[:, None], rows)])
 
     def scales(self) -> Tensor:
         # Clamped so that exp cannot overflow float32 (e^88) or underflow to 0 at extreme logits.
@@ -243,12 +287,14 @@ class KinematicsGS(nn.Module):
             dynamic &= self.dynamic
         unchanged = self.decomposed and torch.equal(dynamic, self.dynamic)
         before = self.mean_offsets() if in_place and not unchanged else None
+        if not unchanged:
+            # The graph is carried, as through densification (`set_params`): the Gaussians that
+            # stay dynamic keep their neighbours (those who turned static replaced by the row's
+            # own Gaussian), and only those that turn dynamic get the nearest ones. Rebuilt
+            # whole, a graph carried since the first split cost walk 1.4 dB at a re-split.
+            self._knn = self._graph_after_resplit(dynamic) if self.decomposed else None
         self.dynamic = dynamic
         self.decomposed = True
-        if not unchanged:
-            # (The same set keeps its graph: a run's stored graph is the one it trained with,
-            # and one rebuilt from the means as they are now differs from it.)
-            self._knn = None
         if before is not None:
             # (The kNN graph built for `after` is kept, as training keeps it while means move.)
             self.move_canonical(before - self.mean_offsets())
@@ -297,19 +343,37 @@ class KinematicsGS(nn.Module):
 
     def knn_index(self) -> Tensor:
         """`(D, k)` indices into the dynamic subset: each dynamic Gaussian's nearest dynamic
-        neighbours (itself included), rebuilt when the dynamic set changes."""
+        neighbours (itself included), built at the first split and carried from then on."""
         if self._knn is None:
-            pts = self.params.means.detach()[self.dynamic].numpy()
-            k = min(self.config.knn, len(pts))
-            if k <= 1:
-                self._knn = torch.arange(len(pts))[:, None]
-            else:
-                dist, idx = cKDTree(pts).query(pts, k=k)
-                if self.config.knn_radius > 0:
-                    far = dist > self.config.knn_radius * np.median(dist[:, -1])
-                    idx = np.where(far, np.arange(len(pts))[:, None], idx)  # itself in their place
-                self._knn = torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
+            self._knn = self._nearest_graph(self.dynamic)
         return self._knn
+
+    def _nearest_graph(self, dynamic: Tensor) -> Tensor:
+        """`(D, k)`: the nearest members of `dynamic` to each, by canonical mean now."""
+        pts = self.params.means.detach()[dynamic].numpy()
+        k = min(self.config.knn, len(pts))
+        if k <= 1:
+            return torch.arange(len(pts))[:, None]
+        dist, idx = cKDTree(pts).query(pts, k=k)
+        if self.config.knn_radius > 0:
+            far = dist > self.config.knn_radius * np.median(dist[:, -1])
+            idx = np.where(far, np.arange(len(pts))[:, None], idx)  # itself in their place
+        return torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
+
+    def _graph_after_resplit(self, dynamic: Tensor) -> Tensor | None:
+        if self._knn is None:
+            return None
+        new_row = torch.full((len(dynamic),), -1, dtype=torch.long)
+        new_row[dynamic] = torch.arange(int(dynamic.sum()))
+        carried = self._carried_rows(new_row, dynamic & self.dynamic)
+        newcomers = (dynamic & ~self.dynamic)[dynamic]
+        if not newcomers.any():
+            return carried
+        rows = self._nearest_graph(dynamic)
+        if rows.shape[1] != carried.shape[1]:  # the set grew past k: nothing to carry
+            return rows
+        rows[~newcomers] = carried
+        return rows
 
     def neighbour_mean(self, x: Tensor) -> Tensor:
         """`(D, C)` rows of `x` (one per dynamic Gaussian) averaged over each one's kNN graph
@@ -556,7 +620,7 @@ class KinematicsGS(nn.Module):
                                  f"widths > 0 (inf: always present), got {tuple(life.shape)} {life.dtype}")
         model.lifespan = unbounded_lifespan(n) if life is None else life.clone()
         model.min_scale = float(state["min_scale"])
-        model._knn = _checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
+        model._knn = checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model
 
 
@@ -583,7 +647,7 @@ def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
             raise ValueError(f"model state field '{prefix}{name}': expected {n} rows (one per Gaussian), got {got}")
 
 
-def _checked_knn(knn, n_dynamic: int) -> Tensor | None:
+def checked_knn(knn, n_dynamic: int) -> Tensor | None:
     """A stored kNN graph, checked against the dynamic set it indexes (a graph from another
     state would index out of range deep inside rendering)."""
     if knn is None:

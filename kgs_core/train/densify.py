@@ -106,6 +106,7 @@ class DensifyStrategy:
             clone &= allowed
             split &= allowed
         p = model.params
+        heirs = torch.full((n,), -1, dtype=torch.long)
         new_parts: list[GaussianParams] = []
         parents = []
         if clone.any():
@@ -113,6 +114,8 @@ class DensifyStrategy:
             parents.append(torch.nonzero(clone).squeeze(1))
         if split.any():
             idx = torch.nonzero(split).squeeze(1)
+            # The first child takes its parent's place in its neighbours' kNN rows.
+            heirs[idx] = n + int(clone.sum()) + torch.arange(len(idx))
             R = quat_to_rotmat(p.quats.detach()[idx])
             s = scales[idx]
             for _ in range(2):
@@ -134,5 +137,6 @@ class DensifyStrategy:
         keep &= ~big_world
         if keep.sum() < 4:  # never prune everything
             keep[:] = True
-        model.keep_gaussians(keep, optimizer, self.state)
+        heirs = torch.cat([heirs, heirs.new_full((len(params) - n,), -1)])
+        model.keep_gaussians(keep, optimizer, self.state, heirs)
         self.reset(len(model))  # 3DGS: the statistics start again after each densification

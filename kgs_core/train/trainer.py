@@ -382,8 +382,6 @@ class Trainer:
             if nxt == c.decompose_at or (model.decomposed and c.decompose_every and nxt > c.decompose_at
                                          and (nxt - c.decompose_at) % c.decompose_every == 0):
                 self.split()
-        elif changed:
-            model._knn = None
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
         self.strategy.reset_opacities(model, self.opt, nxt)
@@ -500,7 +498,7 @@ class Trainer:
             model.keep_gaussians(keep, self.opt, self.strategy.state)
         snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
                 "variance": model.variance.clone(), "lifespan": model.lifespan.clone(), "min_scale": model.min_scale,
-                "iteration": self.iteration}
+                "knn": None if model._knn is None else model._knn.clone(), "iteration": self.iteration}
         self.levels.append(snap)
         old, new = model.min_scale, self.level_min_scale(level_idx)
         with torch.no_grad():
@@ -509,7 +507,6 @@ class Trainer:
 
             model.params = set_param(model.params, self.opt, "log_scales", torch.log(s.clamp_min(1e-8)))
         model.min_scale = new
-        model._knn = None
 
     # ------------------------------------------------------------ logging and checkpoints
 
