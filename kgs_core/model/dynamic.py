@@ -215,8 +215,7 @@ class KinematicsGS(nn.Module):
             return None
         # Each Gaussian's row in the new dynamic set (-1: not in it), then each removed one's heir's.
         kept_dynamic = keep & self.dynamic
-        new_row = torch.full((len(keep),), -1, dtype=torch.long)
-        new_row[kept_dynamic] = torch.arange(int(kept_dynamic.sum()))
+        new_row = _row_numbers(kept_dynamic)
         if heirs is not None:
             inherit = ~keep & (heirs >= 0)
             new_row[inherit] = new_row[heirs[inherit]]
@@ -363,9 +362,7 @@ class KinematicsGS(nn.Module):
     def _graph_after_resplit(self, dynamic: Tensor) -> Tensor | None:
         if self._knn is None:
             return None
-        new_row = torch.full((len(dynamic),), -1, dtype=torch.long)
-        new_row[dynamic] = torch.arange(int(dynamic.sum()))
-        carried = self._carried_rows(new_row, dynamic & self.dynamic)
+        carried = self._carried_rows(_row_numbers(dynamic), dynamic & self.dynamic)
         newcomers = (dynamic & ~self.dynamic)[dynamic]
         if not newcomers.any():
             return carried
@@ -645,6 +642,13 @@ def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
         if not isinstance(value, Tensor) or value.dim() == 0 or len(value) != n:
             got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
             raise ValueError(f"model state field '{prefix}{name}': expected {n} rows (one per Gaussian), got {got}")
+
+
+def _row_numbers(members: Tensor) -> Tensor:
+    """`(N,)`: each Gaussian's row in the subset `members (N,) bool` indexes, -1 outside it."""
+    rows = torch.full((len(members),), -1, dtype=torch.long)
+    rows[members] = torch.arange(int(members.sum()))
+    return rows
 
 
 def checked_knn(knn, n_dynamic: int) -> Tensor | None:
