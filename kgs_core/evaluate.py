@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -54,20 +55,25 @@ KR_MIN_GAIN_DB = 0.05
 
 
 @torch.no_grad()
-def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: float, count: int = 8) -> dict:
+def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: float, count: int = 8,
+              camera_motion: Callable[[Frame], tuple] | None = None) -> dict:
     """What the kinematic blur (K.R.) does to the training renders: `count` frames spread over
-    the clip, each rendered at `exposure` and at 0. `changed_share`: the share of pixels whose
-    two renders differ by more than one 8-bit level in some channel; `psnr_blurred` /
-    `psnr_sharp`: each render against the (blurry) training frame, and `gain_db` their
-    difference, what modelling the blur buys on the inputs. Rounded to 4 decimals, as
-    `run.json` keeps them."""
+    the clip, each rendered at `exposure` and at 0. `camera_motion(frame)`: the camera's own
+    motion at a frame, `(A, b)` as `KinematicsGS.at` takes it, when training models the
+    camera's blur too (`--camera-blur`); the blurred render then has it, as training's has.
+    `changed_share`: the share of pixels whose two renders differ by more than one 8-bit level
+    in some channel; `psnr_blurred` / `psnr_sharp`: each render against the (blurry) training
+    frame, and `gain_db` their difference, what modelling the blur buys on the inputs. Rounded
+    to 4 decimals, as `run.json` keeps them."""
     picks = [frames[round(i * (len(frames) - 1) / max(count - 1, 1))] for i in range(min(count, len(frames)))]
     changed = pixels = 0
     err_blur = err_sharp = 0.0
     for f in picks:
         gt = torch.from_numpy(f.image())
         sharp = render_at(model, f, 0.0, dt)[0].image.clamp(0, 1)
-        blurred = render_at(model, f, exposure, dt)[0].image.clamp(0, 1)
+        motion = None if camera_motion is None else camera_motion(f)
+        blurred = render_model(model, f.camera, f.time, exposure, dt, camera_motion=motion,
+                               velocity=False)[0].image.clamp(0, 1)
         diff = (blurred - sharp).abs().amax(-1)
         changed += int((diff > KR_VISIBLE).sum())
         pixels += diff.numel()
@@ -76,18 +82,23 @@ def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: flo
     to_db = lambda mse: -10 * math.log10(max(mse, 1e-12))  # noqa: E731
     measured = {"changed_share": changed / max(pixels, 1), "psnr_blurred": to_db(err_blur),
                 "psnr_sharp": to_db(err_sharp), "gain_db": to_db(err_blur) - to_db(err_sharp)}
-    return {"frames": len(picks), "exposure": exposure, **{k: round(v, 4) for k, v in measured.items()}}
+    return {"frames": len(picks), "exposure": exposure, "camera_blur": camera_motion is not None,
+            **{k: round(v, 4) for k, v in measured.items()}}
 
 
 def kr_effect_note(effect: dict) -> str | None:
     """A sentence for the log and `run.json` when K.R.'s measured blur does next to nothing."""
     if effect["gain_db"] >= KR_MIN_GAIN_DB:
         return None
+    if effect.get("camera_blur"):
+        what = ("the blur it models, the motion of the Gaussians and of the camera within the exposure "
+                "(--camera-blur), hardly shows")
+    else:
+        what = ("the blur it models, each moving Gaussian's own motion within the exposure, hardly shows (a "
+                "hand-held camera's blur is mostly its own motion, which --camera-blur models)")
     return (f"K.R.'s blur (exposure {effect['exposure']:g}) changes {effect['changed_share']:.2%} of the training "
             f"pixels visibly and moves their PSNR against the blurry frames by {round(effect['gain_db'], 3) or 0.0:+.3f} "
-            "dB, so K.R. does next to nothing on this clip: the blur it models, each moving Gaussian's own motion "
-            "within the exposure, hardly shows (a hand-held camera's blur is mostly its own motion, which K.R. does "
-            "not model); --ablate kr trains without it")
+            f"dB, so K.R. does next to nothing on this clip: {what}; --ablate kr trains without it")
 
 
 def dynamic_mask_render(model: KinematicsGS, frame: Frame, dt: float) -> np.ndarray:

@@ -111,6 +111,7 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     view.dynamic = snap["dynamic"]
     view.variance = snap["variance"]
     view.lifespan = snap["lifespan"] if "lifespan" in snap else unbounded_lifespan(len(view.params))
+    view.own_velocity = snap["own_velocity"] if "own_velocity" in snap else torch.zeros(len(view.params), 3)
     view.min_scale = snap["min_scale"]
     # The graph the level trained with (snapshots from before it was kept: rebuilt).
     view._knn = checked_knn(snap.get("knn"), int(view.dynamic.sum()))

@@ -467,14 +467,16 @@ def test_paper_form_of_kr_matches_eqs_9_to_14_worked_by_hand():
 
 def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
     """`keep_gaussians` / `add_gaussians` carry the parameters, their Adam moments, the dynamic
-    flags, K and a strategy's statistics together; each survivor keeps its own values, each new
-    Gaussian its parent's flag and K with zero moments and statistics."""
+    flags, K, own velocities and a strategy's statistics together; each survivor keeps its own
+    values, each new Gaussian its parent's flag, K and own velocity with zero moments and
+    statistics."""
     from kgs_core.model.gaussians import GaussianParams
     from kgs_core.train.densify import DensifyStrategy
 
     m = moving_model(n=10)
     m.dynamic[:5] = False
     m.variance = torch.arange(10.0)
+    m.own_velocity = torch.arange(10.0)[:, None].repeat(1, 3)
     opt = torch.optim.Adam([{"params": [v], "name": k} for k, v in m.params.items()], lr=1e-3)
     sum(v.sum() for _, v in m.params.items()).backward()
     opt.step()
@@ -485,6 +487,7 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
     means, moment = m.params.means.detach()[keep].clone(), opt.state[m.params.means]["exp_avg"][keep].clone()
     m.keep_gaussians(keep, opt, strategy.state)
     assert len(m) == 6 and torch.equal(m.variance, torch.tensor([1.0, 2, 4, 5, 7, 8]))
+    assert torch.equal(m.own_velocity[:, 0], m.variance)
     assert torch.equal(m.dynamic, torch.tensor([False, False, False, True, True, True]))
     assert torch.equal(strategy.state["grad_sum"], 2 * m.variance) and len(strategy.state["count"]) == 6
     assert torch.equal(m.params.means.detach(), means) and torch.equal(opt.state[m.params.means]["exp_avg"], moment)
@@ -492,6 +495,7 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
     new = GaussianParams(*(v.detach()[parents].clone() for _, v in m.params.items()))
     m.add_gaussians(new, parents, opt, strategy.state)
     assert len(m) == 8 and torch.equal(m.variance[6:], torch.tensor([1.0, 8.0]))
+    assert torch.equal(m.own_velocity[:, 0], m.variance)
     assert torch.equal(m.dynamic[6:], torch.tensor([False, True]))
     assert torch.equal(strategy.state["grad_sum"][6:], torch.zeros(2)) and len(strategy.state["count"]) == 8
     assert torch.equal(opt.state[m.params.means]["exp_avg"][6:], torch.zeros(2, 3))
@@ -624,4 +628,12 @@ def test_kr_effect_measures_the_blur_and_says_when_it_does_nothing(tmp_path):
     fits = kr_effect(m, frames, exposure=1.0, dt=0.2)
     assert fits["gain_db"] > KR_MIN_GAIN_DB and kr_effect_note(fits) is None, fits
     assert short["changed_share"] < 1e-3 and abs(short["gain_db"]) < 0.01, short
-    assert "does next to nothing" in kr_effect_note(short)
+    assert "does next to nothing" in kr_effect_note(short) and "which --camera-blur models" in kr_effect_note(short)
+    # With the camera's blur modelled (--camera-blur), the blurred render has it too: a camera
+    # sliding sideways by ~25 px over the exposure smears far more than the Gaussians' own motion.
+    slide = (torch.zeros(3, 3), torch.tensor([2.0, 0.0, 0.0]))
+    with_camera = kr_effect(m, frames, exposure=1.0, dt=0.2, camera_motion=lambda f: slide)
+    assert with_camera["camera_blur"] and not long["camera_blur"]
+    assert with_camera["changed_share"] > long["changed_share"] + 0.05, (with_camera, long)
+    still = kr_effect(m, frames, exposure=1e-3, dt=0.2, camera_motion=lambda f: slide)
+    assert "of the camera" in kr_effect_note(still), kr_effect_note(still)

@@ -70,7 +70,8 @@ def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from
                               max_new=50, life=life, rng=np.random.default_rng(0))
     assert added == 50 and len(m) == n0 + 50
     # Every per-Gaussian tensor grew in lock-step; the new ones are dynamic, coloured from the frame.
-    assert len(m.dynamic) == len(m.variance) == len(m.lifespan) == len(strategy.state["grad_sum"]) == len(m)
+    assert (len(m.dynamic) == len(m.variance) == len(m.lifespan) == len(m.own_velocity) == len(strategy.state["grad_sum"])
+            == len(m))
     assert m.dynamic[n0:].all()
     assert torch.allclose(m.lifespan[n0:], torch.tensor([t, life]).expand(50, 2))
     assert torch.isinf(m.lifespan[:n0, 1]).all()
@@ -115,7 +116,7 @@ def test_a_spawned_gaussian_joins_a_parent_that_moves_like_its_pixel_not_the_nea
         at_next[moved, 1] += 3.0 * z[moved] / float(K[1, 1])  # 3 px down
         return spawn_unexplained(model, None, {}, t, viewmat, K, torch.zeros(H, W, 3), depth, target,
                                  g.means.detach(), 40, 0.05, np.random.default_rng(0),
-                                 NextFrame(viewmat, K, flow, at_next))
+                                 NextFrame(viewmat, K, flow, at_next, t + 0.1))
 
     n0 = len(m)
     assert spawn(m, movers) == 36  # one per 2x2 pixels of the 12x12 patch
@@ -127,13 +128,58 @@ def test_a_spawned_gaussian_joins_a_parent_that_moves_like_its_pixel_not_the_nea
     assert spawn(m2, torch.zeros(0, dtype=torch.long)) == 0 and len(m2) == n0
 
 
+def test_spawned_gaussians_move_as_the_flow_at_their_pixel_says_whatever_the_field_learns():
+    """Under `spawned_motion="own"` (the default) a new Gaussian sits on its pixel at its frame's
+    time and reaches, at the next frame's, the pixel the flow moves it to (the same camera here,
+    3 px down over 0.1 of the clip), at its depth; the field's later changes do not move it."""
+    m, viewmat, K = scene_model()
+    t, t_next = 0.5, 0.6
+    with torch.no_grad():
+        g = m.at(t, velocity=False)
+    uv, z = project(g.means, viewmat, K)
+    assert ((uv[:, 0] > 30) & (uv[:, 0] < 50) & (uv[:, 1] > 10) & (uv[:, 1] < 50)).sum() >= 5
+    target = torch.zeros(H, W, 3)
+    target[22:34, 32:44] = 1.0
+    flow = torch.zeros(H, W, 2)
+    flow[18:38, 28:48, 1] = 3.0
+    at_next = g.means.clone()
+    at_next[:, 1] += 3.0 * z / float(K[1, 1])  # every Gaussian moves 3 px down: all match
+    n0 = len(m)
+    added = spawn_unexplained(m, None, {}, t, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 5.0), target,
+                              g.means, 36, 0.05, np.random.default_rng(0), NextFrame(viewmat, K, flow, at_next, t_next))
+    assert added > 20
+    new = torch.arange(n0, len(m))
+
+    def pixels(time):
+        with torch.no_grad():
+            return project(m.at(time, velocity=False).means[new], viewmat, K)
+
+    (uv0, z0), (uv1, z1) = pixels(t), pixels(t_next)
+    assert (uv0[:, 0] > 31).all() and (uv0[:, 0] < 44).all() and (uv0[:, 1] > 21).all() and (uv0[:, 1] < 34).all()
+    assert torch.allclose(uv1 - uv0, torch.tensor([0.0, 3.0]).expand_as(uv0), atol=1e-3)
+    assert torch.allclose(z1, z0, atol=1e-4)
+    with torch.no_grad():  # the field learns something else: they stay on their line
+        for grid in m.deform.planes.grids:
+            grid.add_(0.5)
+    assert torch.allclose(pixels(t_next)[0], uv1, atol=1e-4)
+    # A saved model keeps the motion; one saved before it existed follows the field, as it trained.
+    loaded = KinematicsGS.from_state(m.state())
+    assert torch.equal(loaded.own_velocity, m.own_velocity) and loaded.config.spawned_motion == "own"
+    old = m.state()
+    del old["own_velocity"], old["config"]["spawned_motion"]
+    assert KinematicsGS.from_state(old).config.spawned_motion == "field"
+
+
+@pytest.mark.parametrize("motion", ["own", "field"])
 @pytest.mark.parametrize("coarse_to_fine", [True, False])
-def test_spawned_gaussians_follow_the_field_without_training_it(coarse_to_fine):
-    """A Gaussian present for part of the clip is moved by the field like any dynamic one, but
-    its loss reaches only its own parameters: the field and the fine residual learn from the
-    Gaussians present at every time alone."""
-    m = moving_model(n=60, seed=2, coarse_to_fine=coarse_to_fine)
+def test_spawned_gaussians_do_not_train_the_field(coarse_to_fine, motion):
+    """A Gaussian present for part of the clip moves as `spawned_motion` says: by the field like
+    any dynamic one ("field") or by its own velocity ("own"); either way its loss reaches only
+    its own parameters: the field and the fine residual learn from the Gaussians present at
+    every time alone."""
+    m = moving_model(n=60, seed=2, coarse_to_fine=coarse_to_fine, spawned_motion=motion)
     m.lifespan[:20] = torch.tensor([0.4, 0.05])
+    m.own_velocity[:20] = torch.tensor([0.1, -0.2, 0.05])
     networks = [p for p in m.parameters() if p.requires_grad]
 
     def grads(rows):
@@ -147,8 +193,12 @@ def test_spawned_gaussians_follow_the_field_without_training_it(coarse_to_fine):
         return field, m.params.means.grad[rows].abs().sum(-1)
 
     with torch.no_grad():
-        g = m.at(0.4)
-    assert (g.means[:20] - m.params.means[:20]).norm(dim=-1).min() > 1e-4  # the field moves them
+        g, later = m.at(0.4), m.at(0.5)
+    if motion == "field":
+        assert (g.means[:20] - m.params.means[:20]).norm(dim=-1).min() > 1e-4  # the field moves them
+    else:  # at their centre on their mean; a tenth of the clip later moved by a tenth of their velocity
+        assert torch.allclose(g.means[:20], m.params.means[:20])
+        assert torch.allclose(later.means[:20] - g.means[:20], 0.1 * m.own_velocity[:20], atol=1e-6)
     field, own = grads(slice(0, 20))
     assert field == 0.0 and (own > 0).all()
     field, own = grads(slice(20, 60))
@@ -178,11 +228,17 @@ def test_lifespans_survive_pruning_the_split_and_a_save():
     # A split with a τ above every K keeps the ones present for part of the clip dynamic.
     m.decompose(tau=1e9)
     assert torch.equal(m.dynamic, bounded)
+    m.own_velocity[bounded] = torch.randn(int(bounded.sum()), 3)
+    velocity = m.own_velocity.clone()
     keep = torch.arange(len(m)) % 2 == 0
     m.keep_gaussians(keep)
-    assert torch.equal(m.lifespan[:, 1].isfinite(), bounded[keep])
+    assert torch.equal(m.lifespan[:, 1].isfinite(), bounded[keep]) and torch.equal(m.own_velocity, velocity[keep])
     loaded = KinematicsGS.from_state(m.state())
-    assert torch.equal(loaded.lifespan, m.lifespan)
+    assert torch.equal(loaded.lifespan, m.lifespan) and torch.equal(loaded.own_velocity, m.own_velocity)
+    bad = m.state()
+    bad["own_velocity"][0, 1] = float("nan")
+    with pytest.raises(ValueError, match="own_velocity"):
+        KinematicsGS.from_state(bad)
     # A state saved before lifespans existed loads with every Gaussian present at every time.
     old = m.state()
     del old["lifespan"]
@@ -213,10 +269,13 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     tr.model.decompose(tau=-1.0, recompute=False)
     calls = []
     monkeypatch.setattr(trainer_module, "spawn_unexplained",
-                        lambda *args: calls.append((args[3], args[-1])) or 0)
+                        lambda *args: calls.append((args[3], args[-1])) or 7)
     tr.frame_loss = torch.tensor([0.01, 0.01, 0.5, 0.01, 0.01, 1.0])  # the last frame fits worst
     tr.spawn(100)
     frames = scene.train_frames
     assert [t for t, _ in calls] == [frames[2].time]
     nxt = calls[0][1]
     assert nxt.flow is tr.flows[frames[2].id][1] and nxt.means.shape == (len(tr.model), 3)
+    # run.json's record: one attempt, at that frame's time, 7 Gaussians (what spawn_unexplained said).
+    tr.spawn(200)
+    assert tr.spawn_summary() == {"attempts": 2, "gaussians": 14, "frames": 1, "by_time": {f"{frames[2].time:.4f}": 14}}

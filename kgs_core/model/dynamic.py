@@ -34,6 +34,7 @@ from .kinematics import (
 
 Velocity = Literal["paper", "physical"]
 KRForm = Literal["convolve", "paper"]
+SpawnedMotion = Literal["own", "field"]
 
 
 @dataclass
@@ -69,6 +70,13 @@ class ModelConfig:
     deform_width: int = 64
     deform_depth: int = 1
     bound: float = 1.5  # K-Planes domain, normalised scene units
+    # How the Gaussians present for part of the clip (spawned in training, train/spawn.py)
+    # move: "own", along their own straight line through their frame (`own_velocity`, lifted
+    # from the optical flow at their pixel), the field not moving them; "field", with the
+    # field's offsets like any dynamic Gaussian, without training it. "own" fits the frames
+    # they are made for and their neighbours (docs/real-footage.md, "Spawned Gaussians that
+    # move on their own").
+    spawned_motion: SpawnedMotion = "own"
 
     def __post_init__(self):
         check_choices(self, "model.")
@@ -90,6 +98,8 @@ class ModelConfig:
         d.setdefault("kr_form", "paper")
         # ... and before knn_radius, C.F. averaged over unbounded neighbourhoods.
         d.setdefault("knn_radius", 0.0)
+        # ... and before spawned_motion, spawned Gaussians followed the field.
+        d.setdefault("spawned_motion", "field")
         return from_fields(cls, d, "model.")
 
 
@@ -146,6 +156,10 @@ class KinematicsGS(nn.Module):
         # the paper's Gaussians: present at every time. Spawned ones (train/spawn.py) live
         # around the frame they were made for: opacity x exp(-((t - centre) / width)^2 / 2).
         self.lifespan = unbounded_lifespan(n)
+        # (N, 3): the world velocity (per unit of normalised time) of the Gaussians with a
+        # bounded lifespan under `spawned_motion="own"`: at time t such a Gaussian sits at its
+        # mean + own_velocity (t - centre). Zeros, and unread, for the others.
+        self.own_velocity = torch.zeros(n, 3)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
         self._knn: Tensor | None = None
         self._knn_mean: tuple | None = None  # (knn it was built from, W, W^T): see neighbour_mean
@@ -160,10 +174,11 @@ class KinematicsGS(nn.Module):
                 "fine_mlp": list(self.fine.parameters()), "kappa": [self.kappa]}
 
     # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
-    # dynamic flags, K, and a strategy's statistics held by the caller: `keep_gaussians` and
+    # dynamic flags, K, lifespans and own velocities, and a strategy's statistics held by the
+    # caller: `keep_gaussians` and
     # `add_gaussians` resize all of it in lock-step, the kNN graph of the coarse-to-fine step
-    # included. Nothing else should assign `params`, `dynamic`, `variance` or `lifespan` with a
-    # new length.
+    # included. Nothing else should assign `params`, `dynamic`, `variance`, `lifespan` or
+    # `own_velocity` with a new length.
     #
     # The graph is carried through, not rebuilt: a dynamic Gaussian's fine residual is fitted to
     # the coarse offset its neighbours give it, and a graph rebuilt from the canonical means as
@@ -171,17 +186,19 @@ class KinematicsGS(nn.Module):
     # that alone cost 3.0 dB at each densification (docs/real-footage.md, "The paper preset on
     # walk").
     def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor,
-                   knn: Tensor | None = None) -> None:
+                   own_velocity: Tensor, knn: Tensor | None = None) -> None:
         """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
-        if not len(params) == len(dynamic) == len(variance) == len(lifespan):
+        if not len(params) == len(dynamic) == len(variance) == len(lifespan) == len(own_velocity):
             raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
-                             f"{len(variance)} values of K, {len(lifespan)} lifespans")
+                             f"{len(variance)} values of K, {len(lifespan)} lifespans, "
+                             f"{len(own_velocity)} own velocities")
         if knn is not None and len(knn) != int(dynamic.sum()):
             raise ValueError(f"kNN graph out of step: {len(knn)} rows for {int(dynamic.sum())} dynamic Gaussians")
         self.params = params
         self.dynamic = dynamic
         self.variance = variance
         self.lifespan = lifespan
+        self.own_velocity = own_velocity
         self._knn = knn
 
     def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None,
@@ -193,20 +210,23 @@ class KinematicsGS(nn.Module):
         In the graph a removed neighbour is replaced by its heir, `heirs (N,)` (a split parent's
         child; -1: none), or else by the row's own Gaussian (as `knn_radius` does)."""
         self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep],
-                        self.lifespan[keep], self._graph_after_keep(keep, heirs))
+                        self.lifespan[keep], self.own_velocity[keep], self._graph_after_keep(keep, heirs))
         for k, v in (state or {}).items():
             state[k] = v[keep]
 
     def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None,
-                      state: dict[str, Tensor] | None = None, lifespan: Tensor | None = None) -> None:
+                      state: dict[str, Tensor] | None = None, lifespan: Tensor | None = None,
+                      own_velocity: Tensor | None = None) -> None:
         """Appends Gaussians (densification: clones and split children); each inherits the dynamic
-        flag, K, kNN neighbours and lifespan of its parent (or takes `lifespan (M, 2)` when
-        given), `parents (M,)` indices into the current set, and starts with zero Adam moments and
-        zeros in `state`."""
+        flag, K, kNN neighbours, lifespan and own velocity of its parent (or takes `lifespan (M,
+        2)`, `own_velocity (M, 3)` when given), `parents (M,)` indices into the current set, and
+        starts with zero Adam moments and zeros in `state`."""
         life = self.lifespan[parents] if lifespan is None else lifespan
+        velocity = self.own_velocity[parents] if own_velocity is None else own_velocity
         knn = self._graph_after_add(parents)
         self.set_params(append(self.params, optimizer, new), torch.cat([self.dynamic, self.dynamic[parents]]),
-                        torch.cat([self.variance, self.variance[parents]]), torch.cat([self.lifespan, life]), knn)
+                        torch.cat([self.variance, self.variance[parents]]), torch.cat([self.lifespan, life]),
+                        torch.cat([self.own_velocity, velocity]), knn)
         for k, v in (state or {}).items():
             state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
 
@@ -406,27 +426,38 @@ class KinematicsGS(nn.Module):
             tt[0] = tt[0] + noise * torch.randn(n)
         raws = self.deform.at_times(x, tt)
         if not (self.decomposed and self.config.coarse_to_fine):
-            return self._followers_detached(idx, raws)
+            return self._spawned_offsets(idx, tt, raws)
         # One sparse product for all times: (D, 9 M) offsets side by side.
         coarse = self.neighbour_mean(torch.cat([raw.cat() for raw in raws], 1)).split(9, 1)
         if shared_fine:
             fine = self.fine(self.params.features[idx], tt[0]).cat()
-            return self._followers_detached(idx, [Offsets.split(c + fine) for c in coarse])
+            return self._spawned_offsets(idx, tt, [Offsets.split(c + fine) for c in coarse])
         fine = self.fine(self.params.features[idx].repeat(len(times), 1), torch.cat(tt)).cat().split(n)
-        return self._followers_detached(idx, [Offsets.split(c + f) for c, f in zip(coarse, fine)])
+        return self._spawned_offsets(idx, tt, [Offsets.split(c + f) for c, f in zip(coarse, fine)])
 
-    def _followers_detached(self, idx: Tensor, offsets: list[Offsets]) -> list[Offsets]:
-        """`offsets` with the rows of Gaussians present for part of the clip (bounded
-        `lifespan`: spawned ones, train/spawn.py) cut from the graph: the field moves them, but
-        their loss does not train it. A Gaussian made to fill one frame pulls the field cells it
-        shares with the background towards that frame's motion; on walk that bent the sign
-        behind the person at every time (-0.7 dB on the frame in one seed of five,
-        docs/real-footage.md, "Spawned Gaussians")."""
+    def _spawned_offsets(self, idx: Tensor, times: list[Tensor], offsets: list[Offsets]) -> list[Offsets]:
+        """The field's `offsets` of the Gaussians `idx` at `times` ((D,) each), with the rows of
+        Gaussians present for part of the clip (bounded `lifespan`: spawned ones,
+        train/spawn.py) replaced as `spawned_motion` says. Either way their loss does not train
+        the field: a Gaussian made to fill one frame pulls the field cells it shares with the
+        background towards that frame's motion; on walk that bent the sign behind the person at
+        every time (-0.7 dB on the frame in one seed of five, docs/real-footage.md, "Spawned
+        Gaussians").
+
+        "own": the straight line `own_velocity (t - centre)`, no rotation or scale change, so
+        that it stays on the pixels it was made for at its frame whatever the field learns
+        later, and moves as the flow there said to the frames around it. "field": the field's
+        offsets, detached (it follows its parent's neighbourhood of the field)."""
         bounded = self.lifespan[idx, 1].isfinite()
         if not bounded.any():
             return offsets
-        keep = bounded[:, None]
-        return [Offsets.split(torch.where(keep, o.cat().detach(), o.cat())) for o in offsets]
+        rows = bounded[:, None]
+        if self.config.spawned_motion == "field":
+            return [Offsets.split(torch.where(rows, o.cat().detach(), o.cat())) for o in offsets]
+        centre, velocity = self.lifespan[idx, 0], self.own_velocity[idx]
+        still = torch.zeros(len(idx), 6)
+        return [Offsets.split(torch.where(rows, torch.cat([velocity * (t - centre)[:, None], still], 1), o.cat()))
+                for o, t in zip(offsets, times)]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
         off = self.offsets(idx, t, noise)
@@ -588,6 +619,7 @@ class KinematicsGS(nn.Module):
             "dynamic": self.dynamic.clone(),
             "variance": self.variance.clone(),
             "lifespan": self.lifespan.clone(),
+            "own_velocity": self.own_velocity.clone(),
             "min_scale": self.min_scale,
             # The kNN graph is rebuilt only when the dynamic set changes, from the positions of
             # that moment; a resumed run must reuse it, not rebuild it from later positions.
@@ -616,6 +648,14 @@ class KinematicsGS(nn.Module):
                 raise ValueError(f"model state field 'lifespan': expected ({n}, 2) floats, finite centres and "
                                  f"widths > 0 (inf: always present), got {tuple(life.shape)} {life.dtype}")
         model.lifespan = unbounded_lifespan(n) if life is None else life.clone()
+        own = state.get("own_velocity")  # absent in runs saved before spawned Gaussians moved on their own
+        if own is not None:
+            _check_per_gaussian([("own_velocity", own)], n)
+            if not (own.dim() == 2 and own.shape[1] == 3 and own.dtype.is_floating_point
+                    and bool(torch.isfinite(own).all())):
+                raise ValueError(f"model state field 'own_velocity': expected ({n}, 3) finite floats, got "
+                                 f"{tuple(own.shape)} {own.dtype}")
+        model.own_velocity = torch.zeros(n, 3) if own is None else own.clone()
         model.min_scale = float(state["min_scale"])
         model._knn = checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model

@@ -90,7 +90,10 @@ class TrainConfig:
     # (VIDEO_SPAWN_FRAMES; docs/real-footage.md, "Spawned Gaussians").
     spawn_frames: int = 0
     spawn_max: int = 200
-    spawn_life: float = 1.0  # frame intervals (the width of the presence's Gaussian in time)
+    # Frame intervals: the width of the presence's Gaussian in time. Two, since spawned Gaussians
+    # move on their own line (model.spawned_motion="own") and so stay right a frame or two away;
+    # one measured better while they followed the field (docs/real-footage.md).
+    spawn_life: float = 2.0
     spawn_from: float = 0.0  # no spawning before this fraction of the iterations (nor before the split)
     lambda_ani: float = 1e-4
     eps_ani: float = 1e-6

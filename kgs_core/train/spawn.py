@@ -7,17 +7,18 @@ background fills those pixels, and 3DGS densification, which clones Gaussians wi
 position gradients, has nothing there to clone. This step adds what is missing where it is
 missing: in the training frames that fit worst, at pixels the render still gets wrong where the
 optical flow shows something moving on its own, new dynamic Gaussians in front of the
-background, coloured from the frame, placed so that at that frame's time the deformation puts
-them on those pixels, and present only around that time (`KinematicsGS.lifespan`).
+background, coloured from the frame, on those pixels at that frame's time, moving on their own
+straight line through it as the flow there says (`KinematicsGS.own_velocity`), and present only
+around that time (`KinematicsGS.lifespan`).
 
 Two rules keep the new Gaussians from bending the background through the shared deformation
 field: each joins a parent that moves as the flow at its pixel says (not merely the nearest
 dynamic Gaussian, which on real footage is often a wall that K calls dynamic), and its loss does
-not train the field (`KinematicsGS._followers_detached`): it follows the field, present for a
-frame, and only its own parameters learn. With neither, one walk run in five lost 1.4 dB on the
-whole frame to a smeared wall; with the parent rule alone, one in five lost 0.7 dB to a smeared
-sign; with both, none of five. On for video ingests (`config.VIDEO_SPAWN_FRAMES`;
-docs/real-footage.md, "Spawned Gaussians").
+not train the field (`KinematicsGS._spawned_offsets`): present for a frame, only its own
+parameters learn. With neither, one walk run in five lost 1.4 dB on the whole frame to a
+smeared wall; with the parent rule alone, one in five lost 0.7 dB to a smeared sign; with both,
+none of five. On for video ingests (`config.VIDEO_SPAWN_FRAMES`; docs/real-footage.md,
+"Spawned Gaussians").
 """
 
 from __future__ import annotations
@@ -49,13 +50,15 @@ PARENT_MATCH = 0.5
 @dataclass
 class NextFrame:
     """What the next training frame of the same camera says about motion: its camera
-    (`viewmat`, `K`), the optical flow to it (`flow` (H, W, 2) px, NaN where unreliable) and
-    the Gaussians' positions at its time (`means` (N, 3), read for the dynamic ones)."""
+    (`viewmat`, `K`), the optical flow to it (`flow` (H, W, 2) px, NaN where unreliable), the
+    Gaussians' positions at its time (`means` (N, 3), read for the dynamic ones) and the time
+    itself (normalised)."""
 
     viewmat: Tensor
     K: Tensor
     flow: Tensor
     means: Tensor
+    time: float
 
 
 def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: Tensor, next_K: Tensor,
@@ -106,9 +109,11 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     pixel counts and the parent is the nearest dynamic Gaussian on screen.
 
     Each new Gaussian takes the frame's colour, sits at the median depth of its region's parents
-    (never behind the rendered background), and is sized to its pixel spacing. Its canonical
-    position is its place at `t` minus its parent's offset there, so that at `t` it lands near
-    its pixel."""
+    (never behind the rendered background), and is sized to its pixel spacing. Under the model's
+    `spawned_motion="own"` it sits at its pixel at `t` and its own velocity carries it, at its
+    depth, to where the flow moves its pixel by the next frame (none without `nxt`); under
+    "field" its canonical position is its place at `t` minus its parent's offset there, so that
+    at `t` it lands near its pixel."""
     mask = unexplained_pixels(image, target)
     moving = None
     if nxt is not None:  # only what moves on its own: not a background the model has yet to fit
@@ -143,7 +148,7 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
         found = matches.any(1)
         if not found.any():
             return 0
-        pixels, d2, ys, xs = pixels[found], d2[found], ys[found.numpy()], xs[found.numpy()]
+        pixels, d2, ys, xs, f = pixels[found], d2[found], ys[found.numpy()], xs[found.numpy()], f[found]
     nearest = d2.argmin(1)
     parents = dyn[nearest]
     # Depth: the region's parents' (the object the new Gaussians join); never behind the
@@ -151,18 +156,28 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     z_new = float(torch.median(z[nearest]))
     bg = depth[ys, xs, 0].numpy()
     z_pix = np.where(bg > 0, np.minimum(z_new, 0.95 * bg), z_new)
-    world = unproject(pixels, torch.tensor(z_pix, dtype=torch.float32), viewmat, K)
+    z_pix = torch.tensor(z_pix, dtype=torch.float32)
+    world = unproject(pixels, z_pix, viewmat, K)
     p = model.params
     m = len(parents)
-    scale = torch.tensor(np.log(0.6 * SAMPLE_STRIDE * z_pix / float(K[0, 0])), dtype=torch.float32)[:, None].repeat(1, 3)
+    scale = torch.log(0.6 * SAMPLE_STRIDE * z_pix / float(K[0, 0]))[:, None].repeat(1, 3)
     quats = torch.zeros(m, 4)
     quats[:, 0] = 1
     new = GaussianParams(
         means=world, quats=quats, log_scales=scale, opacity_logits=torch.zeros(m),
         sh0=rgb_to_sh0(target[ys, xs].clamp(0, 1).float())[:, None, :],
         sh_rest=torch.zeros(m, *p.sh_rest.shape[1:]), features=p.features.detach()[parents].clone())
+    lifespan = torch.tensor([t, life]).repeat(m, 1)
+    if model.config.spawned_motion == "own":
+        # The flow moves the pixel to `pixels + f` by the next frame: the point at the same
+        # camera depth there, reached at the next frame's time.
+        velocity = torch.zeros(m, 3)
+        if nxt is not None and nxt.time != t:
+            velocity = (unproject(pixels + f, z_pix, nxt.viewmat, nxt.K) - world) / (nxt.time - t)
+        model.add_gaussians(new, parents, optimizer, state, lifespan=lifespan, own_velocity=velocity)
+        return m
     n0 = len(model)
-    model.add_gaussians(new, parents, optimizer, state, lifespan=torch.tensor([t, life]).repeat(m, 1))
+    model.add_gaussians(new, parents, optimizer, state, lifespan=lifespan)
     # Canonical position: the parent's, moved as far as the new Gaussian sits from the parent at
     # t. Its coarse-to-fine neighbours and fine-residual features are then the parent's, so the
     # deformation moves it with the parent, and at t it lands on its pixel (up to how much the

@@ -160,6 +160,9 @@ class Trainer:
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
+        # Spawning's record for run.json (`spawn_summary`): the frames it tried, and the
+        # Gaussians it added to each training frame (by frame id).
+        self.spawn_record: dict = {"attempts": 0, "added": {}}
 
     # ------------------------------------------------------------ setup
 
@@ -439,9 +442,25 @@ class Trainer:
                 out, g = render_model(model, frame.camera, frame.time, self.exposure, self.scene.dt, self.background,
                                       velocity=False, world_transform=self.world_transform(frame))
             viewmat, K = camera_tensors(frame.camera)
-            spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image, out.depth,
-                              self.cache.get(frame), g.means, c.spawn_max, c.spawn_life * self.scene.dt,
-                              np.random.default_rng([c.seed, it, i]), self.next_frame(frame, g.means))
+            added = spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image,
+                                      out.depth, self.cache.get(frame), g.means, c.spawn_max,
+                                      c.spawn_life * self.scene.dt, np.random.default_rng([c.seed, it, i]),
+                                      self.next_frame(frame, g.means))
+            rec = self.spawn_record
+            rec["attempts"] += 1
+            if added:
+                rec["added"][frame.id] = rec["added"].get(frame.id, 0) + added
+
+    def spawn_summary(self) -> dict:
+        """What spawning did, for run.json: `attempts` (frames it looked at), `gaussians` (added
+        in all; pruning may have removed some since), `frames` (how many training frames got
+        any) and `by_time` (normalised time of each such frame -> Gaussians added there, in
+        time order): a clip whose late frames never got a turn shows here."""
+        added = self.spawn_record["added"]
+        times = {f.id: f.time for f in self.scene.train_frames}
+        by_time = {f"{times[k]:.4f}": n for k, n in sorted(added.items(), key=lambda kv: times[kv[0]])}
+        return {"attempts": self.spawn_record["attempts"], "gaussians": sum(added.values()), "frames": len(added),
+                "by_time": by_time}
 
     @torch.no_grad()
     def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame:
@@ -453,7 +472,7 @@ class Trainer:
         idx = torch.nonzero(self.model.dynamic).squeeze(1)
         at_next = means.clone()
         at_next[idx] = self.posed(self.model.positions(idx, nxt.time)[0], nxt)
-        return NextFrame(*camera_tensors(nxt.camera), flow, at_next)
+        return NextFrame(*camera_tensors(nxt.camera), flow, at_next, nxt.time)
 
     def split(self) -> None:
         """A static/dynamic split in training: K recomputed, then τ the configured one or
@@ -497,7 +516,8 @@ class Trainer:
         if keep.sum() >= 4:
             model.keep_gaussians(keep, self.opt, self.strategy.state)
         snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
-                "variance": model.variance.clone(), "lifespan": model.lifespan.clone(), "min_scale": model.min_scale,
+                "variance": model.variance.clone(), "lifespan": model.lifespan.clone(),
+                "own_velocity": model.own_velocity.clone(), "min_scale": model.min_scale,
                 "knn": None if model._knn is None else model._knn.clone(), "iteration": self.iteration}
         self.levels.append(snap)
         old, new = model.min_scale, self.level_min_scale(level_idx)
@@ -582,6 +602,7 @@ class Trainer:
             "frame_loss": self.frame_loss.clone(),
             "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
             "kr_check": self.kr_check,
+            "spawn_record": self.spawn_record,
         })
         return path
 
@@ -610,6 +631,7 @@ class Trainer:
         if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
+        self.spawn_record = state.get("spawn_record") or {"attempts": 0, "added": {}}  # (older checkpoints)
         torch.set_rng_state(state["rng"]["torch"])
         random.setstate(state["rng"]["python"])
 
@@ -730,6 +752,8 @@ class Trainer:
             info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
         if self.events:
             info["guard_events"] = self.events
+        if self.cfg.spawn_frames > 0 and not self.static_only:
+            info["spawn"] = self.spawn_summary()
         self.measure_kr(info, dropped_kr)
         write_run_json(self.run_dir, info)
 
@@ -748,7 +772,9 @@ class Trainer:
                 return
         if not self.kr_acts():
             return
-        info["kr_effect"] = kr_effect(self.model, self.scene.train_frames, self.exposure, self.scene.dt)
+        motion = None if self.camera_motion is None else (lambda f: self.camera_motion.get(f.id))
+        info["kr_effect"] = kr_effect(self.model, self.scene.train_frames, self.exposure, self.scene.dt,
+                                      camera_motion=motion)
         note = kr_effect_note(info["kr_effect"])
         if note:
             info["kr_note"] = note
