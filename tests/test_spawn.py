@@ -8,7 +8,7 @@ import pytest
 import torch
 from test_model import moving_model
 
-from kgs_core.model.dynamic import KinematicsGS
+from kgs_core.model.dynamic import KinematicsGS, neighbour_mean_matrices
 from kgs_core.render import intrinsics, look_at
 from kgs_core.train.densify import DensifyStrategy
 from kgs_core.train.flow import project
@@ -203,6 +203,45 @@ def test_spawned_gaussians_do_not_train_the_field(coarse_to_fine, motion):
     assert field == 0.0 and (own > 0).all()
     field, own = grads(slice(20, 60))
     assert field > 0.0 and (own > 0).all()
+
+
+def test_the_field_is_neither_evaluated_for_gaussians_on_their_own_line_nor_averaged_over_them():
+    """Under "own" a spawned Gaussian's field offsets are never read: the field is evaluated
+    for the others only, and C.F. averages each other Gaussian over its neighbours that are not
+    spawned, so moving the spawned ones changes nobody else's offsets."""
+    m = moving_model(n=60, seed=3, coarse_to_fine=True, spawned_motion="own")
+    m.lifespan[:20] = torch.tensor([0.4, 0.05])
+    idx = torch.arange(len(m))
+    knn = m.knn_index()
+    assert (knn[20:] < 20).any()  # others have spawned neighbours in their rows
+    rows_seen = []
+    at_times = m.deform.at_times
+    m.deform.at_times = lambda x, tt: rows_seen.append(len(x)) or at_times(x, tt)
+    with torch.no_grad():
+        before = m.offsets_at(idx, [0.3, 0.45])
+        m.params.means[:20] += 0.3
+        after = m.offsets_at(idx, [0.3, 0.45])
+    assert rows_seen == [40, 40]
+    for b, a in zip(before, after):
+        assert b.dx[20:].abs().max() > 1e-3  # the field moves the others
+        assert torch.equal(b.cat()[20:], a.cat()[20:])
+    # Each other Gaussian's coarse offset is the mean over its neighbours that are not spawned.
+    raw = at_times(m.params.means[20:].detach(), [torch.full((40,), 0.3)])[0].cat()
+    coarse = m.neighbour_mean(torch.cat([torch.zeros(20, 9), raw]))[20:]
+    i = int(torch.nonzero((knn[20:] < 20).any(1))[0]) + 20
+    kept = knn[i][knn[i] >= 20]
+    assert torch.allclose(coarse[i - 20], raw[kept - 20].mean(0), atol=1e-6)
+
+
+def test_a_neighbour_mean_without_the_dropped_rows_renormalises_and_falls_back_to_itself():
+    knn = torch.tensor([[0, 1, 2], [1, 2, 2], [2, 1, 0]])
+    x = torch.tensor([[1.0], [10.0], [100.0]])
+    w, wt = neighbour_mean_matrices(knn)
+    assert torch.allclose(w @ x, torch.tensor([[37.0], [70.0], [37.0]]))
+    w, wt = neighbour_mean_matrices(knn, drop=torch.tensor([False, True, True]))
+    # row 0 keeps itself; row 1 has nobody left and takes itself; row 2 keeps only 0
+    assert torch.allclose(w @ x, torch.tensor([[1.0], [10.0], [1.0]]))
+    assert torch.allclose(wt.to_dense(), w.to_dense().T)
 
 
 def test_a_frame_the_render_explains_gets_nothing():

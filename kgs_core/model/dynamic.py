@@ -162,7 +162,7 @@ class KinematicsGS(nn.Module):
         self.own_velocity = torch.zeros(n, 3)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
         self._knn: Tensor | None = None
-        self._knn_mean: tuple | None = None  # (knn it was built from, W, W^T): see neighbour_mean
+        self._knn_mean: tuple | None = None  # (knn and dropped rows it was built from, W, W^T): neighbour_mean
 
     # ------------------------------------------------------------ bookkeeping
 
@@ -396,11 +396,25 @@ class KinematicsGS(nn.Module):
         """`(D, C)` rows of `x` (one per dynamic Gaussian) averaged over each one's kNN graph
         row (the coarse deformation), as a sparse matrix product `W x`. Gathering `x[knn]`
         instead is the same forward, but its backward (an accumulating index_put) is serial on
-        CPU: 10 ms of a 66 ms panel step against 1.4 ms for this."""
+        CPU: 10 ms of a 66 ms panel step against 1.4 ms for this.
+
+        Under `spawned_motion="own"` the spawned Gaussians (bounded lifespan) are left out of
+        every row (`_own_motion_rows`): the field is not evaluated for them, so their rows of
+        `x` carry nothing."""
         knn = self.knn_index()
-        if self._knn_mean is None or self._knn_mean[0] is not knn:
-            self._knn_mean = (knn, *neighbour_mean_matrices(knn))
-        return _SparseRowMean.apply(x, self._knn_mean[1], self._knn_mean[2])
+        own = self._own_motion_rows()
+        if self._knn_mean is None or self._knn_mean[0] is not knn or not _same_mask(self._knn_mean[1], own):
+            self._knn_mean = (knn, own, *neighbour_mean_matrices(knn, own))
+        return _SparseRowMean.apply(x, self._knn_mean[2], self._knn_mean[3])
+
+    def _own_motion_rows(self) -> Tensor | None:
+        """`(D,) bool` over the dynamic set: the Gaussians that move on their own line
+        (`spawned_motion="own"`, bounded lifespan), whose field offsets nobody reads; None
+        when there are none."""
+        if self.config.spawned_motion != "own":
+            return None
+        own = self.lifespan[self.dynamic, 1].isfinite()
+        return own if own.any() else None
 
     # ------------------------------------------------------------ evaluation at time t
 
@@ -419,20 +433,27 @@ class KinematicsGS(nn.Module):
         velocity uses this (docs/method.md, "Velocity"): the per-Gaussian residual made the
         velocities noisier (error 0.26 against 0.07 px/frame on the sheet), and evaluating it
         at three times cost a sixth of a training step."""
-        x = self.params.means[idx]
-        n = len(x)
+        n = len(idx)
         tt = [torch.full((n,), float(t)) for t in times]
         if noise > 0:
             tt[0] = tt[0] + noise * torch.randn(n)
-        raws = self.deform.at_times(x, tt)
+        # The field is evaluated for the rows that read it: under "own" not for the spawned
+        # Gaussians (on walk three quarters of the dynamic set at the end of training), whose
+        # rows stay zero here and are replaced by their own line in `_spawned_offsets`.
+        own = self.lifespan[idx, 1].isfinite() if self.config.spawned_motion == "own" else None
+        rows = None if own is None or not own.any() else torch.nonzero(~own).squeeze(1)
+        field_idx, field_tt = (idx, tt) if rows is None else (idx[rows], [t[rows] for t in tt])
+        raws = [_scatter_rows(r.cat(), rows, n) for r in self.deform.at_times(self.params.means[field_idx], field_tt)]
         if not (self.decomposed and self.config.coarse_to_fine):
-            return self._spawned_offsets(idx, tt, raws)
+            return self._spawned_offsets(idx, tt, [Offsets.split(r) for r in raws])
         # One sparse product for all times: (D, 9 M) offsets side by side.
-        coarse = self.neighbour_mean(torch.cat([raw.cat() for raw in raws], 1)).split(9, 1)
+        coarse = self.neighbour_mean(torch.cat(raws, 1)).split(9, 1)
+        features = self.params.features[field_idx]
         if shared_fine:
-            fine = self.fine(self.params.features[idx], tt[0]).cat()
+            fine = _scatter_rows(self.fine(features, field_tt[0]).cat(), rows, n)
             return self._spawned_offsets(idx, tt, [Offsets.split(c + fine) for c in coarse])
-        fine = self.fine(self.params.features[idx].repeat(len(times), 1), torch.cat(tt)).cat().split(n)
+        fine = self.fine(features.repeat(len(times), 1), torch.cat(field_tt)).cat().split(len(field_idx))
+        fine = [_scatter_rows(f, rows, n) for f in fine]
         return self._spawned_offsets(idx, tt, [Offsets.split(c + f) for c, f in zip(coarse, fine)])
 
     def _spawned_offsets(self, idx: Tensor, times: list[Tensor], offsets: list[Offsets]) -> list[Offsets]:
@@ -446,7 +467,8 @@ class KinematicsGS(nn.Module):
 
         "own": the straight line `own_velocity (t - centre)`, no rotation or scale change, so
         that it stays on the pixels it was made for at its frame whatever the field learns
-        later, and moves as the flow there said to the frames around it. "field": the field's
+        later, and moves as the flow there said to the frames around it (`offsets_at` does not
+        evaluate the field for it, and C.F. leaves it out of others' neighbourhoods). "field": the field's
         offsets, detached (it follows its parent's neighbourhood of the field)."""
         bounded = self.lifespan[idx, 1].isfinite()
         if not bounded.any():
@@ -705,16 +727,36 @@ def checked_knn(knn, n_dynamic: int) -> Tensor | None:
     return knn.clone()
 
 
-def neighbour_mean_matrices(knn: Tensor) -> tuple[Tensor, Tensor]:
+def neighbour_mean_matrices(knn: Tensor, drop: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Sparse CSR `W (D, D)` with `W[i, j] = 1/k` for each of row `i`'s `k` neighbours `j`
-    (a repeated neighbour counts twice, as in `x[knn].mean(1)`), and its transpose."""
+    (a repeated neighbour counts twice, as in `x[knn].mean(1)`), and its transpose.
+
+    `drop (D,) bool`: those Gaussians are nobody's neighbour; each row averages over the
+    neighbours it has left (its own Gaussian alone where none is left)."""
     d, k = knn.shape
     rows = torch.arange(d).repeat_interleave(k)
+    cols = knn.reshape(-1)
+    weights = torch.full((d * k,), 1.0 / k)
+    if drop is not None:
+        kept = ~drop[knn]  # (D, k)
+        left = kept.sum(1)
+        cols = torch.where(left[:, None] > 0, knn, torch.arange(d)[:, None]).reshape(-1)
+        weights = torch.where(left[:, None] > 0, kept / left.clamp_min(1)[:, None], 1.0 / k).reshape(-1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        w = torch.sparse_coo_tensor(torch.stack([rows, knn.reshape(-1)]), torch.full((d * k,), 1.0 / k),
-                                    (d, d), check_invariants=True).coalesce()
+        w = torch.sparse_coo_tensor(torch.stack([rows, cols]), weights.float(), (d, d),
+                                    check_invariants=True).coalesce()
         return w.to_sparse_csr(), w.t().coalesce().to_sparse_csr()
+
+
+def _same_mask(a: Tensor | None, b: Tensor | None) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and torch.equal(a, b))
+
+
+def _scatter_rows(x: Tensor, rows: Tensor | None, n: int) -> Tensor:
+    """`x (M, C)` placed at `rows (M,)` of an `(n, C)` tensor of zeros (`x` itself when `rows`
+    is None: every row)."""
+    return x if rows is None else x.new_zeros(n, x.shape[1]).index_put((rows,), x)
 
 
 class _SparseRowMean(torch.autograd.Function):
