@@ -63,19 +63,17 @@ def test_the_time_offset_scan_finds_held_out_frames_stamped_a_frame_late(walk, w
     import dataclasses
 
     from kgs_app.bench.real import best_time_offset
-    from kgs_core.data.scene import Scene
 
     model = walk_runs["full"].model
     masks = dynamic_masks(walk_runs["static"].model, walk)
     true = sharp_camera_metrics(model, walk, False, masks)["psnr_mask"]
     late = [dataclasses.replace(f, time=min(f.time + walk.dt, 1.0)) if f.split == "test" else f for f in walk.frames]
     stamped_late = dataclasses.replace(walk, frames=late)
-    assert isinstance(stamped_late, Scene) and stamped_late.dt == walk.dt
     at_late = sharp_camera_metrics(model, stamped_late, False, masks)["psnr_mask"]
     found = best_time_offset(model, stamped_late, masks, at_late)
     # (Measured: 17.59 at the late stamps, 19.34 half a frame earlier, 19.27 at the true times.)
     assert found["best_offset_frames"] < 0, (found, at_late, true)
-    assert found["psnr_mask_best_offset"] > max(at_late + 1.0, true - 0.2), (found, at_late, true)
+    assert found["psnr_mask_best_offset"] > max(at_late + 1.0, true - 0.5), (found, at_late, true)
     gain_at_true_times = best_time_offset(model, walk, masks, true)["psnr_mask_best_offset"] - true
     assert gain_at_true_times < found["psnr_mask_best_offset"] - at_late
 
