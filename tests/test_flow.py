@@ -116,6 +116,41 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in tr.model.deform.parameters())
 
 
+def test_without_kr_velocity_the_flow_term_reads_where_the_model_puts_the_gaussians_next(tmp_path):
+    """Where K.R. computes no velocity (before the split, or after its mid-run check turned it
+    off) the flow term compares the flow with the model's own motion to the next frame, not
+    with a Gaussian standing still: moving the Gaussians' next positions changes the term, and
+    a training render hands it no velocity to read."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.synth.generate import synthesize
+    from kgs_core.model.render import render_model
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import Trainer
+
+    scene = load_scene(synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0,
+                                  progress=False, overwrite=True))
+    cfg = make_config("fast", iterations=30)
+    cfg.lambda_flow = 0.01
+    tr = Trainer(scene, tmp_path / "r", cfg, progress=False)
+    tr.init_model()
+    model, frame = tr.model, scene.train_frames[0]
+    for state in ("before the split", "K.R. turned off"):
+        if state == "K.R. turned off":
+            model.decompose(tau=-1.0, recompute=False)
+            model.config.kinematic = False
+        out, g = render_model(model, frame.camera, frame.time, 0.5, scene.dt, velocity=False)
+        assert g.dynamic.any() and "dynamic_velocity" not in g.extras, state
+        with torch.no_grad():
+            term = float(tr.flow_term(frame, out, g))
+            positions = model.positions
+            model.positions = lambda idx, t, noise=0.0: (positions(idx, t, noise)[0] + 0.05, None)
+            try:
+                moved = float(tr.flow_term(frame, out, g))
+            finally:
+                del model.positions
+        assert abs(moved - term) > 1e-3 * term, (state, term, moved)
+
+
 def test_unproject_inverts_project():
     from kgs_core.render import intrinsics, look_at
     from kgs_core.train.flow import project, unproject

@@ -56,6 +56,27 @@ def test_full_method_beats_static_3dgs_where_the_person_walks(walk, walk_runs):
     assert info["dynamic_share"] < 0.8
 
 
+def test_detail_falls_with_blur_and_reads_only_the_mask(walk):
+    """`gradient_energy`, which `detail_mask` divides render by sharp frame: a blurred sharp
+    frame holds less detail than the frame, more blur less still, and pixels outside the mask
+    do not count."""
+    from scipy import ndimage
+
+    from kgs_core.evaluate import gradient_energy
+
+    frame = walk.test_frames[len(walk.test_frames) // 2].image().astype(np.float64)
+    everywhere = np.ones(frame.shape[:2], bool)
+    sharp = gradient_energy(frame, everywhere)
+    soft, softer = (gradient_energy(ndimage.gaussian_filter(frame, (s, s, 0)), everywhere) for s in (1.0, 2.0))
+    assert sharp > soft > softer > 0
+    # A frame flat inside the mask and busy outside it has no detail there.
+    busy = np.random.default_rng(0).random(frame.shape)
+    left = np.zeros(frame.shape[:2], bool)
+    left[:, : frame.shape[1] // 2] = True
+    busy[:, : frame.shape[1] // 2 + 1] = 0.5
+    assert gradient_energy(busy, left) == 0.0 and gradient_energy(busy, ~left) > 0.01
+
+
 @pytest.mark.slow
 def test_the_time_offset_scan_finds_held_out_frames_stamped_a_frame_late(walk, walk_runs):
     """Held-out frames whose times are all one frame late are met best earlier, at about what
@@ -184,5 +205,6 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
         assert row["psnr"] == pytest.approx((seeds["0"]["psnr"] + seeds["1"]["psnr"]) / 2)
     assert results["full"]["seeds"]["0"]["psnr"] != results["full"]["seeds"]["1"]["psnr"]
     table = (out / "results.md").read_text()
-    assert "PSNR in mask" in table and "| **full** | mean |" in table
+    assert "PSNR in mask" in table and "detail in mask" in table and "| **full** | mean |" in table
+    assert all(0 < row["detail_mask"] < 3 for row in results.values())
     assert (out / "views_walk.png").stat().st_size > 1000 and (out / "psnr_vs_time_walk.png").is_file()

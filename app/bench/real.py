@@ -11,6 +11,8 @@ and evaluated on every sharp-camera frame:
   static 3DGS of the first round (same iterations as the full method) errs by more than 0.15,
   as regions, dilated (`kgs_core.evaluate.static_error_mask`). It is computed once per clip and
   is the same for every configuration;
+* how much of the sharp frames' fine detail the renders hold inside the mask (`detail_mask`):
+  a soft render scores well below 1 however well it is placed;
 * beside them, the mask PSNR with every held-out frame rendered up to a frame earlier or later
   (`best_time_offset`): how far the model's moving parts are from the sharp camera's along
   their motion;
@@ -73,11 +75,14 @@ def ingest_cached(name: str, blur: Path, sharp: Path, size: int, root: Path) -> 
 @torch.no_grad()
 def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) -> dict:
     """PSNR/SSIM over every held-out (sharp camera) frame, whole and inside `masks` (one per
-    frame; frames whose mask is empty are left out of the masked means)."""
-    from kgs_core.evaluate import masked_ssim, render_at
+    frame; frames whose mask is empty are left out of the masked means), and `detail_mask`:
+    the renders' fine detail inside the masks as a share of the sharp frames'
+    (`evaluate.gradient_energy`, summed over the frames; 1 is as detailed as the sharp camera)."""
+    from kgs_core.evaluate import gradient_energy, masked_ssim, render_at
     from kgs_core.losses import psnr, ssim
 
     ps, ss, mps, mss = [], [], [], []
+    detail = np.zeros(2)  # render, sharp frame
     for f, mask in zip(scene.test_frames, masks):
         gt = torch.from_numpy(f.image())
         img = render_at(model, f, 0.0, scene.dt, static=static)[0].image.clamp(0, 1)
@@ -85,11 +90,13 @@ def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) ->
         ss.append(float(ssim(img, gt)))
         if mask.any():
             mps.append(psnr(img, gt, torch.from_numpy(mask)))
+            detail += (gradient_energy(img.numpy(), mask), gradient_energy(f.image(), mask))
             s = masked_ssim(img, gt, mask)
             if s is not None:
                 mss.append(s)
     mean = lambda v: float(np.mean(v)) if v else math.nan  # noqa: E731
-    return {"psnr": mean(ps), "ssim": mean(ss), "psnr_mask": mean(mps), "ssim_mask": mean(mss)}
+    return {"psnr": mean(ps), "ssim": mean(ss), "psnr_mask": mean(mps), "ssim_mask": mean(mss),
+            "detail_mask": float(detail[0] / detail[1]) if detail[1] > 0 else math.nan}
 
 
 # Frame intervals by which `best_time_offset` shifts the held-out renders in time.
@@ -183,7 +190,7 @@ def plot_curves(curves: dict, title: str, path: Path) -> None:
 def table_row(label: str, seed: str, r: dict) -> str:
     dyn = "static" if r["dynamic_share"] is None else f"{r['dynamic_share']:.0%}"
     return (f"| {label} | {seed} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} | "
-            f"{r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
+            f"{r['detail_mask']:.2f} | {r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
             f"{dyn} | {r['gaussians']:,.0f} | {r['iterations']:.0f} | {r['seconds']:.0f} |")
 
 
@@ -292,9 +299,9 @@ def main(argv: list[str]) -> int:
                           f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at "
                           f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; dynamic-region mask: "
                           f"{share:.1%} of the sharp-camera pixels." + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""),
-                          "", "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | in mask at the best "
-                          "time offset (frames) | dynamic | Gaussians | iterations | train s |",
-                          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                          "", "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | detail in mask | in mask at "
+                          "the best time offset (frames) | dynamic | Gaussians | iterations | train s |",
+                          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
                 print("\n".join(lines[-5:]), flush=True)
             curves, shown = {}, []
             for t in first + second:

@@ -520,7 +520,9 @@ class KinematicsGS(nn.Module):
             means = means.index_put((idx,), d.means)
             cov6 = cov6.index_put((idx,), d.covars6)
             velocities = None if d.velocity is None else velocities.index_put((idx,), d.velocity.detach())
-            if d.velocity is not None:  # differentiable, for the flow term (train/flow.py)
+            # Differentiable, for the flow term (train/flow.py); only where K.R. measured it: the
+            # zeros without K.R. would tell every moving Gaussian to stand still.
+            if d.velocity is not None and self.config.kinematic and self.decomposed:
                 extras["dynamic_velocity"] = (idx, d.velocity)
             dx_all = dx_all.index_put((idx,), d.dx)
             if sweep_all is not None:  # (without K.R. the dynamic Gaussians are not blurred)
@@ -571,8 +573,8 @@ class KinematicsGS(nn.Module):
         the canonical mean plus the field's offset, coarse kNN mean + fine residual under C.F.,
         `coarse_to_fine`, the field's own offset without it):
 
-        - Before the split, or `kinematic=False` (`--ablate kr`, `split`): velocity zeros;
-          covariance residual, `R(q) exp(dr)` and `s exp(lambda_s ds)`; no blur sweep.
+        - Before the split, or `kinematic=False` (`--ablate kr`, `split`): velocity zeros (None
+          with `velocity=False`); covariance residual, `R(q) exp(dr)` and `s exp(lambda_s ds)`; no blur sweep.
         - K.R., `kr_form="convolve"` (the default): velocity `"physical"`, the central
           difference over `t +- h` with `h = dt max(e, 1/2) / 2` and C.F.'s fine residual shared
           (the coarse motion's), or `"paper"`, `dx / dt`; covariance residual
@@ -620,7 +622,7 @@ class KinematicsGS(nn.Module):
                 speed * dt, basis=cfg.basis, lambda_s=cfg.lambda_s, still_len=cfg.still_len)
         else:
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
-            v = None if skip_velocity else torch.zeros_like(x_t)
+            v = None if not velocity else torch.zeros_like(x_t)
             cov = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
         return Deformed(x_t, pack_covariance(cov), v, off.dx, sweep)
 

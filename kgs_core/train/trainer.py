@@ -285,7 +285,9 @@ class Trainer:
         next position is this one moved by that velocity over the frame interval: no second
         evaluation of the field (which cost 15-39 % of a step), it is what K.R.'s blur reads, and
         it does not see the time noise (the rendered position is at a jittered time; the
-        velocity hardly changes over one). Before that, the field at the next time."""
+        velocity hardly changes over one). Elsewhere (before the split, after K.R.'s mid-run
+        check turned it off, and in the D3DGS-like baseline throughout) the field at the next
+        time: one more evaluation over the dynamic Gaussians (7-15 % of a step on walk)."""
         j, flow = self.flows[frame.id]
         nxt = self.scene.train_frames[j]
         live = g.extras.get("dynamic_velocity")
