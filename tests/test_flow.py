@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -116,11 +117,12 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in tr.model.deform.parameters())
 
 
-def test_without_kr_velocity_the_flow_term_reads_where_the_model_puts_the_gaussians_next(tmp_path):
+def test_without_kr_velocity_the_flow_term_moves_own_line_gaussians_by_their_own_velocity(tmp_path):
     """Where K.R. computes no velocity (before the split, or after its mid-run check turned it
-    off) the flow term compares the flow with the model's own motion to the next frame, not
-    with a Gaussian standing still: moving the Gaussians' next positions changes the term, and
-    a training render hands it no velocity to read."""
+    off) a training render hands the flow term no velocity, and the term evaluates the field no
+    second time: a Gaussian on its own line moves by its `own_velocity` (changing it changes
+    the term), every other one is read as standing still (changing where the field would put
+    it next does not)."""
     from kgs_core.data.formats import load_scene
     from kgs_core.data.synth.generate import synthesize
     from kgs_core.model.render import render_model
@@ -134,21 +136,31 @@ def test_without_kr_velocity_the_flow_term_reads_where_the_model_puts_the_gaussi
     tr = Trainer(scene, tmp_path / "r", cfg, progress=False)
     tr.init_model()
     model, frame = tr.model, scene.train_frames[0]
-    for state in ("before the split", "K.R. turned off"):
-        if state == "K.R. turned off":
-            model.decompose(tau=-1.0, recompute=False)
-            model.config.kinematic = False
+
+    def term() -> float:
         out, g = render_model(model, frame.camera, frame.time, 0.5, scene.dt, velocity=False)
-        assert g.dynamic.any() and "dynamic_velocity" not in g.extras, state
-        with torch.no_grad():
-            term = float(tr.flow_term(frame, out, g))
-            positions = model.positions
-            model.positions = lambda idx, t, noise=0.0: (positions(idx, t, noise)[0] + 0.05, None)
-            try:
-                moved = float(tr.flow_term(frame, out, g))
-            finally:
-                del model.positions
-        assert abs(moved - term) > 1e-3 * term, (state, term, moved)
+        assert g.dynamic.any() and "dynamic_velocity" not in g.extras
+        return float(tr.flow_term(frame, out, g))
+
+    def field_elsewhere(idx, t, noise=0.0):
+        raise AssertionError("the flow term evaluated the field a second time")
+
+    with torch.no_grad():
+        model.positions = field_elsewhere
+        try:
+            before_split = term()
+            model.decompose(tau=-1.0, recompute=False)
+            model.config.kinematic = False  # what K.R.'s mid-run check does
+            own = torch.arange(len(model)) % 2 == 0
+            model.lifespan[own] = torch.tensor([frame.time, 1.0])
+            model.own_velocity[own] = 0.0
+            still = term()
+            model.own_velocity[own] = torch.tensor([0.3, 0.0, 0.0])
+            moving = term()
+        finally:
+            del model.positions
+    assert np.isfinite(before_split) and before_split > 0
+    assert abs(moving - still) > 1e-3 * still, (still, moving)
 
 
 def test_unproject_inverts_project():

@@ -279,24 +279,33 @@ class Trainer:
     def flow_term(self, frame: Frame, out: Rendered, g) -> torch.Tensor:
         """The flow term (train/flow.py) for the Gaussians that deform: their positions at this
         frame's time as rendered, and at the next frame's time, each under its own frame's
-        pose correction when poses are refined.
+        pose correction when poses are refined. The next position is the rendered one moved
+        over the frame interval by a velocity the step already has; the field is not evaluated
+        again (a second evaluation cost 15-39 % of a step):
 
-        Where K.R. computed the dynamic Gaussians' velocity (after the split, exposure > 0) the
-        next position is this one moved by that velocity over the frame interval: no second
-        evaluation of the field (which cost 15-39 % of a step), it is what K.R.'s blur reads, and
-        it does not see the time noise (the rendered position is at a jittered time; the
-        velocity hardly changes over one). Elsewhere (before the split, after K.R.'s mid-run
-        check turned it off, and in the D3DGS-like baseline throughout) the field at the next
-        time: one more evaluation over the dynamic Gaussians (7-15 % of a step on walk)."""
+        - where K.R. computed the dynamic Gaussians' velocity (after the split, exposure > 0),
+          that velocity: the term supervises what K.R.'s blur reads, and it does not see the
+          time noise (the rendered position is at a jittered time; the velocity hardly changes
+          over one);
+        - elsewhere (before the split, after K.R.'s mid-run check turned it off, the D3DGS-like
+          baseline throughout), a Gaussian on its own line (`spawned_motion="own"`) moves by its
+          `own_velocity`, and every other one is read as standing still, so that the flow
+          asks for the depth whose parallax explains it. Reading the field at the next time
+          instead was measured no better on walk (two seeds and the benchmark) and 18 % slower
+          (docs/real-footage.md, "An optical-flow term")."""
         j, flow = self.flows[frame.id]
         nxt = self.scene.train_frames[j]
+        model = self.model
         live = g.extras.get("dynamic_velocity")
         if live is not None:
             idx, v = live
-            x_next = self.model.params.means[idx] + g.offsets_dx[idx] + v * (nxt.time - frame.time)
         else:
             idx = torch.nonzero(g.dynamic).squeeze(1)
-            x_next = self.model.positions(idx, nxt.time)[0]
+            v = torch.zeros(len(idx), 3)
+            if model.config.spawned_motion == "own":
+                own = model.lifespan[idx, 1].isfinite()
+                v = torch.where(own[:, None], model.own_velocity[idx], v)
+        x_next = model.params.means[idx] + g.offsets_dx[idx] + v * (nxt.time - frame.time)
         # (g.means carry this frame's pose correction; the next positions get the next frame's.)
         res = flow_residual(g.means[idx], self.posed(x_next, nxt), camera_tensors(frame.camera),
                             camera_tensors(nxt.camera), flow, out.depth)
