@@ -520,8 +520,9 @@ class KinematicsGS(nn.Module):
             means = means.index_put((idx,), d.means)
             cov6 = cov6.index_put((idx,), d.covars6)
             velocities = None if d.velocity is None else velocities.index_put((idx,), d.velocity.detach())
-            # Differentiable, for the flow term (train/flow.py); only where K.R. measured it: the
-            # zeros without K.R. would tell every moving Gaussian to stand still.
+            # Differentiable, for the flow term (train/flow.py), and only where K.R. computed it:
+            # without K.R. the zeros are no measurement (`Trainer.flow_term` reads the motion
+            # the step has instead).
             if d.velocity is not None and self.config.kinematic and self.decomposed:
                 extras["dynamic_velocity"] = (idx, d.velocity)
             dx_all = dx_all.index_put((idx,), d.dx)
