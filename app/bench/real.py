@@ -90,7 +90,7 @@ def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) ->
         ss.append(float(ssim(img, gt)))
         if mask.any():
             mps.append(psnr(img, gt, torch.from_numpy(mask)))
-            detail += (gradient_energy(img.numpy(), mask), gradient_energy(f.image(), mask))
+            detail += (gradient_energy(img.numpy(), mask), gradient_energy(gt.numpy(), mask))
             s = masked_ssim(img, gt, mask)
             if s is not None:
                 mss.append(s)
