@@ -65,7 +65,7 @@ class Trajectories:
             m = self.model
             n = max(2, int(round(1.0 / max(self.view.dt, 1e-3))) + 1)
             times = np.linspace(0.0, 1.0, n)
-            means, covs, vels = [], [], []
+            means, covs, vels, sampled_opacities = [], [], [], []
             for t in times:
                 if self.view.version != version or _STOP.is_set():
                     return  # superseded by a tau change or an edit, or shutting down
@@ -75,7 +75,13 @@ class Trajectories:
                 means.append(g.means.numpy())
                 covs.append(g.covars6.numpy())
                 vels.append(g.velocity.numpy())
+                if m.time_opacity is not None:
+                    sampled_opacities.append((m.params.opacities[idx] * m.opacity_factor(idx, float(t))).numpy())
             self.idx = idx.numpy()
+            # With a time opacity, the opacities per sample (None without it), interpolated like
+            # the means and only then quantised: its factor can raise an opacity, so scaling the
+            # 8-bit alpha instead would lose a nearly transparent Gaussian it makes opaque.
+            self.sampled_opacities = np.stack(sampled_opacities).astype(np.float32) if sampled_opacities else None
             self.means, self.cov6, self.vels = np.stack(means), np.stack(covs), np.stack(vels)
             # Opacities before the lifespan's presence factor, which `buffer` applies at its t
             # (exact, not interpolated: it is a narrow Gaussian in time).
@@ -110,13 +116,15 @@ class Trajectories:
                     "cov6": torch.from_numpy(np.clip(cov6 / scale, -F16_MAX, F16_MAX, dtype=np.float32)),
                     "vels": torch.from_numpy(np.clip(cut(self.vels), -F16_MAX, F16_MAX, dtype=np.float32)),
                     "rgba": self.rgba[sel], "index": self.idx[sel].astype(np.uint32),
+                    "sampled_opacities": (None if self.sampled_opacities is None else
+                                          torch.from_numpy(np.ascontiguousarray(cut(self.sampled_opacities)))),
                     "lifespan": self.lifespan[sel]}
-                self.means = self.cov6 = self.vels = None  # only the cut is read from here on
+                self.means = self.cov6 = self.vels = self.sampled_opacities = None  # only the cut is read from here on
             return self._kept_samples
 
     def nbytes(self) -> int:
         """Memory held by the samples (and their kept cut, once made)."""
-        arrays = [self.means, self.cov6, self.vels, *(self._kept_samples or {}).values()]
+        arrays = [self.means, self.cov6, self.vels, self.sampled_opacities, *(self._kept_samples or {}).values()]
         arrays = [a.numpy() if isinstance(a, torch.Tensor) else a for a in arrays]
         return sum({id(a): a.nbytes for a in arrays if isinstance(a, np.ndarray)}.values())
 
@@ -134,7 +142,12 @@ class Trajectories:
         buf, rec, vel = new_buffer(header, len(kept["index"]), velocity, kept["scale"])
         lerp_into(kept["means"], rec["position"])
         lerp_into(kept["cov6"], rec["covariance"])
-        rec["rgba"] = presence_rgba(kept["rgba"], kept["lifespan"], t)
+        rgba = kept["rgba"]
+        if kept["sampled_opacities"] is not None:
+            rgba = rgba.copy()
+            opacity = torch.lerp(kept["sampled_opacities"][k], kept["sampled_opacities"][k + 1], w).numpy()
+            rgba[:, 3] = np.clip(opacity * 255 + 0.5, 0, 255).astype(np.uint8)
+        rec["rgba"] = presence_rgba(rgba, kept["lifespan"], t)
         rec["index"] = kept["index"]
         if vel is not None:
             lerp_into(kept["vels"], vel)

@@ -175,6 +175,29 @@ def test_splatv_carries_each_gaussians_lifespan(tiny_run):
     assert bake(src, 0.5).opacities[some[0]] < 1e-3 * float(m.params.opacities.detach()[some[0]])  # gone far from 0.2
 
 
+def test_splatv_averages_a_time_opacity_over_the_clip(tiny_run):
+    """With `model.time_opacity` a Gaussian's opacity changes with time, which splaTV's format
+    cannot hold for a Gaussian present at every time: it plays at its mean over the fitted
+    times (not at its value at the format's centre time)."""
+    import torch
+
+    from kgs_core.export.splatv import decode_splatv_words, evaluate_splatv, fit_splatv
+    from kgs_core.model.deformation import TimeOpacity
+    from kgs_core.run import load_run
+
+    run = load_run(tiny_run)
+    m = run.model
+    m.time_opacity = TimeOpacity(m.config.feature_dim)
+    with torch.no_grad():
+        m.time_opacity.mlp[-1].weight.normal_(0, 2.0, generator=torch.Generator().manual_seed(0))
+    src = open_source(run)
+    times = list(np.linspace(0, 1, 9))
+    words, _ = fit_splatv(src, times, progress=False)
+    _, _, opacity = evaluate_splatv(decode_splatv_words(words), 0.5)
+    baked = np.stack([bake(src, float(t)).opacities for t in times])
+    np.testing.assert_allclose(opacity, baked.mean(0), atol=0.01)
+    assert np.abs(baked[4] - baked.mean(0)).max() > 0.05  # the centre time alone would differ
+
 def test_splatv_cameras_are_display_sized_and_the_suffix_is_added(tiny_run, tmp_path):
     """splaTV reads fx against its window width: the cameras keep the training field of view at
     a display-sized width; `--out NAME` without the suffix writes NAME.splatv."""

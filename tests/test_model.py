@@ -637,3 +637,34 @@ def test_kr_effect_measures_the_blur_and_says_when_it_does_nothing(tmp_path):
     assert with_camera["changed_share"] > long["changed_share"] + 0.05, (with_camera, long)
     still = kr_effect(m, frames, exposure=1e-3, dt=0.2, camera_motion=lambda f: slide)
     assert "of the camera" in kr_effect_note(still), kr_effect_note(still)
+
+
+def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_time_only():
+    """`ModelConfig.time_opacity`: zero-initialised, every dynamic Gaussian is as opaque at every
+    time as without it; trained, one Gaussian can fade at one time and stay at another; spawned
+    Gaussians (a bounded lifespan) and the exact and dynamic-only evaluations agree; a save
+    keeps it."""
+    plain = moving_model(seed=3)
+    m = moving_model(seed=3, time_opacity=True)
+    with torch.no_grad():
+        assert torch.equal(m.at(0.4, velocity=False).opacities, plain.at(0.4, velocity=False).opacities)
+    m.lifespan[5] = torch.tensor([0.5, 0.1])  # one spawned Gaussian: its lifespan, not the net
+    before = m.params.opacities.detach().clone()
+    with torch.no_grad():  # features as training leaves them: one per Gaussian
+        m.params.features.normal_(generator=torch.Generator().manual_seed(0))
+    opt = torch.optim.Adam([*m.time_opacity.parameters(), m.params.features], lr=0.02)
+    for _ in range(150):
+        early, late = m.at(0.2, velocity=False).opacities / before, m.at(0.8, velocity=False).opacities / before
+        loss = early[0] + (late[0] - 1) ** 2 + ((early[1:5] - 1) ** 2).sum()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        early, late = m.at(0.2, velocity=False).opacities, m.at(0.8, velocity=False).opacities
+        assert early[0] < 0.2 * before[0] and abs(late[0] - before[0]) < 0.1 * before[0]
+        assert torch.allclose(early[1:5], before[1:5], atol=0.05)
+        assert float(m.opacity_factor(torch.tensor([5]), 0.2)) == 1.0
+        idx, dyn = m.at_dynamic(0.2, velocity=False)
+        assert torch.allclose(dyn.opacities, early[idx], atol=1e-6)
+        loaded = KinematicsGS.from_state(m.state())
+        assert torch.allclose(loaded.at(0.2, velocity=False).opacities, early, atol=1e-6)

@@ -140,6 +140,10 @@ def test_settings_follow_the_clip(walk):
     assert cfg.resplit_to_dynamic is False and "resplit_to_dynamic" in cfg.fitted
     assert make_config("fast", scene=no_ingest).resplit_to_dynamic is True
     assert make_config("fast", scene=walk, resplit_to_dynamic=True).resplit_to_dynamic is True
+    # ... and with an opacity that varies in time for the dynamic Gaussians.
+    assert cfg.model.time_opacity is True and "model.time_opacity" in cfg.fitted
+    assert make_config("fast", scene=no_ingest).model.time_opacity is False
+    assert make_config("fast", scene=walk, **{"model.time_opacity": False}).model.time_opacity is False
 
 
 def test_equal_time_mean_covers_seeds_that_needed_no_retraining():

@@ -521,6 +521,36 @@ def test_trajectory_cache_fades_gaussians_present_for_part_of_the_clip_as_the_mo
             assert alpha[row[int(some[1])]] == 0 and alpha[row[int(some[3])]] == round(full * np.exp(-0.5 * (2 / 3) ** 2))
 
 
+
+def test_trajectory_cache_gives_a_time_opacity_the_alpha_the_model_does(copy_run):
+    """With `model.time_opacity` the dynamic Gaussians' alpha changes with time: the cache
+    samples it with the positions, so that its buffers at the samples give the exact
+    evaluation's alpha, and between them an interpolation of it."""
+    import torch
+
+    from kgs_core.model.deformation import TimeOpacity
+    from kgs_core.run_view import RunView
+
+    view = RunView(copy_run)
+    lod = view.run.n_levels
+    m = view.run.model
+    m.time_opacity = TimeOpacity(m.config.feature_dim)
+    with torch.no_grad():
+        m.time_opacity.mlp[-1].weight.normal_(0, 2.0, generator=torch.Generator().manual_seed(0))
+    view.trajectories(lod, 0.0)
+    cache = view._trajectories[(lod, view.version, 0.0)]
+    assert cache.ready.wait(60)
+    spread = []
+    for t in (float(cache.times[3]), float(cache.times[7])):
+        h, rec, _ = unpack_buffer(view.dynamic_buffer(t))
+        he, rec_e, _ = unpack_buffer(view.dynamic_buffer(t, exact=True))
+        assert h["interpolated"] and np.array_equal(rec["index"], rec_e["index"])
+        alpha, alpha_e = rec["rgba"][:, 3].astype(int), rec_e["rgba"][:, 3].astype(int)
+        assert np.abs(alpha - alpha_e).max() <= 1
+        spread.append(alpha_e)
+    assert np.abs(spread[0] - spread[1]).max() > 20  # the net does change alpha with time
+
+
 # ------------------------------------------------------------ hostile clients
 
 

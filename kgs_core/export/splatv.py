@@ -18,7 +18,8 @@ The player evaluates at time `t`: `dt = t - centre`, position `p + m1 dt + m2 dt
 rotation `normalize(q + omega dt)`, opacity `A exp(-(dt / scale)^2)`. Our trajectories come from a
 deformation field, so we *fit* that model per Gaussian (least squares over sampled times) and
 report how far the fit is from the real trajectories (`SplatvFit`). Scales are constant in this
-format: time-varying scale (the deformation's `ds`, kinematic elongation) is averaged.
+format: time-varying scale (the deformation's `ds`, kinematic elongation) is averaged, and so
+is a time-varying opacity (`model.time_opacity`) of the Gaussians present at every time.
 """
 
 from __future__ import annotations
@@ -101,10 +102,11 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
     means = np.empty((len(times), n, 3))
     quats = np.empty((len(times), n, 4))
     variances = np.empty((len(times), n, 3))
+    opacities = np.empty((len(times), n))
     for k, t in enumerate(tqdm(times, desc="splatv: sample trajectories", disable=not progress, unit="t")):
         g = bake(source, float(t), exposure) if source.moves else ref
         R, var = _aligned_rotations(g.covars, ref_axes)
-        means[k], variances[k], quats[k] = g.means, var, rotmat_to_quat(R)
+        means[k], variances[k], quats[k], opacities[k] = g.means, var, rotmat_to_quat(R), g.opacities
     q_ref = rotmat_to_quat(ref_axes)
     hemisphere = np.sign(np.einsum("tni,ni->tn", quats, q_ref))  # q and -q are one rotation
     hemisphere[hemisphere == 0] = 1
@@ -129,6 +131,8 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
     life = source.model.lifespan[torch.from_numpy(source.keep)].numpy().astype(np.float64)
     bounded = np.isfinite(life[:, 1])
     opacity = ref.opacities.astype(np.float64).copy()
+    if source.model.time_opacity is not None:  # time-varying opacity is averaged, as scale is
+        opacity[~bounded] = opacities.mean(0)[~bounded]
     opacity[bounded] = source.model.params.opacities.detach()[torch.from_numpy(source.keep)].numpy()[bounded]
     centre, trbf = np.full(n, TIME_CENTRE), np.full(n, TRBF_SCALE)
     centre[bounded], trbf[bounded] = life[bounded, 0], np.sqrt(2.0) * life[bounded, 1]

@@ -152,6 +152,21 @@ class FineResidual(nn.Module):
         return Offsets.split(self.mlp(torch.cat([features, fourier_time(t, self.n_freqs)], -1)))
 
 
+class TimeOpacity(nn.Module):
+    """`o_phi(f_i, gamma(t))`: an offset (N,) to each dynamic Gaussian's opacity logit at time
+    `t`, from the fine residual's per-Gaussian feature. Zero at the start (the last layer is
+    zero-initialised): every Gaussian is as opaque at every time as the paper's, until the loss
+    fades one where the field puts it wrong (a ghost of a head the field could not follow)."""
+
+    def __init__(self, feature_dim: int = 16, width: int = 64, n_freqs: int = 6):
+        super().__init__()
+        self.n_freqs = n_freqs
+        self.mlp = _mlp(feature_dim + 1 + 2 * n_freqs, width, 1, depth=1)
+
+    def forward(self, features: Tensor, t: Tensor) -> Tensor:
+        return self.mlp(torch.cat([features, fourier_time(t, self.n_freqs)], -1))[:, 0]
+
+
 @dataclass
 class TimeNoise:
     """Appendix B: sigma(k) = w(k) [sigma_init (1 - kappa) + sigma_final kappa], kappa = k / K_max,

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 from ..render import packed_covariance
 from ..render.covariance import normalize_quats, pack_covariance, quat_to_rotmat, unpack_covariance
 from ..schema import check_choices, from_fields, json_object
-from .deformation import DeformationField, FineResidual, Offsets
+from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
 from .gaussians import GaussianParams, append, select
 from .kinematics import (
     Basis,
@@ -50,6 +50,11 @@ class ModelConfig:
     tau: float = 2e-5  # dynamic when the temporal variance K of dx exceeds tau
     variance_times: int = 16  # T, times at which K is evaluated
     coarse_to_fine: bool = True  # C.F.
+    # After the split, each dynamic Gaussian the field moves gets an opacity that varies in
+    # time (`TimeOpacity`, from its fine-residual feature), so the loss can fade it at the
+    # times the field puts it wrong. Off in the paper; fit_to_scene turns it on for video
+    # ingests (docs/real-footage.md, "Opacity that varies in time").
+    time_opacity: bool = False
     kinematic: bool = True  # K.R.
     velocity: Velocity = "physical"
     # False: the physical velocity's two extra field samples are taken without gradients, so
@@ -147,6 +152,7 @@ class KinematicsGS(nn.Module):
         self.deform = DeformationField(c.deform_spatial, c.deform_temporal, c.deform_features, c.deform_multires,
                                        c.deform_width, c.deform_depth, c.bound)
         self.fine = FineResidual(c.feature_dim)
+        self.time_opacity = TimeOpacity(c.feature_dim) if c.time_opacity else None
         self.kappa = nn.Parameter(torch.tensor(float(c.kappa_init)))
         n = len(params)
         self.decomposed = False  # before the split every Gaussian deforms
@@ -171,7 +177,9 @@ class KinematicsGS(nn.Module):
 
     def network_parameters(self) -> dict[str, list[Tensor]]:
         return {"grid": list(self.deform.planes.parameters()), "deform_mlp": list(self.deform.mlp.parameters()),
-                "fine_mlp": list(self.fine.parameters()), "kappa": [self.kappa]}
+                "fine_mlp": list(self.fine.parameters()) + ([] if self.time_opacity is None else
+                                                            list(self.time_opacity.parameters())),
+                "kappa": [self.kappa]}
 
     # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
     # dynamic flags, K, lifespans and own velocities, and a strategy's statistics held by the
@@ -531,7 +539,10 @@ class KinematicsGS(nn.Module):
                 sweep = (None, sweep_all.index_put((idx,), rows))
             elif d.sweep is not None:
                 sweep = (idx, d.sweep)
-        return GaussiansAt(means=means, covars6=cov6, opacities=self.present(p.opacities, t), sh=p.sh(),
+        opacities = self.present(p.opacities, t)
+        if self.time_opacity is not None and self.decomposed and len(idx):
+            opacities = opacities.index_put((idx,), opacities[idx] * self.opacity_factor(idx, t))
+        return GaussiansAt(means=means, covars6=cov6, opacities=opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocities, offsets_dx=dx_all, sweep=sweep, extras=extras)
 
@@ -548,11 +559,27 @@ class KinematicsGS(nn.Module):
             d = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
         else:
             d = Deformed(p.means[idx], cov6, torch.zeros(0, 3), torch.zeros(0, 3), None)
-        return idx, GaussiansAt(means=d.means, covars6=d.covars6, opacities=self.present(p.opacities, t)[idx],
+        opacities = self.present(p.opacities, t)[idx] * self.opacity_factor(idx, t)
+        return idx, GaussiansAt(means=d.means, covars6=d.covars6, opacities=opacities,
                                 sh=p.sh()[idx],
                                 dynamic=torch.ones(len(idx), dtype=torch.bool),
                                 velocity=None if d.velocity is None else d.velocity.detach(), offsets_dx=d.dx,
                                 sweep=None if d.sweep is None else (None, d.sweep))
+
+    def opacity_factor(self, idx: Tensor, t: float) -> Tensor:
+        """`(len(idx),)` factor on the opacities of the Gaussians `idx` (the dynamic set) at
+        `t` from `TimeOpacity` (`config.time_opacity`): sigmoid(logit + o(t)) / sigmoid(logit)
+        for those the field moves after the split, 1 for the rest (spawned ones on their own
+        line have their `lifespan` instead) and everywhere without it."""
+        ones = torch.ones(len(idx))
+        if self.time_opacity is None or not self.decomposed or not len(idx):
+            return ones
+        rows = torch.nonzero(~self.lifespan[idx, 1].isfinite()).squeeze(1)
+        logit = self.params.opacity_logits[idx[rows]]
+        offset = self.time_opacity(self.params.features[idx[rows]], torch.full((len(rows),), float(t)))
+        # sigmoid(l + o) / sigmoid(l), in logs: no 0 / 0 for a nearly transparent Gaussian.
+        F = torch.nn.functional
+        return ones.index_put((rows,), torch.exp(F.logsigmoid(logit + offset) - F.logsigmoid(logit)))
 
     def present(self, opacities: Tensor, t: float) -> Tensor:
         """`opacities (N,)` scaled by each Gaussian's presence at `t` (`lifespan`); unchanged

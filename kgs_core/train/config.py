@@ -331,7 +331,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
       loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
       the field still loses (docs/real-footage.md, "Spawned Gaussians");
-    * resplit_to_dynamic: False on a video ingest (docs/method.md, "Splits in place")."""
+    * resplit_to_dynamic: False on a video ingest (docs/method.md, "Splits in place");
+    * model.time_opacity: on for a video ingest, where the field leaves ghosts of what it
+      could not follow (docs/real-footage.md, "Opacity that varies in time")."""
     n_frames = len(scene.train_frames)
     cam = scene.train_frames[0].camera
     pixels = cam.width * cam.height
@@ -371,6 +373,11 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         fitted["resplit_to_dynamic"] = ("False: a video ingest; a re-split turns no static Gaussian dynamic, since "
                                         "the field's motion where it sits was never fitted to it "
                                         "(--set resplit_to_dynamic=true allows it)")
+    if "model.time_opacity" not in explicit and not m.time_opacity and "ingest" in scene.extras and n_frames > 1:
+        cfg.model = m = replace(m, time_opacity=True)
+        fitted["model.time_opacity"] = ("True: a video ingest; the dynamic Gaussians' opacity varies in time, so "
+                                        "that the loss can fade a ghost the field leaves (--set "
+                                        "model.time_opacity=false turns it off)")
     cfg.fitted = fitted
     return cfg
 
