@@ -106,6 +106,7 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     torch.nn.Module.__init__(view)
     view.config = model.config
     view.deform, view.fine, view.kappa = model.deform, model.fine, model.kappa
+    view.time_opacity = model.time_opacity
     view.params = GaussianParams(**snap["params"])
     view.decomposed = model.decomposed
     view.dynamic = snap["dynamic"]
