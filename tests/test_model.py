@@ -668,3 +668,9 @@ def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_t
         assert torch.allclose(dyn.opacities, early[idx], atol=1e-6)
         loaded = KinematicsGS.from_state(m.state())
         assert torch.allclose(loaded.at(0.2, velocity=False).opacities, early, atol=1e-6)
+        # A LoD level's view (built by hand, sharing the networks) fades it as the model does.
+        from kgs_core.run import level_view
+
+        snap = {"params": {k: v.detach() for k, v in m.params.items()}, "dynamic": m.dynamic,
+                "variance": m.variance, "lifespan": m.lifespan, "own_velocity": m.own_velocity, "min_scale": 0.0}
+        assert torch.allclose(level_view(m, snap).at(0.2, velocity=False).opacities, early, atol=1e-6)
