@@ -102,11 +102,12 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     from .model.dynamic import checked_knn, unbounded_lifespan
     from .model.gaussians import GaussianParams
 
+    # Everything of the model's (its config and every network, whichever it has) is shared; the
+    # per-Gaussian state below is the snapshot's. The module tables are copied, so that giving
+    # the view its own Gaussians leaves the model's alone.
     view = KinematicsGS.__new__(KinematicsGS)
-    torch.nn.Module.__init__(view)
-    view.config = model.config
-    view.deform, view.fine, view.kappa = model.deform, model.fine, model.kappa
-    view.time_opacity = model.time_opacity
+    view.__dict__.update(model.__dict__)
+    view._modules, view._parameters, view._buffers = dict(model._modules), dict(model._parameters), dict(model._buffers)
     view.params = GaussianParams(**snap["params"])
     view.decomposed = model.decomposed
     view.dynamic = snap["dynamic"]

@@ -207,6 +207,42 @@ def test_sharp_render_skips_the_velocity_only_where_nothing_depends_on_it(kr_for
         assert torch.allclose(lean_dyn.covars6, full.covars6, rtol=1e-4, atol=1e-9)
 
 
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_residual_covariance_equals_the_rotation_matrix_form_with_its_gradients(backend, monkeypatch):
+    """The deformed covariance composes `R(q) exp(dr)` as quaternions and packs it in one op;
+    it must equal the matrix form `M Mᵀ`, `M = R(q) so3_exp(dr) diag(s exp(λ ds))`, in value
+    and gradient, for rotations from zero (the series branches) to beyond pi, and for
+    unnormalised quaternions."""
+    import kgs_core.model.dynamic as dyn
+    from kgs_core.model.kinematics import so3_exp
+    from kgs_core.render.covariance import quat_to_rotmat
+
+    monkeypatch.setattr(dyn, "packed_covariance", lambda q, s: packed_covariance(q, s, backend=backend))
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    quats = (torch.randn(n, 4, generator=g) * 2).requires_grad_(True)
+    scales = (torch.rand(n, 3, generator=g) * 0.2 + 0.01).requires_grad_(True)
+    angles = torch.cat([torch.zeros(4), torch.full((4,), 1e-7), torch.full((4,), 1e-4),
+                        torch.rand(n - 16, generator=g) * 3.0, torch.tensor([3.3, 3.6, 4.0, 6.0])])
+    axes = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    dr = (axes * angles[:, None]).requires_grad_(True)
+    ds = (torch.randn(n, 3, generator=g) * 0.5).requires_grad_(True)
+    weights = torch.randn(n, 6, generator=g)
+
+    def grads(cov6):
+        for t in (quats, scales, dr, ds):
+            t.grad = None
+        (cov6 * weights).sum().backward()
+        return cov6.detach(), [t.grad.clone() for t in (quats, scales, dr, ds)]
+
+    got, got_grads = grads(dyn.residual_covariance(quats, scales, Offsets(torch.zeros(n, 3), dr, ds), 0.1))
+    M = quat_to_rotmat(quats) @ so3_exp(dr) * (scales * torch.exp(0.1 * ds))[:, None, :]
+    want, want_grads = grads(pack_covariance(M @ M.transpose(-1, -2)))
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-8)
+    for a, b in zip(got_grads, want_grads):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-5)
+
+
 def test_packed_covariances_through_the_model_match_the_full_matrices():
     """Static Gaussians: the packed C++ covariance equals `R S S^T R^T` in PyTorch; a render
     from packed `(N, 6)` covariances equals one from `(N, 3, 3)`, gradients included."""
@@ -407,8 +443,8 @@ def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
     assert float(jumped[turned].min()) > 1e-3  # ... where a plain split makes them jump
     # Their covariance is the deformed one at the mean offsets.
     with torch.no_grad():
-        was = residual_covariance(plain.params.quats[turned], plain.scales()[turned],
-                                  Offsets.split(off0[turned]), moved.config.lambda_s)
+        was = unpack_covariance(residual_covariance(plain.params.quats[turned], plain.scales()[turned],
+                                                    Offsets.split(off0[turned]), moved.config.lambda_s))
         now = covariance_from_quat_scale(moved.params.quats[turned], moved.scales()[turned])
     torch.testing.assert_close(now, was, atol=1e-6, rtol=1e-4)
     # The ones that stay dynamic: on average nearer where they were than after a plain split.
@@ -674,3 +710,10 @@ def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_t
         snap = {"params": {k: v.detach() for k, v in m.params.items()}, "dynamic": m.dynamic,
                 "variance": m.variance, "lifespan": m.lifespan, "own_velocity": m.own_velocity, "min_scale": 0.0}
         assert torch.allclose(level_view(m, snap).at(0.2, velocity=False).opacities, early, atol=1e-6)
+        # It shares every network the model has, and a view of fewer Gaussians leaves the model's alone.
+        few = level_view(m, {**snap, "params": {k: v[:3] for k, v in snap["params"].items()},
+                             "dynamic": m.dynamic[:3], "variance": m.variance[:3], "lifespan": m.lifespan[:3],
+                             "own_velocity": m.own_velocity[:3]})
+        assert len(few) == 3 and len(m) == len(before) and len(few.at(0.2, velocity=False).opacities) == 3
+        assert all(getattr(few, name) is net for name, net in m.named_children() if name != "params")
+        assert few.kappa is m.kappa and m.params.means.shape[0] == len(before)

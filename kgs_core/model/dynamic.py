@@ -23,13 +23,11 @@ from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
 from .gaussians import GaussianParams, append, select
 from .kinematics import (
     Basis,
-    motion_blur_covariance,
     motion_blur_covariance_packed,
     quat_multiply,
     refine_covariance,
     rotvec_to_quat,
     safe_norm,
-    so3_exp,
 )
 
 Velocity = Literal["paper", "physical"]
@@ -637,22 +635,22 @@ class KinematicsGS(nn.Module):
         sweep = None
         if kinematic and cfg.kr_form == "convolve":
             v_rel = v if camera_motion is None else v + x_t.detach() @ camera_motion[0].T + camera_motion[1]
-            cov = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), v_rel,
-                                         dt * exposure)
-            if exposure > 0:
-                sweep = v_rel * (dt * exposure)
+            sweep = v_rel * (dt * exposure)
+            cov6 = motion_blur_covariance_packed(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), sweep)
+            if not exposure > 0:
+                sweep = None
         elif kinematic:
             speed = safe_norm(v)
             R = quat_to_rotmat(p.quats[idx])
             r_z = torch.gather(R, 2, scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
-            cov = refine_covariance(
+            cov6 = pack_covariance(refine_covariance(
                 unpack_covariance(cov6_pred), v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa,
-                speed * dt, basis=cfg.basis, lambda_s=cfg.lambda_s, still_len=cfg.still_len)
+                speed * dt, basis=cfg.basis, lambda_s=cfg.lambda_s, still_len=cfg.still_len))
         else:
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
             v = None if not velocity else torch.zeros_like(x_t)
-            cov = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
-        return Deformed(x_t, pack_covariance(cov), v, off.dx, sweep)
+            cov6 = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
+        return Deformed(x_t, cov6, v, off.dx, sweep)
 
     def at_static(self) -> GaussiansAt:
         """The canonical Gaussians, no deformation (the static 3DGS baseline)."""
@@ -827,11 +825,13 @@ def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float,
 
 
 def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: float) -> Tensor:
-    """D3DGS-style deformed covariance: canonical rotation times `exp(dr)`, scales times
-    `exp(lambda_s ds)`."""
-    R = quat_to_rotmat(quats) @ so3_exp(off.dr)
-    M = R * (scales * torch.exp(lambda_s * off.ds))[:, None, :]
-    return M @ M.transpose(-1, -2)
+    """D3DGS-style deformed covariance, packed `(N, 6)`: canonical rotation times `exp(dr)`,
+    scales times `exp(lambda_s ds)`. The rotations compose as quaternions and the covariance is
+    `packed_covariance`'s (C++ when built): the same values as `R(q) so3_exp(dr)` and `M Mᵀ` in
+    torch to float rounding, at a third of the time of the batched 3x3 products, which are slow
+    on the CPU (15 ms a step of walk's 24k dynamic Gaussians, docs/method.md)."""
+    rotation = quat_multiply(normalize_quats(quats), rotvec_to_quat(off.dr))
+    return packed_covariance(rotation, scales * torch.exp(lambda_s * off.ds))
 
 
 def otsu_tau(variance: Tensor, floor: float, bins: int = 128) -> float:
