@@ -103,11 +103,14 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     from .model.gaussians import GaussianParams
 
     # Everything of the model's (its config and every network, whichever it has) is shared; the
-    # per-Gaussian state below is the snapshot's. The module tables are copied, so that giving
-    # the view its own Gaussians leaves the model's alone.
+    # per-Gaussian state below is the snapshot's. The view is a fresh Module (its own hook and
+    # module tables), so that giving it its own Gaussians leaves the model's alone.
     view = KinematicsGS.__new__(KinematicsGS)
-    view.__dict__.update(model.__dict__)
-    view._modules, view._parameters, view._buffers = dict(model._modules), dict(model._parameters), dict(model._buffers)
+    torch.nn.Module.__init__(view)
+    view.__dict__.update({k: v for k, v in model.__dict__.items() if k not in view.__dict__})
+    view._modules.update(model._modules)
+    view._parameters.update(model._parameters)
+    view._buffers.update(model._buffers)
     view.params = GaussianParams(**snap["params"])
     view.decomposed = model.decomposed
     view.dynamic = snap["dynamic"]

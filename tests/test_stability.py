@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from kgs_core.model.kinematics import kinematic_basis, motion_blur_covariance, refine_covariance, so3_exp
 from kgs_core.render import rasterize
 from kgs_core.render.camera import intrinsics, look_at
-from kgs_core.render.covariance import quat_to_rotmat
+from kgs_core.render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
 from kgs_core.render.sh import sh_basis
 
 BASES = ("paper", "duff", "principal")
@@ -93,9 +93,10 @@ def test_motion_blur_covariance_is_the_second_moment_of_the_moving_gaussian():
     L = torch.linalg.cholesky(sigma[0])
     pts = torch.randn(n, 3, generator=g, dtype=f64) @ L.T + torch.rand(n, 1, generator=g, dtype=f64) * exposure_time * v
     empirical = torch.cov(pts.T)
-    predicted = motion_blur_covariance(sigma, v, exposure_time)[0]
+    predicted = unpack_covariance(motion_blur_covariance(pack_covariance(sigma), v * exposure_time))[0]
     assert torch.allclose(empirical, predicted, atol=3e-3 * predicted.abs().max().item())
-    assert torch.equal(motion_blur_covariance(sigma, v, 0.0), sigma)  # sharp render: untouched
+    cov6 = pack_covariance(sigma)
+    assert torch.equal(motion_blur_covariance(cov6, v * 0.0), cov6)  # sharp render: untouched
 
 
 @settings(max_examples=40, deadline=None)
@@ -105,7 +106,7 @@ def test_motion_blur_covariance_spd_with_finite_gradients(seed, mag, sigma_scale
     n = 4
     v = (unit(seed, n) * mag).requires_grad_(True)
     sigma = spd(seed, n, sigma_scale).requires_grad_(True)
-    out = motion_blur_covariance(sigma, v, exposure)
+    out = unpack_covariance(motion_blur_covariance(pack_covariance(sigma), v * exposure))
     assert torch.isfinite(out).all()
     assert torch.allclose(out, out.transpose(-1, -2), rtol=0, atol=0)
     evals = torch.linalg.eigvalsh(out)

@@ -86,7 +86,7 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     import kgs_core.model.dynamic as dyn
 
     # K.R. in either form: the convolve form (the default) or the paper's eqs. 9-14.
-    refine = count_calls(monkeypatch, dyn, "motion_blur_covariance_packed")
+    refine = count_calls(monkeypatch, dyn, "motion_blur_covariance")
     refine_paper = count_calls(monkeypatch, dyn, "refine_covariance")
     # A tiny tau so that the split leaves dynamic Gaussians for C.F. and K.R. to act on.
     cfg = tiny_config(iterations=70, ablate=tuple(a for a in [ablate] if a), lod_levels=1, lod_fractions=(1.0,),

@@ -23,7 +23,7 @@ from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
 from .gaussians import GaussianParams, append, select
 from .kinematics import (
     Basis,
-    motion_blur_covariance_packed,
+    motion_blur_covariance,
     quat_multiply,
     refine_covariance,
     rotvec_to_quat,
@@ -517,7 +517,7 @@ class KinematicsGS(nn.Module):
             # dense, since most of N is static and gathering the static rows cost milliseconds.
             A, b = camera_motion
             sweep_all = (means.detach() @ A.T + b) * (dt * exposure)
-            cov6 = motion_blur_covariance_packed(cov6, sweep_all)
+            cov6 = motion_blur_covariance(cov6, sweep_all)
         sweep = None if sweep_all is None else (None, sweep_all)
         extras = {}
         if len(idx):
@@ -636,7 +636,7 @@ class KinematicsGS(nn.Module):
         if kinematic and cfg.kr_form == "convolve":
             v_rel = v if camera_motion is None else v + x_t.detach() @ camera_motion[0].T + camera_motion[1]
             sweep = v_rel * (dt * exposure)
-            cov6 = motion_blur_covariance_packed(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), sweep)
+            cov6 = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), sweep)
             if not exposure > 0:
                 sweep = None
         elif kinematic:
@@ -828,8 +828,8 @@ def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: f
     """D3DGS-style deformed covariance, packed `(N, 6)`: canonical rotation times `exp(dr)`,
     scales times `exp(lambda_s ds)`. The rotations compose as quaternions and the covariance is
     `packed_covariance`'s (C++ when built): the same values as `R(q) so3_exp(dr)` and `M Mᵀ` in
-    torch to float rounding, at a third of the time of the batched 3x3 products, which are slow
-    on the CPU (15 ms a step of walk's 24k dynamic Gaussians, docs/method.md)."""
+    torch to float rounding, without the batched 3x3 products, which are slow on a CPU (a sixth
+    of a real training step; docs/results.md, "Training speed")."""
     rotation = quat_multiply(normalize_quats(quats), rotvec_to_quat(off.dr))
     return packed_covariance(rotation, scales * torch.exp(lambda_s * off.ds))
 

@@ -162,27 +162,21 @@ def refine_covariance(
     return (1 - w) * sigma + w * sigma_kin
 
 
-def motion_blur_covariance(sigma: Tensor, v: Tensor, exposure_time: float | Tensor) -> Tensor:
-    """`(N, 3, 3)` covariance of a Gaussian that moves with velocity `v (N, 3)` for
-    `exposure_time` (in the units of `v`'s time), averaged over the exposure: `sigma` convolved
-    with a uniform segment of length `L = |v| exposure_time` along `v`, matched in its second
-    moment: `sigma + (L^2 / 12) u u^T = sigma + exposure_time^2 / 12 * v v^T`.
-
-    The `convolve` form of the kinematic refinement (docs/method.md): blur becomes elongation
-    along the motion as in the paper, but without projecting `sigma` onto the kinematic frame
-    (which drops its off-diagonal terms), so a sharp render (`exposure_time = 0`) is exactly
-    `sigma` and the form needs no basis: it is smooth at `v = 0` and has no reference-axis switch.
-    """
-    return sigma + (exposure_time * exposure_time / 12.0) * (v[:, :, None] * v[:, None, :])
-
-
 # Rows and columns of the packed covariance entries xx, xy, xz, yy, yz, zz.
 _PACK_I = torch.tensor([0, 0, 0, 1, 1, 2])
 _PACK_J = torch.tensor([0, 1, 2, 1, 2, 2])
 
 
-def motion_blur_covariance_packed(cov6: Tensor, sweep: Tensor) -> Tensor:
-    """`motion_blur_covariance` on packed `(N, 6)` covariances, for a sweep `s = v exposure_time`
-    `(N, 3)`: `cov6 + pack(s sᵀ) / 12`. For the static Gaussians under camera blur, most of N:
-    unpacking them to `(N, 3, 3)` and back cost milliseconds a step."""
+def motion_blur_covariance(cov6: Tensor, sweep: Tensor) -> Tensor:
+    """Packed `(N, 6)` covariance of a Gaussian `cov6 (N, 6)` that moves by `sweep = v
+    exposure_time (N, 3)` during the exposure, averaged over it: the Gaussian convolved with a
+    uniform segment of length `L = |s|` along `s`, matched in its second moment:
+    `Σ + (L² / 12) u uᵀ = Σ + s sᵀ / 12`.
+
+    The `convolve` form of the kinematic refinement (docs/method.md): blur becomes elongation
+    along the motion as in the paper, but without projecting `Σ` onto the kinematic frame
+    (which drops its off-diagonal terms), so a sharp render (`sweep = 0`) is exactly `Σ` and the
+    form needs no basis: it is smooth at `v = 0` and has no reference-axis switch. Packed,
+    because every covariance the renderer takes is (unpacking the static Gaussians under camera
+    blur, most of N, to `(N, 3, 3)` and back cost milliseconds a step)."""
     return cov6 + sweep[:, _PACK_I] * sweep[:, _PACK_J] / 12.0

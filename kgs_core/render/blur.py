@@ -1,6 +1,6 @@
 """Motion blur as a splat's elongation, made mass-preserving.
 
-The convolve form of the kinematic refinement (`model/kinematics.py: motion_blur_covariance`)
+The convolve form of the kinematic refinement (`model/kinematics.py: motion_blur_covariance`, on packed covariances)
 blurs a Gaussian that sweeps `s` during the exposure by adding the sweep's second moment to
 its covariance, `Σ_blur = Σ + s sᵀ / 12`. On screen that widens the splat but keeps its peak
 opacity, so its footprint (opacity times the 2D Gaussian's area) grows by
