@@ -302,6 +302,8 @@ def metrics_markdown(m: dict, info: dict) -> str:
         lines += ["", f"Held-out views: {m['heldout']['kind']}."]
     if info.get("kr_note"):
         lines += ["", f"Kinematic refinement: {info['kr_note']}."]
+    if info.get("split_note"):
+        lines += ["", f"Static/dynamic split: {info['split_note']}."]
     lines += ["", f"LPIPS: {m['lpips_note']}.", f"Decomposition IoU against the ground-truth dynamic masks: {f(m['decomposition_iou'], 3)}",
               f"Velocity end-point error against ground-truth motion (still held-out camera, dynamic mask): "
               f"{f(m.get('velocity_epe_px'), 3)} px per frame interval", "",

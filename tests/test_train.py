@@ -667,3 +667,16 @@ def test_kr_is_turned_off_mid_run_where_it_does_next_to_nothing(scene, tmp_path,
         assert all(kinematic[it] for it in range(1, 90)) and not any(kinematic[it] for it in range(90, 121))
         assert "turned off at iteration 90 of 120" in info["kr_note"] and "kr_effect" not in info
     assert load_run(tmp_path / "r").model.config.kinematic
+
+
+@pytest.mark.parametrize("tau", [1.0, 5e-7])
+def test_a_split_that_calls_almost_nothing_dynamic_says_so(scene, tmp_path, tau):
+    """A run whose split leaves (almost) every Gaussian static says in run.json that a moving
+    object would then render static, and how to retrain; a run with a dynamic set does not."""
+    info = Trainer(scene, tmp_path / "r", tiny_config(**{"model.tau": tau}), progress=False).run()
+    saved = json.loads((tmp_path / "r" / "run.json").read_text())
+    if tau == 1.0:
+        assert info["dynamic_share"] < 0.01
+        assert "renders static" in saved["split_note"] and "decompose_at=N" in saved["split_note"]
+    else:
+        assert info["dynamic_share"] > 0.01 and "split_note" not in saved
