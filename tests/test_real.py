@@ -92,9 +92,11 @@ def test_the_time_offset_scan_finds_held_out_frames_stamped_a_frame_late(walk, w
     stamped_late = dataclasses.replace(walk, frames=late)
     at_late = sharp_camera_metrics(model, stamped_late, False, masks)["psnr_mask"]
     found = best_time_offset(model, stamped_late, masks, at_late)
-    # (Measured: 17.59 at the late stamps, 19.34 half a frame earlier, 19.27 at the true times.)
+    # Measured: 17.59 at the late stamps, 19.34 half a frame earlier, 19.27 at the true times
+    # (Zen 3); 16.78, 17.65 and 17.26 (Zen 4, AVX-512: the fixture trains to another model
+    # there). The scan's gain over the late stamps is what is tested, with room for both.
     assert found["best_offset_frames"] < 0, (found, at_late, true)
-    assert found["psnr_mask_best_offset"] > max(at_late + 1.0, true - 0.5), (found, at_late, true)
+    assert found["psnr_mask_best_offset"] > max(at_late + 0.5, true - 0.5), (found, at_late, true)
     gain_at_true_times = best_time_offset(model, walk, masks, true)["psnr_mask_best_offset"] - true
     assert gain_at_true_times < found["psnr_mask_best_offset"] - at_late
 
