@@ -111,6 +111,7 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     view._modules.update(model._modules)
     view._parameters.update(model._parameters)
     view._buffers.update(model._buffers)
+    view.training = model.training  # as its (shared) networks are: Module.__init__ set it to True
     view.params = GaussianParams(**snap["params"])
     view.decomposed = model.decomposed
     view.dynamic = snap["dynamic"]

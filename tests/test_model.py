@@ -717,3 +717,5 @@ def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_t
         assert len(few) == 3 and len(m) == len(before) and len(few.at(0.2, velocity=False).opacities) == 3
         assert all(getattr(few, name) is net for name, net in m.named_children() if name != "params")
         assert few.kappa is m.kappa and m.params.means.shape[0] == len(before)
+        # A loaded run's model is in eval mode, and so is a view of its levels.
+        assert not level_view(m.eval(), snap).training and level_view(m.train(), snap).training
