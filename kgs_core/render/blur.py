@@ -1,9 +1,9 @@
 """Motion blur as a splat's elongation, made mass-preserving.
 
-The convolve form of the kinematic refinement (`model/kinematics.py: motion_blur_covariance`, on packed covariances)
-blurs a Gaussian that sweeps `s` during the exposure by adding the sweep's second moment to
-its covariance, `Σ_blur = Σ + s sᵀ / 12`. On screen that widens the splat but keeps its peak
-opacity, so its footprint (opacity times the 2D Gaussian's area) grows by
+The convolve form of the kinematic refinement (`model/kinematics.py: motion_blur_covariance`,
+on packed covariances) blurs a Gaussian that sweeps `s` during the exposure by adding the
+sweep's second moment to its covariance, `Σ_blur = Σ + s sᵀ / 12`. On screen that widens the
+splat but keeps its peak opacity, so its footprint (opacity times the 2D Gaussian's area) grows by
 `sqrt(det Σ2_blur / det Σ2)`: a blurred splat would cover more than the Gaussian does over
 the exposure. Physically the exposure averages the sharp splat along its path, which
 conserves that footprint; `blur_opacity_scale` is the factor that restores it.
