@@ -54,6 +54,28 @@ def test_independent_motion_is_flow_the_still_scene_does_not_make():
     assert moving[10:20, 10:20].all() and moving.sum() == 100
 
 
+def test_the_relative_test_reads_a_depth_error_under_a_pan_as_still():
+    """The first split's reading (`relative`): a camera panning fast past a wall rendered 20 %
+    too near gives every pixel 20 % more predicted parallax than the flow shows, several pixels,
+    which the absolute test calls motion everywhere; the relative test calls it still, but still
+    sees a patch that moves on its own by more than half the parallax, and reads nothing whose
+    still motion leaves the next frame."""
+    K = intrinsics(W, H)
+    view0 = look_at((0.0, 0.0, -2.0), (0.0, 0.0, 0.0))
+    view1 = look_at((0.2, 0.0, -2.0), (0.2, 0.0, 0.0))
+    true_parallax = -0.2 * float(K[0, 0]) / 2.0
+    depth = torch.full((H, W, 1), 2.0 / 1.2)  # rendered too near: predicted parallax 1.2x
+    flow = torch.zeros(H, W, 2)
+    flow[..., 0] = true_parallax
+    assert abs(0.2 * true_parallax) > 1.0  # the depth error is over a pixel ...
+    assert independent_motion(depth, view0, K, view1, K, flow).mean() > 0.9  # ... so absolute: all moving
+    assert not independent_motion(depth, view0, K, view1, K, flow, relative=0.5).any()
+    flow[20:30, 30:40, 1] += abs(true_parallax)  # a patch moving down, as fast as the pan
+    moving = independent_motion(depth, view0, K, view1, K, flow, relative=0.5)
+    assert moving[20:30, 30:40].all() and moving.sum() == 100
+    flow[20:30, :5, 1] += abs(true_parallax)  # on the left edge, where the pan takes pixels out of view
+    assert independent_motion(depth, view0, K, view1, K, flow, relative=0.5)[20:30, :5].sum() == 0
+
 def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from_it():
     m, viewmat, K = scene_model()
     t, life = 0.5, 0.05

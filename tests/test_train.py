@@ -680,3 +680,32 @@ def test_a_split_that_calls_almost_nothing_dynamic_says_so(scene, tmp_path, tau)
         assert "renders static" in saved["split_note"] and "decompose_at=N" in saved["split_note"]
     else:
         assert info["dynamic_share"] > 0.01 and "split_note" not in saved
+
+
+@pytest.mark.parametrize("share", [0.1, 0.0])
+def test_the_first_split_makes_dynamic_what_the_flow_reading_found(scene, tmp_path, monkeypatch, share):
+    """With τ so high that K calls nothing dynamic, the Gaussians the flow's reading returns
+    (here: the first 12) are dynamic after the first split, and run.json says so; the flows are
+    computed for it although the run has no flow term or spawning. With the reading off, it is
+    not called and nothing is dynamic. (What the reading finds: tests/test_flow_split.py.)"""
+    import kgs_core.train.trainer as trainer_module
+
+    calls = []
+
+    def first_twelve(model, frames, flows, by_k, *args, **kwargs):
+        calls.append(len(flows))
+        found = torch.zeros(len(model), dtype=torch.bool)
+        found[:12] = True
+        return found
+
+    monkeypatch.setattr(trainer_module, "flow_moving", first_twelve)
+    cfg = tiny_config(flow_split_share=share, **{"model.tau": 1.0})
+    assert cfg.lambda_flow == 0 and cfg.spawn_frames == 0
+    info = Trainer(scene, tmp_path / "r", cfg, progress=False).run()
+    saved = json.loads((tmp_path / "r" / "run.json").read_text())
+    if share:
+        assert calls and calls[0] > 0  # flows read for the split alone
+        assert saved["flow_split"]["dynamic_by_k"] == 0 and saved["flow_split"]["gaussians"] == 12
+        assert 0 < info["dynamic_share"] < 0.5
+    else:
+        assert not calls and "flow_split" not in saved and info["dynamic_share"] == 0

@@ -287,8 +287,9 @@ class KinematicsGS(nn.Module):
 
     @torch.no_grad()
     def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
-                  keep_static: bool = False) -> Tensor:
-        """Splits into static (`K <= tau`) and dynamic (`K > tau`); returns the dynamic mask.
+                  keep_static: bool = False, also_dynamic: Tensor | None = None) -> Tensor:
+        """Splits into static (`K <= tau`) and dynamic (`K > tau`, or `also_dynamic (N,)`, what
+        training's first split reads off the optical flow); returns the dynamic mask.
 
         `keep_static`: a Gaussian already static stays static whatever its K (training's
         re-splits on a video ingest, `TrainConfig.resplit_to_dynamic`): a static Gaussian's K
@@ -308,6 +309,8 @@ class KinematicsGS(nn.Module):
             self.variance = self.temporal_variance()
         # A Gaussian present for part of the clip changes over time whatever its motion.
         dynamic = (self.variance > self.config.tau) | self.lifespan[:, 1].isfinite()
+        if also_dynamic is not None:
+            dynamic = dynamic | also_dynamic
         if keep_static and self.decomposed:
             dynamic &= self.dynamic
         unchanged = self.decomposed and torch.equal(dynamic, self.dynamic)

@@ -39,6 +39,7 @@ ERROR_THRESHOLD = 0.15  # mean absolute colour error (0-1) that counts as unexpl
 MIN_REGION_PX = 30  # smaller unexplained regions (after the opening) are left to the loss
 SPAWN_LOSS_RATIO = 1.5  # a frame gets new Gaussians when its running loss is this x the median frame's
 INDEPENDENT_MOTION_PX = 1.0  # flow this far from the still scene's motion: something moves on its own
+BORDER_PX = 4  # the relative test of `independent_motion` reads no pixel whose still motion ends this near the border
 MOTION_REACH_PX = 8  # an unexplained pixel counts as moving within this distance of independent motion
 SAMPLE_STRIDE = 2  # one new Gaussian per 2x2 pixels of an unexplained region
 # A parent moves like a pixel when its own image motion to the next frame is nearer the pixel's
@@ -62,11 +63,13 @@ class NextFrame:
 
 
 def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: Tensor, next_K: Tensor,
-                       flow: Tensor) -> np.ndarray:
+                       flow: Tensor, threshold: float = INDEPENDENT_MOTION_PX, relative: float = 0.0) -> np.ndarray:
     """`(H, W)` bool: pixels whose optical flow to the next frame (`flow` (H, W, 2), NaN where
-    unreliable) differs by more than INDEPENDENT_MOTION_PX from the motion the rendered scene
+    unreliable) differs by more than `threshold` pixels from the motion the rendered scene
     (`depth` (H, W, 1), 0 where nothing was drawn) would make if it stood still: something moves
-    there on its own. Where the flow is NaN or nothing was drawn, False."""
+    there on its own. With `relative` > 0, also by more than that fraction of the still motion,
+    and only where the still motion keeps the pixel BORDER_PX inside the next frame (the first
+    split's reading, train/flow_split.py). Where the flow is NaN or nothing was drawn, False."""
     H, W = depth.shape[:2]
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     z = depth[..., 0]
@@ -74,14 +77,28 @@ def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: 
     uv_next, _ = project(world, next_viewmat, next_K)
     still = uv_next.reshape(H, W, 2) - torch.stack([u, v], -1)
     diff = (flow - still).norm(dim=-1)
-    return ((z > 0) & torch.isfinite(diff) & (diff > INDEPENDENT_MOTION_PX)).numpy()
+    moving = (z > 0) & torch.isfinite(diff) & (diff > threshold)
+    if relative > 0:
+        # A depth error moves the still scene's predicted motion in proportion to that motion
+        # (a hand-held pan's near surfaces move furthest), and pixels that leave the next frame
+        # have no true flow: count neither.
+        nxt = uv_next.reshape(H, W, 2)
+        inside = ((nxt[..., 0] >= BORDER_PX) & (nxt[..., 0] < W - BORDER_PX)
+                  & (nxt[..., 1] >= BORDER_PX) & (nxt[..., 1] < H - BORDER_PX))
+        moving &= inside & (diff > relative * still.norm(dim=-1))
+    return moving.numpy()
 
 
 def unexplained_pixels(image: Tensor, target: Tensor) -> np.ndarray:
     """`(H, W)` bool: where the render is off by more than ERROR_THRESHOLD, opened by 3x3 so that
     thin edges (a textured edge a pixel off) are not counted, in regions of MIN_REGION_PX or more."""
     err = (image.detach() - target).abs().mean(-1).numpy()
-    mask = ndimage.binary_opening(err > ERROR_THRESHOLD, structure=np.ones((3, 3), bool))
+    return large_regions(err > ERROR_THRESHOLD)
+
+
+def large_regions(mask: np.ndarray) -> np.ndarray:
+    """`(H, W)` bool: `mask` opened by 3x3, in regions of MIN_REGION_PX or more."""
+    mask = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))
     labels, n = ndimage.label(mask)
     if n == 0:
         return mask

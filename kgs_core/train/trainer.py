@@ -30,6 +30,7 @@ from .config import TrainConfig
 from .densify import DensifyStrategy
 from .exposure import FittedExposure
 from .flow import charbonnier, flow_residual, frame_flows
+from .flow_split import flow_moving
 from .pose_refine import PoseCorrection
 from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
 
@@ -160,6 +161,8 @@ class Trainer:
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
+        # What the first split's reading of the flow added to the dynamic set (`split`); None until then.
+        self.flow_split: dict | None = None
         # Spawning's record for run.json (`spawn_summary`): the frames it tried, and the
         # Gaussians it added to each training frame (by frame id).
         self.spawn_record: dict = {"attempts": 0, "added": {}}
@@ -487,12 +490,25 @@ class Trainer:
 
     def split(self) -> None:
         """A static/dynamic split in training: K recomputed, then τ the configured one or
-        (tau_auto) the one picked from the distribution of K, never below the configured one."""
+        (tau_auto) the one picked from the distribution of K, never below the configured one.
+        The first split also calls dynamic what the optical flow shows moving where K sees no
+        motion yet (train/flow_split.py; `flow_split_share` 0 turns that off)."""
         model = self.model
         model.variance = model.temporal_variance()
         tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
+        moving = None
+        if not model.decomposed and self.cfg.flow_split_share > 0:
+            by_k = (model.variance > tau) | model.lifespan[:, 1].isfinite()
+            # A scene trained without the flow term or spawning has no flows yet: read them
+            # for this once, and let them go.
+            start = time.perf_counter()
+            flows = self.flows or frame_flows(self.scene.train_frames)
+            moving = flow_moving(model, self.scene.train_frames, flows, by_k, self.cfg.flow_split_share,
+                                 self.exposure, self.scene.dt, self.world_transform)
+            self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
+                               "dynamic_by_k": int(by_k.sum()), "seconds": round(time.perf_counter() - start, 2)}
         model.decompose(tau, recompute=False, in_place=self.cfg.split_in_place,
-                        keep_static=not self.cfg.resplit_to_dynamic)
+                        keep_static=not self.cfg.resplit_to_dynamic, also_dynamic=moving)
 
     @torch.no_grad()
     def importance(self) -> torch.Tensor:
@@ -613,6 +629,7 @@ class Trainer:
             "frame_loss": self.frame_loss.clone(),
             "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
             "kr_check": self.kr_check,
+            "flow_split": self.flow_split,
             "spawn_record": self.spawn_record,
         })
         return path
@@ -642,6 +659,7 @@ class Trainer:
         if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
+        self.flow_split = state.get("flow_split")  # (absent from older checkpoints)
         self.spawn_record = state.get("spawn_record") or {"attempts": 0, "added": {}}  # (older checkpoints)
         torch.set_rng_state(state["rng"]["torch"])
         random.setstate(state["rng"]["python"])
@@ -770,6 +788,8 @@ class Trainer:
             info["guard_events"] = self.events
         if self.cfg.spawn_frames > 0 and not self.static_only:
             info["spawn"] = self.spawn_summary()
+        if self.flow_split is not None:
+            info["flow_split"] = self.flow_split
         self.measure_kr(info, dropped_kr)
         write_run_json(self.run_dir, info)
 
@@ -807,13 +827,14 @@ SPLIT_NOTE_SHARE = 0.01
 
 def split_note(dynamic_share: float, tau: float, decompose_at: int) -> str | None:
     """What to tell the user when the split called (almost) nothing dynamic: right for a static
-    scene, and the way a moving object whose motion the field had not learned by the first split
-    gets lost (it then renders static, a ghost or nothing)."""
+    scene, and the way a moving object whose motion neither the field (by the first split) nor
+    the flow's reading showed gets lost (it then renders static, a ghost or nothing)."""
     if dynamic_share >= SPLIT_NOTE_SHARE:
         return None
     return (f"the split called {dynamic_share:.2%} of the Gaussians dynamic (K under tau {tau:.3g} almost everywhere). "
             f"In a static scene that is right; if something moves, the field had not learned its motion by the "
-            f"first split (iteration {decompose_at}) and it renders static: retrain with a later split "
+            f"first split (iteration {decompose_at}), the optical flow did not show it either, and it renders "
+            f"static: retrain with a later split "
             f"(--set decompose_at=N) or --ablate split")
 
 
