@@ -12,7 +12,7 @@ from kgs_core.data.scene import Camera, Frame
 from kgs_core.model.render import camera_tensors
 from kgs_core.render import intrinsics, look_at
 from kgs_core.train.flow import project
-from kgs_core.train.flow_split import MIN_GAUSSIANS, flow_moving
+from kgs_core.train.flow_split import MIN_GAUSSIANS, flow_moving, read_frames
 
 W = H = 64
 PATCH = (slice(20, 44), slice(20, 44))  # rows, columns of the pixels that move on their own
@@ -48,13 +48,15 @@ def test_gaussians_on_pixels_moving_on_their_own_become_dynamic():
     assert moving.sum() < in_patch(m, frames[0]).sum()  # not the ones hidden behind the front ones
 
 
-def test_nothing_is_read_where_k_already_covers_the_motion_or_nothing_moves():
+def test_nothing_is_read_where_k_already_covers_the_motion_nothing_moves_or_no_flow_holds():
     m, frames, flows = still_clip()
     every = torch.ones(len(m), dtype=torch.bool)
     assert not flow_moving(m, frames, flows, every, share=0.1, exposure=0.0, dt=1.0).any()
     still = {k: (j, torch.zeros(H, W, 2)) for k, (j, _) in flows.items()}
     none = torch.zeros(len(m), dtype=torch.bool)
     assert not flow_moving(m, frames, still, none, share=0.1, exposure=0.0, dt=1.0).any()
+    rejected = {k: (j, torch.full((H, W, 2), float("nan"))) for k, (j, _) in flows.items()}  # forward-backward failed
+    assert not flow_moving(m, frames, rejected, none, share=0.1, exposure=0.0, dt=1.0).any()
 
 
 def test_scattered_moving_pixels_are_not_an_object():
@@ -67,3 +69,15 @@ def test_scattered_moving_pixels_are_not_an_object():
     flows = {k: (j, strips) for k, (j, _) in flows.items()}
     none = torch.zeros(len(m), dtype=torch.bool)
     assert not flow_moving(m, frames, flows, none, share=0.1, exposure=0.0, dt=1.0).any()
+
+
+def test_the_reading_reads_at_most_its_views_and_never_a_cameras_last_frame():
+    """`read_frames`: two cameras of 40 frames each, read 16 of the 78 with a next frame, spread
+    over both; the flows the split computes for a run without them are those 16 alone."""
+    cam = still_clip()[1][0].camera
+    frames = [Frame(id=f"c{c}f{i}", image_path=Path("x.png"), time=i / 39, camera=cam, camera_id=c)
+              for c in (0, 1) for i in range(40)]
+    read = read_frames(frames, 16)
+    assert len(read) == 16 and {f.camera_id for f in read} == {0, 1}
+    assert all(f.time < 1.0 for f in read)
+    assert read_frames(frames[:1], 16) == []  # one frame: nothing to read

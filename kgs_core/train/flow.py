@@ -39,10 +39,10 @@ def consistent(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
     return (err <= bound) & (tx >= 0) & (tx <= W - 1) & (ty >= 0) & (ty <= H - 1)
 
 
-def frame_flows(frames: list) -> dict[str, tuple[int, Tensor]]:
+def frame_flows(frames: list, only: set[str] | None = None) -> dict[str, tuple[int, Tensor]]:
     """`{frame id: (index of the next frame of the same camera in time, flow (H, W, 2) in pixels)}`
-    for every frame but each camera's last, from grayscale frames (DIS optical flow); NaN where
-    the forward-backward check fails."""
+    for every frame but each camera's last (or for those of ids in `only`), from grayscale
+    frames (DIS optical flow); NaN where the forward-backward check fails."""
     try:
         import cv2
     except ImportError as exc:  # a dependency of the package; a hand-made environment may lack it
@@ -65,6 +65,8 @@ def frame_flows(frames: list) -> dict[str, tuple[int, Tensor]]:
             return gray[i]
 
         for a, b in zip(order[:-1], order[1:]):
+            if only is not None and frames[a].id not in only:
+                continue
             if grey(a).shape != grey(b).shape:
                 continue
             forward = dis.calc(grey(a), grey(b), None)

@@ -41,6 +41,19 @@ COVERED = 0.5  # a pixel the K-dynamic Gaussians draw this much of already has i
 MIN_GAUSSIANS = 10
 
 
+def read_frames(frames: list[Frame], views: int = FLOW_SPLIT_VIEWS) -> list[Frame]:
+    """The frames the reading reads: `views` of those with a later frame of the same camera (a
+    flow to read), spread evenly over them in `frames`' order."""
+    last = {}
+    for f in frames:
+        last[f.camera_id] = max(last.get(f.camera_id, f.time), f.time)
+    candidates = [f for f in frames if f.time < last[f.camera_id]]
+    if not candidates:
+        return []
+    pick = np.linspace(0, len(candidates) - 1, min(views, len(candidates))).round().astype(int)
+    return [candidates[i] for i in sorted(set(int(p) for p in pick))]
+
+
 @torch.no_grad()
 def flow_moving(model: KinematicsGS, frames: list[Frame], flows: dict[str, tuple[int, Tensor]], by_k: Tensor,
                 share: float, exposure: float, dt: float, world_transform=None,
@@ -49,15 +62,14 @@ def flow_moving(model: KinematicsGS, frames: list[Frame], flows: dict[str, tuple
     uncovered independent motion in at least `share` of the read frames where they are visible
     (no deeper than DEPTH_SLACK x the rendered depth at their pixel), and are visible in two or
     more; none when fewer than MIN_GAUSSIANS are. `frames`: the training frames; `flows`:
-    `train.flow.frame_flows` of them; `world_transform(frame)`: a training camera's pose
+    `train.flow.frame_flows` of them (at least of `read_frames(frames, views)`); `world_transform(frame)`: a training camera's pose
     correction, or None."""
     n = len(model)
     votes, seen = torch.zeros(n), torch.zeros(n)
-    read = [f for f in frames if f.id in flows]
-    pick = np.linspace(0, len(read) - 1, min(views, len(read))).round().astype(int) if read else []
     cover_colour = by_k.float()[:, None]
-    for i in sorted(set(int(p) for p in pick)):
-        f = read[i]
+    for f in read_frames(frames, views):
+        if f.id not in flows:  # (frame_flows skips a pair whose sizes differ)
+            continue
         out, g = render_model(model, f.camera, f.time, exposure, dt, colors=cover_colour, velocity=False,
                               world_transform=world_transform(f) if world_transform else None)
         viewmat, K = camera_tensors(f.camera)

@@ -30,7 +30,7 @@ from .config import TrainConfig
 from .densify import DensifyStrategy
 from .exposure import FittedExposure
 from .flow import charbonnier, flow_residual, frame_flows
-from .flow_split import flow_moving
+from .flow_split import flow_moving, read_frames
 from .pose_refine import PoseCorrection
 from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
 
@@ -499,11 +499,12 @@ class Trainer:
         moving = None
         if not model.decomposed and self.cfg.flow_split_share > 0:
             by_k = (model.variance > tau) | model.lifespan[:, 1].isfinite()
-            # A scene trained without the flow term or spawning has no flows yet: read them
-            # for this once, and let them go.
+            # A scene trained without the flow term or spawning has no flows yet: compute the
+            # ones the reading reads (16 at most, whatever the clip's length), and let them go.
             start = time.perf_counter()
-            flows = self.flows or frame_flows(self.scene.train_frames)
-            moving = flow_moving(model, self.scene.train_frames, flows, by_k, self.cfg.flow_split_share,
+            frames = self.scene.train_frames
+            flows = self.flows or frame_flows(frames, only={f.id for f in read_frames(frames)})
+            moving = flow_moving(model, frames, flows, by_k, self.cfg.flow_split_share,
                                  self.exposure, self.scene.dt, self.world_transform)
             self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
                                "dynamic_by_k": int(by_k.sum()), "seconds": round(time.perf_counter() - start, 2)}
