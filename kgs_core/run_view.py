@@ -170,12 +170,18 @@ def split_copy(model, tau: float):
     """A copy of `model` split at `tau` in place (`KinematicsGS.decompose`: a Gaussian that
     changes sides keeps its average place, as a re-split in training keeps it), with its own
     canonical Gaussians and the networks shared. Readers keep whichever snapshot they started
-    with, so a τ change never mutates a model in use."""
+    with, so a τ change never mutates a model in use.
+
+    At the model's own τ the copy keeps the split training made: that is not always K > τ (the
+    first split's reading of the flow, one-way re-splits on video ingests), and re-deciding it
+    by K would show another model than the one trained."""
     m = copy.copy(model)
     m.config = copy.copy(model.config)
     if m.decomposed:
         m.params = model.params.detach_clone()
-        m.decompose(tau, recompute=False, in_place=True)
+        m.dynamic = model.dynamic.clone()
+        if tau != model.config.tau:
+            m.decompose(tau, recompute=False, in_place=True)
     return m
 
 

@@ -434,6 +434,21 @@ def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
     assert np.allclose(rec_n["covariance"].astype(np.float64), rec_v["covariance"].astype(np.float64), atol=1e-3)
 
 
+def test_the_view_at_the_runs_own_tau_shows_the_split_training_made(copy_run):
+    """At the run's τ the viewer shows the trained model: the split training made (here with
+    the Gaussians the first split's flow reading added, whose K is under τ) and its canonical
+    means, not a re-split by K that turns those static and moves their neighbours."""
+    from kgs_core.run_view import RunView
+
+    view = RunView(copy_run)
+    lod, m = view.model(None)
+    trained = view.run.level(lod)
+    assert view.tau == trained.config.tau
+    assert (trained.dynamic & (trained.variance <= view.tau)).any()  # what K alone would not call dynamic
+    assert torch.equal(m.dynamic, trained.dynamic)
+    assert torch.equal(m.params.means, trained.params.means.detach())
+
+
 def test_live_tau_keeps_gaussians_that_turn_static_where_they_were_drawn(copy_run):
     """A higher τ in the viewer turns Gaussians static in place: each is drawn at its
     time-averaged position, not at its canonical mean; the run's own model is not touched, and
