@@ -173,7 +173,7 @@ def split_copy(model, tau: float):
     with, so a τ change never mutates a model in use.
 
     At the model's own τ the copy keeps the split training made: that is not always K > τ (the
-    first split's reading of the flow, one-way re-splits on video ingests), and re-deciding it
+    splits' reading of the flow, one-way re-splits on video ingests), and re-deciding it
     by K would show another model than the one trained."""
     m = copy.copy(model)
     m.config = copy.copy(model.config)

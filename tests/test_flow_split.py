@@ -1,4 +1,4 @@
-"""The first split's reading of the optical flow (train/flow_split.py): what moves on its own,
+"""The splits' reading of the optical flow (train/flow_split.py): what moves on its own,
 where K sees no motion, becomes dynamic."""
 
 from __future__ import annotations

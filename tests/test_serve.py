@@ -436,7 +436,7 @@ def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
 
 def test_the_view_at_the_runs_own_tau_shows_the_split_training_made(copy_run):
     """At the run's τ the viewer shows the trained model: the split training made (here with
-    the Gaussians the first split's flow reading added, whose K is under τ) and its canonical
+    the Gaussians the splits' flow reading added, whose K is under τ) and its canonical
     means, not a re-split by K that turns those static and moves their neighbours."""
     from kgs_core.run_view import RunView
 

@@ -55,7 +55,7 @@ def test_independent_motion_is_flow_the_still_scene_does_not_make():
 
 
 def test_the_relative_test_reads_a_depth_error_under_a_pan_as_still():
-    """The first split's reading (`relative`): a camera panning fast past a wall rendered 20 %
+    """The splits' reading (`relative`): a camera panning fast past a wall rendered 20 %
     too near gives every pixel 20 % more predicted parallax than the flow shows, several pixels,
     which the absolute test calls motion everywhere; the relative test calls it still, but still
     sees a patch that moves on its own by more than half the parallax, and reads nothing whose

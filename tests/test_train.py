@@ -709,3 +709,22 @@ def test_the_first_split_makes_dynamic_what_the_flow_reading_found(scene, tmp_pa
         assert 0 < info["dynamic_share"] < 0.5
     else:
         assert not calls and "flow_split" not in saved and info["dynamic_share"] == 0
+
+
+def test_the_re_splits_read_the_flow_too(scene, tmp_path, monkeypatch):
+    """With τ so high that K calls nothing dynamic, a re-split would turn everything static
+    again; the reading at each re-split keeps what it finds (here: the first 12) dynamic, and
+    run.json lists what each re-split's reading found."""
+    import kgs_core.train.trainer as trainer_module
+
+    def first_twelve(model, frames, flows, by_k, *args, **kwargs):
+        found = torch.zeros(len(model), dtype=torch.bool)
+        found[:12] = True
+        return found
+
+    monkeypatch.setattr(trainer_module, "flow_moving", first_twelve)
+    cfg = tiny_config(decompose_every=30, **{"model.tau": 1.0})
+    info = Trainer(scene, tmp_path / "r", cfg, progress=False).run()
+    saved = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert saved["flow_split"]["later"] and all(n == 12 for n in saved["flow_split"]["later"])
+    assert info["dynamic"] >= 12

@@ -289,7 +289,7 @@ class KinematicsGS(nn.Module):
     def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
                   keep_static: bool = False, also_dynamic: Tensor | None = None) -> Tensor:
         """Splits into static (`K <= tau`) and dynamic (`K > tau`, or `also_dynamic (N,)`, what
-        training's first split reads off the optical flow); returns the dynamic mask.
+        training's splits read off the optical flow); returns the dynamic mask.
 
         `keep_static`: a Gaussian already static stays static whatever its K (training's
         re-splits on a video ingest, `TrainConfig.resplit_to_dynamic`): a static Gaussian's K

@@ -156,12 +156,13 @@ class TrainConfig:
     # samples are pure cost (walk: the same scores in 16 % less time; docs/real-footage.md,
     # "What K.R.'s blur does on real footage"). 0 never checks.
     kr_check_at: float = 0.4
-    # At the first split, a Gaussian that K calls static but that sits on pixels the optical
-    # flow shows moving on their own, where no K-dynamic Gaussian draws, in at least this share
-    # of the sampled training frames where it is visible, is called dynamic (train/flow_split.py).
-    # The field may not have learned a moving object's motion by then (the synthetic spinning
-    # top's arrives between 30 and 35 % of the run), and a Gaussian called static is never moved
-    # by the field again. 0 turns it off (docs/real-footage.md, "The first split reads the flow").
+    # At every split, a Gaussian that K calls static but that sits on pixels the optical flow
+    # shows moving on their own, where no K-dynamic Gaussian draws, in at least this share of
+    # the sampled training frames where it is visible, is called dynamic (train/flow_split.py).
+    # The field may not have learned a moving object's motion by the first split (the synthetic
+    # spinning top's arrives between 30 and 35 % of the run), and a Gaussian called static is
+    # never moved by the field again. 0 turns it off (docs/real-footage.md, "The splits read
+    # the flow").
     flow_split_share: float = 0.1
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).

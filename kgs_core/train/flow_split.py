@@ -1,4 +1,4 @@
-"""The first split's reading of the optical flow: what moves that K has not seen move.
+"""The splits' reading of the optical flow: what moves that K has not seen move.
 
 The split (paper Sec. 3.2) calls a Gaussian dynamic when the temporal variance K of its
 predicted offsets exceeds τ. At the first split, 20 % into the run, the deformation field may
@@ -7,7 +7,7 @@ once between 30 and 35 % of the run, so every Gaussian of the top has K under τ
 static. A static Gaussian renders without the field, so the field gets no gradient there again
 and the object stays where it was, a ghost (the real clips' "coloured blob where it turns").
 
-So at the first split the optical flow between consecutive training frames votes too. A pixel
+So at every split the optical flow between consecutive training frames votes too. A pixel
 moves on its own where the flow differs from the motion the rendered scene would make if it
 stood still (`spawn.independent_motion`) by more than FLOW_SPLIT_PX and by more than
 FLOW_SPLIT_RELATIVE of that still motion. The relative test is what makes it usable on real
@@ -15,8 +15,11 @@ footage: a hand-held pan's depth errors move the predicted still motion in propo
 and at an absolute pixel the test marked 10-30 % of kitchen's pixels as moving (the person is
 5 %). Of those pixels it keeps the ones that the Gaussians K already calls dynamic cover under
 half, in solid regions (`spawn.large_regions`); a Gaussian that K leaves static and that sits on
-such pixels in at least `share` of the sampled frames where it is visible becomes dynamic.
-docs/real-footage.md, "The first split reads the flow", has the measurements.
+such pixels in at least `share` of the sampled frames where it is visible becomes dynamic (at
+a re-split: stays dynamic, and on the synthetic scenes' two-way re-splits also turns dynamic,
+where K would have turned it static: the field may learn a motion later than the first split,
+or never, as on the tumbling die). docs/real-footage.md, "The splits read the flow", has the
+measurements.
 """
 
 from __future__ import annotations

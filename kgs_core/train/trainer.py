@@ -161,8 +161,10 @@ class Trainer:
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
-        # What the first split's reading of the flow added to the dynamic set (`split`); None until then.
+        # What the splits' reading of the flow added to the dynamic set (`split`); None until the
+        # first split. `_split_flows`: the flows it reads where the run has none of its own.
         self.flow_split: dict | None = None
+        self._split_flows: dict | None = None
         # Spawning's record for run.json (`spawn_summary`): the frames it tried, and the
         # Gaussians it added to each training frame (by frame id).
         self.spawn_record: dict = {"attempts": 0, "added": {}}
@@ -491,25 +493,36 @@ class Trainer:
     def split(self) -> None:
         """A static/dynamic split in training: K recomputed, then τ the configured one or
         (tau_auto) the one picked from the distribution of K, never below the configured one.
-        The first split also calls dynamic what the optical flow shows moving where K sees no
-        motion yet (train/flow_split.py; `flow_split_share` 0 turns that off)."""
+        Every split also calls dynamic what the optical flow shows moving where K sees no
+        motion (train/flow_split.py; `flow_split_share` 0 turns that off)."""
         model = self.model
         model.variance = model.temporal_variance()
         tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
         moving = None
-        if not model.decomposed and self.cfg.flow_split_share > 0:
-            by_k = (model.variance > tau) | model.lifespan[:, 1].isfinite()
-            # A scene trained without the flow term or spawning has no flows yet: compute the
-            # ones the reading reads (16 at most, whatever the clip's length), and let them go.
+        if self.cfg.flow_split_share > 0:
             start = time.perf_counter()
-            frames = self.scene.train_frames
-            flows = self.flows or frame_flows(frames, only={f.id for f in read_frames(frames)})
-            moving = flow_moving(model, frames, flows, by_k, self.cfg.flow_split_share,
+            by_k = (model.variance > tau) | model.lifespan[:, 1].isfinite()
+            moving = flow_moving(model, self.scene.train_frames, self.split_flows(), by_k, self.cfg.flow_split_share,
                                  self.exposure, self.scene.dt, self.world_transform)
-            self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
-                               "dynamic_by_k": int(by_k.sum()), "seconds": round(time.perf_counter() - start, 2)}
+            seconds = time.perf_counter() - start
+            if self.flow_split is None:
+                self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
+                                   "dynamic_by_k": int(by_k.sum()), "later": [], "seconds": 0.0}
+            else:
+                self.flow_split["later"].append(int(moving.sum()))
+            self.flow_split["seconds"] = round(self.flow_split["seconds"] + seconds, 2)
         model.decompose(tau, recompute=False, in_place=self.cfg.split_in_place,
                         keep_static=not self.cfg.resplit_to_dynamic, also_dynamic=moving)
+
+    def split_flows(self) -> dict:
+        """The flows the splits' reading reads: the run's own (flow term or spawning), else the
+        16 it reads computed once (whatever the clip's length) and kept for the re-splits."""
+        if self.flows:
+            return self.flows
+        if self._split_flows is None:
+            frames = self.scene.train_frames
+            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)})
+        return self._split_flows
 
     @torch.no_grad()
     def importance(self) -> torch.Tensor:
