@@ -40,7 +40,7 @@ FLOW_SPLIT_VIEWS = 16  # training frames read, spread over the clip
 COVERED = 0.5  # a pixel the K-dynamic Gaussians draw this much of already has its motion
 # Fewer Gaussians than this found and the reading changes nothing: a few on the edge of a region
 # the K-dynamic ones cover are not an object the field missed (the demo's sheet gets 0-1; the
-# spinning top 240, the real clips 16-55).
+# spinning top 240, the real clips 0-57).
 MIN_GAUSSIANS = 10
 
 
