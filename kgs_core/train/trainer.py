@@ -833,9 +833,10 @@ class Trainer:
 
 
 # Below this share of dynamic Gaussians the run says that its moving objects, if any, render
-# static. On the synthetic `top`, `die`, `swing` and `cross` the split called 0-0.02 % dynamic and
-# the moving object was lost; on the scenes where the method works, 15-20 %; on the real clips,
-# 39-57 % (docs/results.md, "Scenes where the moving object is lost").
+# static. With the flow's reading off (`flow_split_share=0`) the synthetic `top`, `die`, `swing`
+# and `cross` ended at 0-0.02 % dynamic and their moving objects were lost; with it they end at
+# 2-15 %, the scenes where the method works at 15-20 %, the real clips at 38-57 %
+# (docs/results.md, "Scenes where the moving object is lost").
 SPLIT_NOTE_SHARE = 0.01
 
 
