@@ -3,15 +3,17 @@ where K sees no motion, becomes dynamic."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
+import pytest
 import torch
 from test_model import moving_model
 
 from kgs_core.data.scene import Camera, Frame
 from kgs_core.model.render import camera_tensors
 from kgs_core.render import intrinsics, look_at
-from kgs_core.train.flow import project
+from kgs_core.train.flow import frame_flows, project
 from kgs_core.train.flow_split import MIN_GAUSSIANS, flow_moving, read_frames
 
 W = H = 64
@@ -81,3 +83,12 @@ def test_the_reading_reads_at_most_its_views_and_never_a_cameras_last_frame():
     assert len(read) == 16 and {f.camera_id for f in read} == {0, 1}
     assert all(f.time < 1.0 for f in read)
     assert read_frames(frames[:1], 16) == []  # one frame: nothing to read
+
+
+def test_without_opencv_the_flow_says_what_to_install_or_turn_off(monkeypatch):
+    """OpenCV is a dependency, but a hand-made environment may lack it: the flows the splits
+    read then fail with what to install and which settings do without them."""
+    monkeypatch.setitem(sys.modules, "cv2", None)  # makes `import cv2` raise ImportError
+    _, frames, _ = still_clip()
+    with pytest.raises(RuntimeError, match="opencv-python-headless.*flow_split_share=0"):
+        frame_flows(frames)

@@ -46,8 +46,9 @@ def frame_flows(frames: list, only: set[str] | None = None) -> dict[str, tuple[i
     try:
         import cv2
     except ImportError as exc:  # a dependency of the package; a hand-made environment may lack it
-        raise RuntimeError("lambda_flow > 0 needs OpenCV: pip install opencv-python-headless "
-                           "(or train with --set lambda_flow=0)") from exc
+        raise RuntimeError("the optical flow (the flow term, spawning and the splits' reading) needs OpenCV: "
+                           "pip install opencv-python-headless (or train with --set lambda_flow=0 "
+                           "--set spawn_frames=0 --set flow_split_share=0)") from exc
     dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                                      "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                                      "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])
