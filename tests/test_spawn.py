@@ -12,7 +12,7 @@ from kgs_core.model.dynamic import KinematicsGS, neighbour_mean_matrices
 from kgs_core.render import intrinsics, look_at
 from kgs_core.train.densify import DensifyStrategy
 from kgs_core.train.flow import project
-from kgs_core.train.spawn import NextFrame, independent_motion, spawn_unexplained, unexplained_pixels
+from kgs_core.train.spawn import IN_FRONT, NextFrame, Spawned, independent_motion, spawn_unexplained, unexplained_pixels
 
 W = H = 64
 
@@ -90,7 +90,7 @@ def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from
     n0 = len(m)
     added = spawn_unexplained(m, opt, strategy.state, t, viewmat, K, torch.zeros(H, W, 3), depth, target, g.means,
                               max_new=50, life=life, rng=np.random.default_rng(0))
-    assert added == 50 and len(m) == n0 + 50
+    assert added.gaussians == 50 and len(m) == n0 + 50
     # Every per-Gaussian tensor grew in lock-step; the new ones are dynamic, coloured from the frame.
     assert (len(m.dynamic) == len(m.variance) == len(m.lifespan) == len(m.own_velocity) == len(strategy.state["grad_sum"])
             == len(m))
@@ -117,8 +117,10 @@ def test_a_spawned_gaussian_joins_a_parent_that_moves_like_its_pixel_not_the_nea
     """Every Gaussian is "dynamic" (as on real footage, where K flags most of the background),
     but only a group far from the unexplained patch moves as the flow there does; the rest stand
     still. The new Gaussians copy that group, not the still Gaussians beside them, whose
-    neighbourhood of the field they would otherwise bend; with no Gaussian moving so, none is
-    added."""
+    neighbourhood of the field they would otherwise bend. With no Gaussian moving so, the patch
+    gets Gaussians without a parent where they move on their own line (the default), just in
+    front of the rendered depth and moving as the flow says, and none where the field would
+    carry them."""
     m, viewmat, K = scene_model()
     t = 0.5
     with torch.no_grad():
@@ -141,13 +143,23 @@ def test_a_spawned_gaussian_joins_a_parent_that_moves_like_its_pixel_not_the_nea
                                  NextFrame(viewmat, K, flow, at_next, t + 0.1))
 
     n0 = len(m)
-    assert spawn(m, movers) == 36  # one per 2x2 pixels of the 12x12 patch
+    assert spawn(m, movers) == Spawned(36, 0)  # one per 2x2 pixels of the 12x12 patch, each with a parent
     new_features = m.params.features.detach()[n0:]
     parent_of = torch.cdist(new_features, m.params.features.detach()[:n0]).argmin(1)
     assert torch.isin(parent_of, movers).all()
-    # Without the flow's evidence (no Gaussian moves like the patch), the patch gets nothing.
+    # No Gaussian moves like the patch: under "own" it gets Gaussians anyway, at the render's
+    # depth (5) times IN_FRONT, each moving 3 px down by the next frame as the flow does ...
     m2, _, _ = scene_model()
-    assert spawn(m2, torch.zeros(0, dtype=torch.long)) == 0 and len(m2) == n0
+    assert spawn(m2, torch.zeros(0, dtype=torch.long)) == Spawned(36, 36)
+    with torch.no_grad():
+        (uv0, z0), (uv1, _) = (project(m2.at(time, velocity=False).means[n0:], viewmat, K) for time in (t, t + 0.1))
+    assert torch.allclose(z0, torch.full_like(z0, IN_FRONT * 5.0), atol=1e-4)
+    assert (uv0 >= 21).all() and (uv0 <= 34).all()
+    assert torch.allclose(uv1 - uv0, torch.tensor([0.0, 3.0]).expand_as(uv0), atol=1e-3)
+    # ... and none under "field", where nothing would carry them.
+    m3, _, _ = scene_model()
+    m3.config.spawned_motion = "field"
+    assert spawn(m3, torch.zeros(0, dtype=torch.long)) == Spawned(0, 0) and len(m3) == n0
 
 
 def test_spawned_gaussians_move_as_the_flow_at_their_pixel_says_whatever_the_field_learns():
@@ -169,7 +181,7 @@ def test_spawned_gaussians_move_as_the_flow_at_their_pixel_says_whatever_the_fie
     n0 = len(m)
     added = spawn_unexplained(m, None, {}, t, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 5.0), target,
                               g.means, 36, 0.05, np.random.default_rng(0), NextFrame(viewmat, K, flow, at_next, t_next))
-    assert added > 20
+    assert added.gaussians > 20
     new = torch.arange(n0, len(m))
 
     def pixels(time):
@@ -273,7 +285,7 @@ def test_a_frame_the_render_explains_gets_nothing():
     image = torch.rand(H, W, 3)
     n0 = len(m)
     assert spawn_unexplained(m, None, {}, 0.3, viewmat, K, image, torch.ones(H, W, 1), image, g.means, 50, 0.05,
-                             np.random.default_rng(0)) == 0
+                             np.random.default_rng(0)).gaussians == 0
     assert len(m) == n0
 
 
@@ -330,7 +342,7 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     tr.model.decompose(tau=-1.0, recompute=False)
     calls = []
     monkeypatch.setattr(trainer_module, "spawn_unexplained",
-                        lambda *args: calls.append((args[3], args[-1])) or 7)
+                        lambda *args: calls.append((args[3], args[-1])) or Spawned(7, 2))
     tr.frame_loss = torch.tensor([0.01, 0.01, 0.5, 0.01, 0.01, 1.0])  # the last frame fits worst
     tr.spawn(100)
     frames = scene.train_frames
@@ -339,4 +351,5 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     assert nxt.flow is tr.flows[frames[2].id][1] and nxt.means.shape == (len(tr.model), 3)
     # run.json's record: one attempt, at that frame's time, 7 Gaussians (what spawn_unexplained said).
     tr.spawn(200)
-    assert tr.spawn_summary() == {"attempts": 2, "gaussians": 14, "frames": 1, "by_time": {f"{frames[2].time:.4f}": 14}}
+    assert tr.spawn_summary() == {"attempts": 2, "gaussians": 14, "frames": 1, "by_time": {f"{frames[2].time:.4f}": 14},
+                                  "without_parent": 4}

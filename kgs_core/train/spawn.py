@@ -19,6 +19,13 @@ parameters learn. With neither, one walk run in five lost 1.4 dB on the whole fr
 smeared wall; with the parent rule alone, one in five lost 0.7 dB to a smeared sign; with both,
 none of five. On for video ingests (`config.VIDEO_SPAWN_FRAMES`; docs/real-footage.md,
 "Spawned Gaussians").
+
+A moving pixel that no dynamic Gaussian follows (an object the model has lost everywhere, so
+nothing moves like it) still gets a Gaussian when the spawned ones move on their own line (the
+default): there the field never learns from it, so the parent rule has nothing to protect, and
+what it lacks is only a depth, which it takes from the render, just in front of the background
+there. Under `spawned_motion="field"` such a pixel gets none: a Gaussian the field carries
+needs a parent to be carried with.
 """
 
 from __future__ import annotations
@@ -46,6 +53,16 @@ SAMPLE_STRIDE = 2  # one new Gaussian per 2x2 pixels of an unexplained region
 # flow than PARENT_MATCH x the distance between that flow and the motion the parent would make
 # standing still: its motion explains most of the pixel's independent motion.
 PARENT_MATCH = 0.5
+IN_FRONT = 0.95  # a new Gaussian's depth is at most this x the rendered background's at its pixel
+
+
+@dataclass
+class Spawned:
+    """What `spawn_unexplained` added: `gaussians` in all, of which `without_parent` sit at the
+    rendered depth because no dynamic Gaussian moves like their pixel."""
+
+    gaussians: int = 0
+    without_parent: int = 0
 
 
 @dataclass
@@ -109,21 +126,23 @@ def large_regions(mask: np.ndarray) -> np.ndarray:
 @torch.no_grad()
 def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, viewmat: Tensor, K: Tensor,
                       image: Tensor, depth: Tensor, target: Tensor, means: Tensor, max_new: int,
-                      life: float, rng: np.random.Generator, nxt: NextFrame | None = None) -> int:
+                      life: float, rng: np.random.Generator, nxt: NextFrame | None = None) -> Spawned:
     """Adds up to `max_new` dynamic Gaussians at the unexplained pixels of one training frame
     (`image`, `depth` (H, W, 1): its render at time `t`; `target`: the frame; `viewmat`, `K`:
     its camera; `means` (N, 3): every Gaussian's position at `t`, used for the dynamic ones;
     `life`: their presence's width in time, `KinematicsGS.lifespan`; `nxt`: the next frame of
-    the camera, None where there is none). Returns how many were added.
+    the camera, None where there is none). Returns what was added (`Spawned`).
 
     With `nxt`, only pixels where something moves on its own (`independent_motion`, within
     MOTION_REACH_PX) get Gaussians, and each copies the nearest dynamic Gaussian on screen whose
-    own image motion matches the flow there (PARENT_MATCH); a pixel without such a parent gets
-    none. The parent matters beyond its looks: the new Gaussian takes its K and fine-residual
-    features and sits beside it in canonical space, so the deformation field learns the new
-    Gaussian's motion in the parent's neighbourhood. A parent on the background ("dynamic" by a
-    small K) would have the field bend the background there. Without `nxt`, every unexplained
-    pixel counts and the parent is the nearest dynamic Gaussian on screen.
+    own image motion matches the flow there (PARENT_MATCH). Under "field" the parent matters
+    beyond its looks: the new Gaussian takes its K and fine-residual features and sits beside it
+    in canonical space, so the deformation field learns the new Gaussian's motion in the
+    parent's neighbourhood, and a parent on the background ("dynamic" by a small K) would have
+    the field bend the background there; so a pixel without such a parent gets none. Under
+    "own" it gets one anyway, at IN_FRONT x the rendered depth (its nominal parent, for the
+    per-Gaussian state it copies, the nearest dynamic Gaussian on screen). Without `nxt`, every
+    unexplained pixel counts and the parent is the nearest dynamic Gaussian on screen.
 
     Each new Gaussian takes the frame's colour, sits at the median depth of its region's parents
     (never behind the rendered background), and is sized to its pixel spacing. Under the model's
@@ -138,7 +157,7 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
         mask &= ndimage.binary_dilation(moving, iterations=MOTION_REACH_PX)
     dyn = torch.nonzero(model.dynamic).squeeze(1)
     if mask.sum() < MIN_REGION_PX or len(dyn) == 0:
-        return 0
+        return Spawned()
     H, W = mask.shape
     ys, xs = np.nonzero(mask[::SAMPLE_STRIDE, ::SAMPLE_STRIDE])
     ys, xs = ys * SAMPLE_STRIDE, xs * SAMPLE_STRIDE
@@ -149,10 +168,12 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     uv, z = project(means[dyn], viewmat, K)
     on = (z > 1e-4) & (uv[:, 0] >= 0) & (uv[:, 0] <= W - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= H - 1)
     if not on.any():
-        return 0
+        return Spawned()
     dyn, uv, z = dyn[on], uv[on], z[on]
     pixels = torch.tensor(np.stack([xs, ys], -1), dtype=torch.float32)
     d2 = ((pixels[:, None] - uv[None]) ** 2).sum(-1)
+    orphan = torch.zeros(len(ys), dtype=torch.bool)
+    f = None
     if nxt is not None:
         # Each pixel's flow is that of the nearest pixel moving on its own (the unexplained
         # pixels of a blurred object often fail the flow's forward-backward check themselves).
@@ -161,18 +182,23 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
         own = project(nxt.means[dyn], nxt.viewmat, nxt.K)[0] - uv  # (D, 2): each candidate's motion
         still = project(means[dyn], nxt.viewmat, nxt.K)[0] - uv  # the same, had it stood still
         matches = (own[None] - f[:, None]).norm(dim=-1) < PARENT_MATCH * (still[None] - f[:, None]).norm(dim=-1)
-        d2 = torch.where(matches, d2, torch.inf)
-        found = matches.any(1)
-        if not found.any():
-            return 0
-        pixels, d2, ys, xs, f = pixels[found], d2[found], ys[found.numpy()], xs[found.numpy()], f[found]
+        orphan = ~matches.any(1)
+        # An orphan's nominal parent is the nearest on screen, whatever its motion.
+        d2 = torch.where(matches | orphan[:, None], d2, torch.inf)
+        # Orphans need a depth from the render, and a line of their own to move on.
+        keep = ~orphan | ((depth[ys, xs, 0] > 0) & torch.tensor(model.config.spawned_motion == "own"))
+        if not keep.any():
+            return Spawned()
+        keep_np = keep.numpy()
+        pixels, d2, ys, xs, f, orphan = pixels[keep], d2[keep], ys[keep_np], xs[keep_np], f[keep], orphan[keep]
     nearest = d2.argmin(1)
     parents = dyn[nearest]
-    # Depth: the region's parents' (the object the new Gaussians join); never behind the
-    # rendered background.
-    z_new = float(torch.median(z[nearest]))
+    # Depth: the region's parents' (the object the new Gaussians join), or the render's for an
+    # orphan; never behind the rendered background.
     bg = depth[ys, xs, 0].numpy()
-    z_pix = np.where(bg > 0, np.minimum(z_new, 0.95 * bg), z_new)
+    z_new = float(torch.median(z[nearest[~orphan]])) if (~orphan).any() else 0.0
+    z_pix = np.where(bg > 0, np.minimum(z_new, IN_FRONT * bg), z_new)
+    z_pix = np.where(orphan.numpy(), IN_FRONT * bg, z_pix)
     z_pix = torch.tensor(z_pix, dtype=torch.float32)
     world = unproject(pixels, z_pix, viewmat, K)
     p = model.params
@@ -192,7 +218,7 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
         if nxt is not None and nxt.time != t:
             velocity = (unproject(pixels + f, z_pix, nxt.viewmat, nxt.K) - world) / (nxt.time - t)
         model.add_gaussians(new, parents, optimizer, state, lifespan=lifespan, own_velocity=velocity)
-        return m
+        return Spawned(m, int(orphan.sum()))
     n0 = len(model)
     model.add_gaussians(new, parents, optimizer, state, lifespan=lifespan)
     # Canonical position: the parent's, moved as far as the new Gaussian sits from the parent at
@@ -203,4 +229,4 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     canonical = model.params.means.detach().clone()
     canonical[n0:] = world - shift
     model.params = set_param(model.params, optimizer, "means", canonical)
-    return m
+    return Spawned(m)

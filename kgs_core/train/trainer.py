@@ -165,9 +165,9 @@ class Trainer:
         # first split. `_split_flows`: the flows it reads where the run has none of its own.
         self.flow_split: dict | None = None
         self._split_flows: dict | None = None
-        # Spawning's record for run.json (`spawn_summary`): the frames it tried, and the
-        # Gaussians it added to each training frame (by frame id).
-        self.spawn_record: dict = {"attempts": 0, "added": {}}
+        # Spawning's record for run.json (`spawn_summary`): the frames it tried, the Gaussians
+        # it added to each training frame (by frame id), and how many of them had no parent.
+        self.spawn_record: dict = {"attempts": 0, "added": {}, "without_parent": 0}
 
     # ------------------------------------------------------------ setup
 
@@ -464,19 +464,21 @@ class Trainer:
                                       self.next_frame(frame, g.means))
             rec = self.spawn_record
             rec["attempts"] += 1
-            if added:
-                rec["added"][frame.id] = rec["added"].get(frame.id, 0) + added
+            rec["without_parent"] += added.without_parent
+            if added.gaussians:
+                rec["added"][frame.id] = rec["added"].get(frame.id, 0) + added.gaussians
 
     def spawn_summary(self) -> dict:
         """What spawning did, for run.json: `attempts` (frames it looked at), `gaussians` (added
         in all; pruning may have removed some since), `frames` (how many training frames got
-        any) and `by_time` (normalised time of each such frame -> Gaussians added there, in
-        time order): a clip whose late frames never got a turn shows here."""
+        any), `by_time` (normalised time of each such frame -> Gaussians added there, in
+        time order: a clip whose late frames never got a turn shows here) and `without_parent`
+        (how many of them sit at the rendered depth, no dynamic Gaussian moving like their pixel)."""
         added = self.spawn_record["added"]
         times = {f.id: f.time for f in self.scene.train_frames}
         by_time = {f"{times[k]:.4f}": n for k, n in sorted(added.items(), key=lambda kv: times[kv[0]])}
         return {"attempts": self.spawn_record["attempts"], "gaussians": sum(added.values()), "frames": len(added),
-                "by_time": by_time}
+                "by_time": by_time, "without_parent": self.spawn_record["without_parent"]}
 
     @torch.no_grad()
     def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame:
@@ -674,7 +676,8 @@ class Trainer:
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
         self.flow_split = state.get("flow_split")  # (absent from older checkpoints)
-        self.spawn_record = state.get("spawn_record") or {"attempts": 0, "added": {}}  # (older checkpoints)
+        self.spawn_record = {"attempts": 0, "added": {}, "without_parent": 0,  # (older checkpoints lack some)
+                             **(state.get("spawn_record") or {})}
         torch.set_rng_state(state["rng"]["torch"])
         random.setstate(state["rng"]["python"])
 
