@@ -156,14 +156,29 @@ def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
         assert step_ms > 0
 
 
-def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averages_them(tmp_path):
+def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averages_them(tmp_path, monkeypatch, capsys):
     """`--cuts 2`: the re-timed baseline at two iteration counts around the equal-time one,
-    each reported, then their mean; `--cuts 0` is refused."""
-    r = kgs("bench", "quality", "--scene", "panel", "--size", "24", "--frames", "4", "--iterations", "60",
-            "--configs", "full,split", "--cuts", "2", "--taus", "2e-5", "--plot", "", "--out", str(tmp_path / "q"),
-            timeout=600)
-    assert r.returncode == 0, r.stderr
-    rows = [line.split("|")[1:-1] for line in r.stdout.splitlines() if line.startswith("| no split")]
+    each reported, then their mean; `--cuts 0` is refused. Whether the baseline is re-timed at
+    all depends on measured times (more than 10 % apart), which at this size can fall either
+    way: the baseline's measured time is made 1.5x here, so that the test does not depend on
+    the machine."""
+    import kgs_app.bench.equal_time as equal_time_module
+    from kgs_app.bench.quality import main
+    from kgs_core.train.trainer import interleave
+
+    def slower_baseline(trainers):
+        interleave(trainers)
+        for tr in trainers:
+            if "split" in tr.cfg.ablate:
+                tr.train_seconds *= 1.5
+
+    real = equal_time_module.equal_time
+    monkeypatch.setattr(equal_time_module, "equal_time",
+                        lambda *args, **kwargs: real(*args, **{**kwargs, "train_all": slower_baseline}))
+    assert main(["--scene", "panel", "--size", "24", "--frames", "4", "--iterations", "60", "--configs", "full,split",
+                 "--cuts", "2", "--taus", "2e-5", "--plot", "", "--out", str(tmp_path / "q")]) == 0
+    stdout = capsys.readouterr().out
+    rows = [line.split("|")[1:-1] for line in stdout.splitlines() if line.startswith("| no split")]
     cuts = [row for row in rows if "same time (" in row[0]]
     counts = [int(row[-2]) for row in cuts]
     assert len(cuts) == 2 and counts[0] < counts[1], rows
