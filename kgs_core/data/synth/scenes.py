@@ -9,6 +9,7 @@
 | `cross` | a ball and a box crossing at different depths | occlusion, large displacement |
 | `swing` | a pendulum ball swinging across the view, two periods | fast motion of a small object |
 | `panel` | a large textured panel swinging in the image plane about its top edge | object motion blur that a field can follow |
+| `fastpanel`, `smallpanel` | the panel swinging twice as far; the same with a panel a third the size | twice the blur; a small object's own blur |
 | `room` | nothing | static control |
 """
 
@@ -160,11 +161,12 @@ def swing(seed: int) -> list[Object]:
     return [Object("ball", Ellipsoid(lambda _t: np.array([0.2, 0.2, 0.2])), tex, pose, dynamic=True)]
 
 
-def panel(seed: int, amplitude_deg: float = 20.0) -> list[Object]:
+def panel(seed: int, amplitude_deg: float = 20.0, size: float = 1.0) -> list[Object]:
     """A large textured panel hanging from a pivot above it and swinging in the image plane of
     the training camera (±20°, 1.5 periods): motion blur of several pixels along a direction
     and speed that vary across the panel (zero at the pivot, largest at the bottom edge), while
-    every point moves less than a tenth of the panel's size per frame."""
+    every point moves less than a tenth of the panel's size per frame. `size` scales the panel,
+    not its swing: a smaller panel moves further for its size."""
     pivot, drop, amp, periods = np.array([0.0, 0.2, 1.75]), 0.75, math.radians(amplitude_deg), 1.5
 
     def pose(t: float) -> np.ndarray:
@@ -172,7 +174,7 @@ def panel(seed: int, amplitude_deg: float = 20.0) -> list[Object]:
         return rigid(R @ UPRIGHT, pivot + R @ np.array([0.0, 0.0, -drop]))
 
     tex = Texture(seed + 130, (0.35, 0.65, 0.8), checker=8, contrast=0.8)
-    return [Object("panel", Plane(1.1, 0.9), tex, pose, dynamic=True)]
+    return [Object("panel", Plane(1.1 * size, 0.9 * size), tex, pose, dynamic=True)]
 
 
 def furniture(seed: int) -> list[Object]:
@@ -194,6 +196,10 @@ SCENES: dict[str, Callable[[int], list[Object]]] = {
     # The same panel swinging ±40°: twice the speed, so twice the motion blur (at 128^2 and 30
     # frames, 4.9 px per frame interval on average inside the panel, 9.8 at the 95th percentile).
     "fastpanel": lambda seed: panel(seed, amplitude_deg=40.0),
+    # fastpanel's swing with a panel about a third its size (18 px wide at 128^2, 1 % of the
+    # frame): a small object's own motion blur, as a toy car's across a table; it moves its own
+    # width in about four frames.
+    "smallpanel": lambda seed: panel(seed, amplitude_deg=40.0, size=0.35),
     "room": lambda seed: [],
 }
 
