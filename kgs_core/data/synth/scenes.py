@@ -9,7 +9,7 @@
 | `cross` | a ball and a box crossing at different depths | occlusion, large displacement |
 | `swing` | a pendulum ball swinging across the view, two periods | fast motion of a small object |
 | `panel` | a large textured panel swinging in the image plane about its top edge | object motion blur that a field can follow |
-| `fastpanel`, `smallpanel` | the panel swinging twice as far; the same with a panel a third the size | twice the blur; a small object's own blur |
+| `fastpanel`, `smallpanel` | the panel swinging twice as far; then a third its size | twice the blur; a small object's blur |
 | `room` | nothing | static control |
 """
 
