@@ -285,6 +285,11 @@ class KinematicsGS(nn.Module):
             out[s:s + chunk] = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
         return out
 
+    def dynamic_by_k(self, tau: float) -> Tensor:
+        """`(N,)` bool: the Gaussians the split calls dynamic by their stored K alone, K > `tau`,
+        and those present for part of the clip, which change over time whatever their motion."""
+        return (self.variance > tau) | self.lifespan[:, 1].isfinite()
+
     @torch.no_grad()
     def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
                   keep_static: bool = False, also_dynamic: Tensor | None = None) -> Tensor:
@@ -307,8 +312,7 @@ class KinematicsGS(nn.Module):
             self.config.tau = tau
         if recompute:
             self.variance = self.temporal_variance()
-        # A Gaussian present for part of the clip changes over time whatever its motion.
-        dynamic = (self.variance > self.config.tau) | self.lifespan[:, 1].isfinite()
+        dynamic = self.dynamic_by_k(self.config.tau)
         if also_dynamic is not None:
             dynamic = dynamic | also_dynamic
         if keep_static and self.decomposed:

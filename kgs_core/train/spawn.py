@@ -186,7 +186,7 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
         # An orphan's nominal parent is the nearest on screen, whatever its motion.
         d2 = torch.where(matches | orphan[:, None], d2, torch.inf)
         # Orphans need a depth from the render, and a line of their own to move on.
-        keep = ~orphan | ((depth[ys, xs, 0] > 0) & torch.tensor(model.config.spawned_motion == "own"))
+        keep = ~orphan | (depth[ys, xs, 0] > 0) if model.config.spawned_motion == "own" else ~orphan
         if not keep.any():
             return Spawned()
         keep_np = keep.numpy()

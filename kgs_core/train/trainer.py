@@ -503,7 +503,7 @@ class Trainer:
         moving = None
         if self.cfg.flow_split_share > 0:
             start = time.perf_counter()
-            by_k = (model.variance > tau) | model.lifespan[:, 1].isfinite()
+            by_k = model.dynamic_by_k(tau)
             moving = flow_moving(model, self.scene.train_frames, self.split_flows(), by_k, self.cfg.flow_split_share,
                                  self.exposure, self.scene.dt, self.world_transform)
             seconds = time.perf_counter() - start
