@@ -12,6 +12,7 @@ from .densify import DensifyStrategy
 CameraBlur = Literal["off", "poses", "learned"]
 FrameSampling = Literal["uniform", "loss"]
 OnNonfinite = Literal["error", "restore"]
+FlowMethod = Literal["dis", "fused"]
 # The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
 NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
 # Where the densification settings were before they became `TrainConfig.densify` (old run.json).
@@ -82,6 +83,12 @@ class TrainConfig:
     # the image as their pixels do (train/flow.py; per pixel of disagreement, 0: off).
     # fit_to_scene turns it on for video ingests (VIDEO_FLOW_WEIGHT).
     lambda_flow: float = 0.0
+    # Which optical flow every reader of it (the flow term, spawning, the splits' reading) gets
+    # (train/flow.py): "dis", OpenCV's DIS; "fused", per pixel DIS or Farneback, whichever
+    # warps the next frame closer. "fused" follows small objects that DIS gives the background's
+    # motion (the synthetic `smallpanel`: +2.2-3.1 dB in its mask) but cost kitchen 0.4 dB in
+    # its mask (docs/real-footage.md, "A flow that sees small objects"), so it is not the default.
+    flow_method: FlowMethod = "dis"
     # At each densification after the split, the `spawn_frames` training frames with the highest
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
     # present for about `spawn_life` frames around their frame's time, at the pixels the render

@@ -155,7 +155,7 @@ class Trainer:
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
         # lambda_flow: each training frame's flow to the next of its camera (train/flow.py).
         # (Also what spawning reads: where something moves on its own, train/spawn.py.)
-        self.flows = (frame_flows(scene.train_frames) if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0)
+        self.flows = (frame_flows(scene.train_frames, method=cfg.flow_method) if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0)
                       and not self.static_only else {})
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
@@ -523,7 +523,7 @@ class Trainer:
             return self.flows
         if self._split_flows is None:
             frames = self.scene.train_frames
-            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)})
+            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)}, method=self.cfg.flow_method)
         return self._split_flows
 
     @torch.no_grad()
