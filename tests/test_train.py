@@ -728,3 +728,28 @@ def test_the_re_splits_read_the_flow_too(scene, tmp_path, monkeypatch):
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
     assert saved["flow_split"]["later"] and all(n == 12 for n in saved["flow_split"]["later"])
     assert info["dynamic"] >= 12
+
+
+@pytest.mark.parametrize("split_method", ["fused", "dis"])
+def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch, split_method):
+    """With the flow term on (DIS flows for every frame), the splits' reading computes its own
+    flows of its 16 frames when its method differs ("fused", an option for small objects) and
+    reads the run's flows when it is the same (the default)."""
+    import kgs_core.train.trainer as trainer_module
+
+    calls = []
+    real = trainer_module.frame_flows
+
+    def recording(frames, only=None, method="dis"):
+        calls.append((method, only is None))
+        return real(frames, only=only, method=method)
+
+    monkeypatch.setattr(trainer_module, "frame_flows", recording)
+    cfg = tiny_config(lambda_flow=0.003, flow_split_method=split_method)
+    assert cfg.flow_method == "dis"
+    Trainer(scene, tmp_path / "r", cfg, progress=False).run()
+    assert calls[0] == ("dis", True)
+    assert calls[1:] == ([("fused", False)] if split_method == "fused" else [])
+    saved = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert saved["config"]["flow_split_method"] == split_method
+

@@ -12,7 +12,7 @@ from .densify import DensifyStrategy
 CameraBlur = Literal["off", "poses", "learned"]
 FrameSampling = Literal["uniform", "loss"]
 OnNonfinite = Literal["error", "restore"]
-FlowMethod = Literal["dis", "fused"]
+FlowMethod = Literal["dis", "dis_full", "fused"]
 # The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
 NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
 # Where the densification settings were before they became `TrainConfig.densify` (old run.json).
@@ -83,11 +83,12 @@ class TrainConfig:
     # the image as their pixels do (train/flow.py; per pixel of disagreement, 0: off).
     # fit_to_scene turns it on for video ingests (VIDEO_FLOW_WEIGHT).
     lambda_flow: float = 0.0
-    # Which optical flow every reader of it (the flow term, spawning, the splits' reading) gets
-    # (train/flow.py): "dis", OpenCV's DIS; "fused", per pixel DIS or Farneback, whichever
-    # warps the next frame closer. "fused" follows small objects that DIS gives the background's
-    # motion (the synthetic `smallpanel`: +2.2-3.1 dB in its mask) but cost kitchen 0.4 dB in
-    # its mask (docs/real-footage.md, "A flow that sees small objects"), so it is not the default.
+    # Which optical flow the flow term and spawning read (train/flow.py): "dis", OpenCV's DIS
+    # (its medium preset, which stops at half resolution); "dis_full", the same down to full
+    # resolution; "fused", per pixel DIS or Farneback, whichever warps the next frame closer.
+    # DIS gives a small object (a few of its 8 px patches) the motion around it; the other two
+    # see it, but on kitchen every reader given them lost 0.4-1.2 dB in the mask, so DIS stays
+    # (docs/real-footage.md, "A flow that sees small objects").
     flow_method: FlowMethod = "dis"
     # At each densification after the split, the `spawn_frames` training frames with the highest
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
@@ -171,6 +172,10 @@ class TrainConfig:
     # never moved by the field again. 0 turns it off (docs/real-footage.md, "The splits read
     # the flow").
     flow_split_share: float = 0.1
+    # The flow the splits' reading reads (the choices of `flow_method`). "dis_full" finds the
+    # synthetic `smallpanel`, which DIS misses (+3.1 dB in its mask), and cost kitchen's seed 1
+    # 1.2 dB in its mask; an option for a clip whose moving object is small and fast.
+    flow_split_method: FlowMethod = "dis"
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).
     fitted: dict = field(default_factory=dict)

@@ -6,14 +6,16 @@ explain: a moving object the field has lost track of gets no gradient back (docs
 one camera says where each pixel goes, whether or not the render is there yet. The term asks
 each deforming Gaussian that is visible at the frame's time (in front of the rendered depth at its
 pixel) to move, between this frame's time and the next frame's, as the flow at its pixel says.
-Flow is classical (OpenCV, computed once per run): nothing to download. By default it is DIS,
-smooth on large surfaces. DIS gives an object smaller than a few of its patches the motion
-around it (a 16 px patch moving +5 px against a background moving -1 px comes out at -0.8 px);
-`flow_method="fused"` computes Farneback's flow too, whose 5 px windows follow such an object,
-and keeps per pixel the one whose warp of the next frame matches this one better
-(`fused_flow`). Where the flow from a frame to the next and the flow back disagree (occlusions, the
-smeared edges of a moving object, untextured walls) it is left out: a forward-backward check,
-as in Sundaram et al. 2010.
+Flow is classical (OpenCV, computed once per run): nothing to download. By default it is DIS
+(medium preset), smooth on large surfaces. DIS stops at half resolution and matches 8 px
+patches, so it gives a small object the motion around it (a 16 px patch moving 3 px over a
+background moving 1 px the other way: 2.2-2.4 px). The options (`flow_method` for the flow term
+and spawning, `flow_split_method` for the splits' reading) are "dis_full", DIS down to full
+resolution, and "fused", DIS and Farneback (5 px windows) per pixel, whichever warps the next
+frame closer (`fused_flow`). Both see such objects; on kitchen both cost the mask
+(docs/real-footage.md, "A flow that sees small objects"). Where the flow from a frame to the
+next and the flow back disagree (occlusions, the smeared edges of a moving object, untextured
+walls) it is left out: a forward-backward check, as in Sundaram et al. 2010.
 """
 
 from __future__ import annotations
@@ -67,7 +69,8 @@ def fused_flow(a: np.ndarray, b: np.ndarray, dis) -> np.ndarray:
 def frame_flows(frames: list, only: set[str] | None = None, method: str = "dis") -> dict[str, tuple[int, Tensor]]:
     """`{frame id: (index of the next frame of the same camera in time, flow (H, W, 2) in pixels)}`
     for every frame but each camera's last (or for those of ids in `only`), from grayscale
-    frames (`method`: "dis" or "fused", `fused_flow`); NaN where the forward-backward check fails."""
+    frames (`method`: "dis", "dis_full" or "fused", above); NaN where the forward-backward check
+    fails."""
     try:
         import cv2
     except ImportError as exc:  # a dependency of the package; a hand-made environment may lack it
@@ -77,11 +80,13 @@ def frame_flows(frames: list, only: set[str] | None = None, method: str = "dis")
     dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                                      "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                                      "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])
-    if method not in ("dis", "fused"):
-        raise ValueError(f"flow method must be 'dis' or 'fused', got {method!r}")
+    if method not in ("dis", "dis_full", "fused"):
+        raise ValueError(f"flow method must be 'dis', 'dis_full' or 'fused', got {method!r}")
+    if method == "dis_full":
+        dis.setFinestScale(0)  # the preset stops at half resolution
 
     def flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return dis.calc(a, b, None) if method == "dis" else fused_flow(a, b, dis)
+        return fused_flow(a, b, dis) if method == "fused" else dis.calc(a, b, None)
 
     by_camera: dict[int, list[int]] = {}
     for i, f in enumerate(frames):

@@ -517,13 +517,15 @@ class Trainer:
                         keep_static=not self.cfg.resplit_to_dynamic, also_dynamic=moving)
 
     def split_flows(self) -> dict:
-        """The flows the splits' reading reads: the run's own (flow term or spawning), else the
-        16 it reads computed once (whatever the clip's length) and kept for the re-splits."""
-        if self.flows:
+        """The flows the splits' reading reads: the run's own (flow term or spawning) where they
+        are of its method (`flow_split_method`), else the 16 it reads computed once (whatever
+        the clip's length) and kept for the re-splits."""
+        if self.flows and self.cfg.flow_split_method == self.cfg.flow_method:
             return self.flows
         if self._split_flows is None:
             frames = self.scene.train_frames
-            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)}, method=self.cfg.flow_method)
+            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)},
+                                            method=self.cfg.flow_split_method)
         return self._split_flows
 
     @torch.no_grad()
