@@ -8,11 +8,11 @@ from typing import Literal
 from ..model.dynamic import ModelConfig
 from ..schema import check_choices, from_fields, json_object
 from .densify import DensifyStrategy
+from .flow import FlowMethod
 
 CameraBlur = Literal["off", "poses", "learned"]
 FrameSampling = Literal["uniform", "loss"]
 OnNonfinite = Literal["error", "restore"]
-FlowMethod = Literal["dis", "dis_full", "fused"]
 # The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
 NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
 # Where the densification settings were before they became `TrainConfig.densify` (old run.json).

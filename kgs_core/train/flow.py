@@ -20,11 +20,14 @@ walls) it is left out: a forward-backward check, as in Sundaram et al. 2010.
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+FlowMethod = Literal["dis", "dis_full", "fused"]  # what each is: the module's docstring
 FLOW_PRESET = "medium"  # DIS preset: ~11 ms per 278x157 pair on two cores
 # Farneback: 4 pyramid levels at half size each, 5x5 windows (small, so that a small object is
 # not averaged with its surroundings), 5 iterations, polynomials over 5 px (sigma 1.1).
@@ -66,7 +69,7 @@ def fused_flow(a: np.ndarray, b: np.ndarray, dis) -> np.ndarray:
     return np.where((errors[1] < errors[0])[..., None], flows[1], flows[0])
 
 
-def frame_flows(frames: list, only: set[str] | None = None, method: str = "dis") -> dict[str, tuple[int, Tensor]]:
+def frame_flows(frames: list, only: set[str] | None = None, method: FlowMethod = "dis") -> dict[str, tuple[int, Tensor]]:
     """`{frame id: (index of the next frame of the same camera in time, flow (H, W, 2) in pixels)}`
     for every frame but each camera's last (or for those of ids in `only`), from grayscale
     frames (`method`: "dis", "dis_full" or "fused", above); NaN where the forward-backward check
@@ -80,8 +83,8 @@ def frame_flows(frames: list, only: set[str] | None = None, method: str = "dis")
     dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                                      "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                                      "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])
-    if method not in ("dis", "dis_full", "fused"):
-        raise ValueError(f"flow method must be 'dis', 'dis_full' or 'fused', got {method!r}")
+    if method not in get_args(FlowMethod):
+        raise ValueError(f"flow method must be one of {', '.join(get_args(FlowMethod))}, got {method!r}")
     if method == "dis_full":
         dis.setFinestScale(0)  # the preset stops at half resolution
 
