@@ -675,6 +675,43 @@ def test_kr_effect_measures_the_blur_and_says_when_it_does_nothing(tmp_path):
     assert "of the camera" in kr_effect_note(still), kr_effect_note(still)
 
 
+def test_the_opacity_reset_caps_each_gaussian_as_rendered_at_its_most_opaque_time():
+    """A dynamic Gaussian that the time opacity fades at every time is capped so that it
+    renders at 0.01 at its most opaque time, above the rasteriser's 1/255: with its logit
+    capped at logit(0.01) it would render under 1/255 at every time, get no gradient and never
+    come back. Gaussians without a time opacity (a spawned one, a model without it) are
+    capped at 0.01 as before, and one already below the cap is left alone."""
+    from kgs_core.render.types import ALPHA_MIN
+    from kgs_core.train.densify import DensifyStrategy
+
+    times = torch.linspace(0, 1, 33).tolist()
+    m = moving_model(seed=3, time_opacity=True)
+    m.lifespan[5] = torch.tensor([0.5, 0.1])  # a spawned Gaussian: its lifespan, not the net
+    with torch.no_grad():
+        m.params.features.normal_(generator=torch.Generator().manual_seed(0))
+        m.time_opacity.mlp[-1].weight.normal_(0, 0.2, generator=torch.Generator().manual_seed(1))
+        m.time_opacity.mlp[-1].bias.fill_(-2.0)  # faded to about a fifth at every time
+        m.params.opacity_logits.fill_(3.0)
+        m.params.opacity_logits[7] = math.log(0.002 / 0.998)  # already below the cap
+    offsets = m.peak_opacity_offsets()
+    assert offsets[5] == 0 and (offsets[torch.arange(len(m)) != 5] < -1.0).all(), offsets
+    old_peak = torch.sigmoid(math.log(0.01 / 0.99) + offsets)  # the logit capped alone
+    assert (old_peak[torch.arange(len(m)) != 5] < ALPHA_MIN).all()
+    kept = m.params.opacity_logits[7].item()
+    DensifyStrategy(opacity_reset_at=(10,)).reset_opacities(m, None, 10)
+    with torch.no_grad():
+        peak = torch.stack([m.at(t, velocity=False).opacities for t in times]).max(0).values
+    others = torch.tensor([i not in (5, 7) for i in range(len(m))])
+    assert torch.allclose(peak[others], torch.full_like(peak[others], 0.01), rtol=1e-3), peak
+    assert peak[5] == pytest.approx(0.01, rel=1e-4)  # the spawned one, at its own time
+    assert m.params.opacity_logits[7].item() == kept
+    plain = moving_model(seed=3)
+    with torch.no_grad():
+        plain.params.opacity_logits.fill_(3.0)
+    DensifyStrategy(opacity_reset_at=(10,)).reset_opacities(plain, None, 10)
+    assert torch.allclose(plain.params.opacities, torch.full((len(plain),), 0.01))
+
+
 def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_time_only():
     """`ModelConfig.time_opacity`: zero-initialised, every dynamic Gaussian is as opaque at every
     time as without it; trained, one Gaussian can fade at one time and stay at another; spawned

@@ -571,6 +571,24 @@ class KinematicsGS(nn.Module):
                                 velocity=None if d.velocity is None else d.velocity.detach(), offsets_dx=d.dx,
                                 sweep=None if d.sweep is None else (None, d.sweep))
 
+    @torch.no_grad()
+    def peak_opacity_offsets(self, times: int = 33) -> Tensor:
+        """`(N,)` what each Gaussian's opacity logit gains at its most opaque time: for those
+        the time opacity fades (`opacity_factor`: the field-moved dynamic ones after the
+        split), the largest offset over `times` evenly spaced times of the clip; 0 for the rest
+        (a spawned Gaussian's `lifespan` peaks at 1)."""
+        peak = torch.zeros(len(self.params))
+        if self.time_opacity is None or not self.decomposed:
+            return peak
+        idx = torch.nonzero(self.dynamic).squeeze(1)
+        rows = idx[~self.lifespan[idx, 1].isfinite()]
+        if len(rows):
+            features = self.params.features[rows]
+            offsets = torch.stack([self.time_opacity(features, torch.full((len(rows),), float(t)))
+                                   for t in torch.linspace(0, 1, times)])
+            peak[rows] = offsets.max(0).values
+        return peak
+
     def opacity_factor(self, idx: Tensor, t: float) -> Tensor:
         """`(len(idx),)` factor on the opacities of the Gaussians `idx` (the dynamic set) at
         `t` from `TimeOpacity` (`config.time_opacity`): sigmoid(logit + o(t)) / sigmoid(logit)

@@ -30,7 +30,7 @@ class DensifyStrategy:
     every: int = 100
     prune_opacity: float = 0.005  # prune Gaussians less opaque than this
     percent_dense: float = 0.01  # "small" (cloned, not split): largest scale below this share of the extent
-    opacity_reset_at: tuple = (3000,)  # iterations at which every opacity is capped at 0.01
+    opacity_reset_at: tuple = (3000,)  # iterations at which every rendered opacity is capped at 0.01
     max_gaussians: int = 60_000  # the budget: beyond it only the largest gradients densify
     # AbsGS's statistic: the norm of the per-pixel absolute screen gradients summed, instead of
     # the norm of their sum. A large Gaussian over detail (a blurred-out moving person) gets
@@ -80,10 +80,16 @@ class DensifyStrategy:
         return False
 
     def reset_opacities(self, model: KinematicsGS, optimizer, it: int) -> None:
-        """Caps every opacity at 0.01 when `it` is an opacity-reset count."""
+        """Caps every Gaussian's opacity at 0.01 as rendered at its most opaque time, when `it`
+        is an opacity-reset count: each logit at most logit(0.01) less what it gains at its
+        most opaque time (`KinematicsGS.peak_opacity_offsets`). Capping the logit alone
+        would leave a dynamic Gaussian that the time opacity fades at every time below the
+        rasteriser's 1/255, where it gets no gradient and never comes back: on kitchen, one
+        seed in five lost every moving Gaussian that way, and the person became a ghost of
+        static ones (docs/real-footage.md, "The opacity reset")."""
         if it in self.opacity_reset_at:
             op = model.params.opacity_logits.detach()
-            cap = torch.logit(torch.tensor(0.01))
+            cap = torch.logit(torch.tensor(0.01)) - model.peak_opacity_offsets()
             model.params = set_param(model.params, optimizer, "opacity_logits", torch.minimum(op, cap))
 
     @torch.no_grad()
