@@ -146,6 +146,10 @@ def test_settings_follow_the_clip(walk):
     assert cfg.model.time_opacity is True and "model.time_opacity" in cfg.fitted
     assert make_config("fast", scene=no_ingest).model.time_opacity is False
     assert make_config("fast", scene=walk, **{"model.time_opacity": False}).model.time_opacity is False
+    # ... and with splits that read DIS's flow down to full resolution (small, fast objects).
+    assert cfg.flow_split_method == "dis_full" and "flow_split_method" in cfg.fitted
+    assert cfg.flow_method == "dis" and make_config("fast", scene=no_ingest).flow_split_method == "dis"
+    assert make_config("fast", scene=walk, flow_split_method="dis").flow_split_method == "dis"
 
 
 def test_equal_time_mean_covers_seeds_that_needed_no_retraining():

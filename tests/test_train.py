@@ -730,11 +730,11 @@ def test_the_re_splits_read_the_flow_too(scene, tmp_path, monkeypatch):
     assert info["dynamic"] >= 12
 
 
-@pytest.mark.parametrize("split_method", ["fused", "dis"])
+@pytest.mark.parametrize("split_method", ["fused", "dis_full", "dis"])
 def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch, split_method):
     """With the flow term on (DIS flows for every frame), the splits' reading computes its own
-    flows of its 16 frames when its method differs ("fused", an option for small objects) and
-    reads the run's flows when it is the same (the default)."""
+    flows of its 16 frames when its method differs (DIS to full resolution, a video ingest's,
+    or "fused") and reads the run's flows when it is the same (the default elsewhere)."""
     import kgs_core.train.trainer as trainer_module
 
     calls = []
@@ -749,7 +749,7 @@ def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch
     assert cfg.flow_method == "dis"
     Trainer(scene, tmp_path / "r", cfg, progress=False).run()
     assert calls[0] == ("dis", True)
-    assert calls[1:] == ([("fused", False)] if split_method == "fused" else [])
+    assert calls[1:] == ([] if split_method == "dis" else [(split_method, False)])
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
     assert saved["config"]["flow_split_method"] == split_method
 

@@ -172,9 +172,11 @@ class TrainConfig:
     # never moved by the field again. 0 turns it off (docs/real-footage.md, "The splits read
     # the flow").
     flow_split_share: float = 0.1
-    # The flow the splits' reading reads (the choices of `flow_method`). "dis_full" finds the
-    # synthetic `smallpanel`, which DIS misses (+3.1 dB in its mask), and cost kitchen's seed 1
-    # 1.2 dB in its mask; an option for a clip whose moving object is small and fast.
+    # The flow the splits' reading reads (the choices of `flow_method`). "dis_full" (DIS down
+    # to full resolution, fitted on a video ingest) finds a small, fast object that DIS's
+    # half-resolution search gives the motion around it (the synthetic `smallpanel`: +3.1 dB in
+    # its mask); it cost the synthetic demo 0.4 dB, so DIS stays for the rest. It computes 16
+    # flows of its own when the run's differ (docs/real-footage.md, "A flow that sees small objects").
     flow_split_method: FlowMethod = "dis"
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).
@@ -390,6 +392,11 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         fitted["spawn_frames"] = (f"{VIDEO_SPAWN_FRAMES}: a video ingest; the worst-fitted frames get new dynamic "
                                   "Gaussians where something moving is still missing (--set spawn_frames=0 turns "
                                   "it off)")
+    if "flow_split_method" not in explicit and cfg.flow_split_method == "dis" and "ingest" in scene.extras and n_frames > 1:
+        cfg.flow_split_method = "dis_full"
+        fitted["flow_split_method"] = ("dis_full: a video ingest; the splits read DIS's flow down to full resolution, "
+                                       "which sees a small, fast object that its half-resolution search misses "
+                                       "(--set flow_split_method=dis keeps DIS's medium preset)")
     if "resplit_to_dynamic" not in explicit and cfg.resplit_to_dynamic and "ingest" in scene.extras and n_frames > 1:
         cfg.resplit_to_dynamic = False
         fitted["resplit_to_dynamic"] = ("False: a video ingest; a re-split turns no static Gaussian dynamic, since "
