@@ -12,8 +12,9 @@ patches, so it gives a small object the motion around it (a 16 px patch moving 3
 background moving 1 px the other way: 2.2-2.4 px). The options (`flow_method` for the flow term
 and spawning, `flow_split_method` for the splits' reading) are "dis_full", DIS down to full
 resolution, and "fused", DIS and Farneback (5 px windows) per pixel, whichever warps the next
-frame closer (`fused_flow`). Both see such objects; on kitchen both cost the mask
-(docs/real-footage.md, "A flow that sees small objects"). Where the flow from a frame to the
+frame closer (`fused_flow`). Both see such objects. A video ingest's splits read "dis_full"
+(`fit_to_scene`); the flow term and spawning keep DIS (docs/real-footage.md, "A flow that sees
+small objects"). Where the flow from a frame to the
 next and the flow back disagree (occlusions, the smeared edges of a moving object, untextured
 walls) it is left out: a forward-backward check, as in Sundaram et al. 2010.
 """
