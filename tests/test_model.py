@@ -712,6 +712,50 @@ def test_the_opacity_reset_caps_each_gaussian_as_rendered_at_its_most_opaque_tim
     assert torch.allclose(plain.params.opacities, torch.full((len(plain),), 0.01))
 
 
+def test_pruning_reads_each_gaussians_opacity_at_its_most_opaque_time():
+    """A dynamic Gaussian that the time opacity fades under the prune threshold at every time
+    is pruned though its own opacity is high: it adds nothing to any frame and, under 1/255,
+    gets no gradient to come back with. One faded at some times only, a static one and a
+    spawned one (its lifespan, not the net) are kept; a transparent static one goes as before."""
+    from kgs_core.train.densify import DensifyStrategy
+
+    m = moving_model(seed=3, time_opacity=True)
+    m.dynamic[:8] = False  # 0-7 static
+    m.lifespan[8] = torch.tensor([0.5, 0.1])  # 8: spawned
+    with torch.no_grad():
+        m.params.features.normal_(generator=torch.Generator().manual_seed(0))
+        head = m.time_opacity.mlp[-1]
+        head.weight.zero_()
+        head.bias.fill_(-12.0)  # every field-moved Gaussian faded to ~1e-5 of itself at every time
+        m.params.opacity_logits.fill_(2.0)  # 0.88 on their own
+        m.params.opacity_logits[0] = math.log(0.001 / 0.999)  # a transparent static one
+    faded = m.dynamic.clone()
+    faded[8] = False
+    assert (torch.stack([m.at(t, velocity=False).opacities for t in (0.0, 0.5, 1.0)]).max(0).values[faded] < 0.005).all()
+    before = m.params.means.detach().clone()
+    DensifyStrategy(grad_threshold=1.0, extent=10.0)._densify_and_prune(m, None)  # no gradients: prune only
+    kept = torch.tensor([any(torch.equal(row, k) for k in m.params.means.detach()) for row in before])
+    expected = ~faded
+    expected[0] = False
+    assert torch.equal(kept, expected), (kept, expected)
+
+    # Faded over the first half of the clip only (offset 24 t - 12): it renders later, so it stays.
+    m = moving_model(seed=3, time_opacity=True)
+    first, last = m.time_opacity.mlp[0], m.time_opacity.mlp[-1]
+    with torch.no_grad():
+        m.params.opacity_logits.fill_(2.0)
+        first.weight[0].zero_()
+        first.weight[0, m.config.feature_dim] = 24.0  # hidden unit 0 = relu(24 t): t is gamma(t)'s first entry
+        first.bias[0] = 0.0
+        last.weight.zero_()
+        last.weight[0, 0] = 1.0
+        last.bias.fill_(-12.0)
+    assert (m.at(0.0, velocity=False).opacities < 0.005).all() and (m.at(1.0, velocity=False).opacities > 0.5).all()
+    n = len(m)
+    DensifyStrategy(grad_threshold=1.0, extent=10.0)._densify_and_prune(m, None)
+    assert len(m) == n
+
+
 def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_time_only():
     """`ModelConfig.time_opacity`: zero-initialised, every dynamic Gaussian is as opaque at every
     time as without it; trained, one Gaussian can fade at one time and stay at another; spawned

@@ -28,7 +28,7 @@ class DensifyStrategy:
     start: int = 500  # the first iteration that densifies
     stop: int = 10_000  # densify before this iteration
     every: int = 100
-    prune_opacity: float = 0.005  # prune Gaussians less opaque than this
+    prune_opacity: float = 0.005  # prune Gaussians less opaque than this at their most opaque time
     percent_dense: float = 0.01  # "small" (cloned, not split): largest scale below this share of the extent
     opacity_reset_at: tuple = (3000,)  # iterations at which every rendered opacity is capped at 0.01
     max_gaussians: int = 60_000  # the budget: beyond it only the largest gradients densify
@@ -134,10 +134,13 @@ class DensifyStrategy:
         for part, par in zip(new_parts, parents):
             model.add_gaussians(part, par, optimizer, self.state)
         params = model.params
-        # Prune: split parents, transparent and huge Gaussians.
+        # Prune: split parents, transparent and huge Gaussians. Transparent as rendered at its
+        # most opaque time: one the time opacity fades below the threshold at every time adds
+        # nothing to any frame and, under the rasteriser's 1/255, gets no gradient either, so
+        # it would stay to the end, pure cost (docs/real-footage.md, "The opacity reset").
         keep = torch.ones(len(params), dtype=torch.bool)
         keep[: n][split] = False
-        opac = torch.sigmoid(params.opacity_logits.detach())
+        opac = torch.sigmoid(params.opacity_logits.detach() + model.peak_opacity_offsets())
         keep &= opac >= self.prune_opacity
         big_world = (torch.exp(params.log_scales.detach()).max(-1).values + model.min_scale) > 0.5 * self.extent
         keep &= ~big_world
