@@ -203,10 +203,13 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
         (data / f"walk_{cam}.mp4").write_bytes(b"")  # never decoded: the scene is cached
     out = tmp_path / "out"
     shutil.copytree(FIXTURE, out / "scenes" / "walk96")
-    assert main(["walk", "--data", str(data), "--size", "96", "--iterations", "40", "--configs", "full,split",
-                 "--seeds", "0,1", "--out", str(out)]) == 0
+    assert main(["walk", "--data", str(data), "--size", "96", "--iterations", "40", "--configs",
+                 "full,split,split@lambda_flow=0", "--seeds", "0,1", "--out", str(out)]) == 0
     results = json.loads((out / "results.json").read_text())["walk"]
-    assert {"full", "no split, D3DGS-like", "static 3DGS"} <= set(results)
+    # a configuration with an override gets rows of its own, not its base's
+    assert {"full", "no split, D3DGS-like", "no split, D3DGS-like @lambda_flow=0", "static 3DGS"} <= set(results)
+    assert (results["no split, D3DGS-like"]["seeds"]["0"]["run"]
+            != results["no split, D3DGS-like @lambda_flow=0"]["seeds"]["0"]["run"])
     for row in results.values():
         assert 5 < row["psnr"] < 50 and row["iterations"] >= 40
         # the row is the mean of each seed's, and the seeds trained apart

@@ -72,6 +72,14 @@ def mean_row(label: str, ms: list[dict]) -> str:
     return f"| {label} | {image_cells(mean)} | | | | | |"
 
 
+def config_label(name: str) -> str:
+    """A configuration's name for a table row, its `@key=value` overrides kept: `full`,
+    `no split, D3DGS-like`, `no split, D3DGS-like @lambda_flow=0` (rows are keyed by it, so two
+    configurations must never share one)."""
+    base, *sets = name.split("@")
+    return " @".join([base.split(" (")[0], *sets])
+
+
 def config_slug(name: str) -> str:
     """A folder name for a configuration's run (`full`, `no_split_D3DGS-like`,
     `full@model.tau_1e-4`)."""

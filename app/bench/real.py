@@ -222,7 +222,7 @@ def main(argv: list[str]) -> int:
 
     from ..cluster import add_ray_options, ray_runner, timing_note
     from .equal_time import equal_time
-    from .quality import config_overrides, config_slug, select_configs
+    from .quality import config_label, config_overrides, config_slug, select_configs
 
     ap = argparse.ArgumentParser(prog="kgs-app bench real", description=__doc__.split("\n\n")[0])
     ap.add_argument("clips", nargs="*", default=list(DEFAULT_CLIPS),
@@ -309,7 +309,7 @@ def main(argv: list[str]) -> int:
                 m = sharp_camera_metrics(run.model, scene, run.static_only, masks)
                 m.update({"psnr_mask_best_offset": m["psnr_mask"], "best_offset_frames": 0.0} if run.static_only
                          else best_time_offset(run.model, scene, masks, m["psnr_mask"]))
-                label = t.name.split(" (")[0] + (", same time" if t.retimed else "")
+                label = config_label(t.name) + (", same time" if t.retimed else "")
                 label += f" ({t.iterations} it.)" if t.retimed and args.cuts > 1 else ""
                 info = t.trainer.info
                 result = {**m, "iterations": t.iterations, "seconds": t.seconds, "gaussians": info["gaussians"],

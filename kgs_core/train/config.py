@@ -87,9 +87,9 @@ class TrainConfig:
     # (its medium preset, which stops at half resolution); "dis_full", the same down to full
     # resolution; "fused", per pixel DIS or Farneback, whichever warps the next frame closer.
     # DIS gives a small object (a few of its 8 px patches) the motion around it; the other two
-    # see it, but given to every reader they lost kitchen 0.35-1 dB in the mask (measured before
-    # the opacity reset was fixed, not since), so DIS stays here; the splits' reading has its
-    # own setting below (docs/real-footage.md, "A flow that sees small objects").
+    # see it, but given to every reader "dis_full" loses kitchen 0.41 dB in the mask over five
+    # seeds (walk level), so DIS stays here; the splits' reading has its own setting below
+    # (docs/real-footage.md, "A flow that sees small objects").
     flow_method: FlowMethod = "dis"
     # At each densification after the split, the `spawn_frames` training frames with the highest
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
