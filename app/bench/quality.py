@@ -83,8 +83,7 @@ def config_label(name: str) -> str:
 def config_slug(name: str) -> str:
     """A folder name for a configuration's run (`full`, `no_split_D3DGS-like`,
     `full@model.tau_1e-4`)."""
-    base, *sets = name.split("@")
-    return re.sub(r"[^A-Za-z0-9._@-]+", "_", "@".join([base.split(" (")[0], *sets]))
+    return re.sub(r"[^A-Za-z0-9._@-]+", "_", config_label(name).replace(" @", "@"))
 
 
 def _override(text: str, spec: str) -> tuple[str, object]:
