@@ -3,6 +3,11 @@ coarse-to-fine offsets + kinematic covariance, evaluated at any time `t`.
 
 `KinematicsGS.at(t, ...)` returns the Gaussians to rasterize; it is what training, the server,
 the viewers and the exporters all call.
+
+The training path gathers the dynamic rows with `index_select` and writes them back with
+`index_copy`, never `x[idx]` / `index_put`: the same values, but the backward of `x[idx]` is an
+accumulating `index_put`, serial on CPU, 2-4x slower than `index_select`'s (measured at walk's
+size, 27k of 49k rows; docs/results.md, "Training speed").
 """
 
 from __future__ import annotations
@@ -456,12 +461,13 @@ class KinematicsGS(nn.Module):
         own = self.lifespan[idx, 1].isfinite() if self.config.spawned_motion == "own" else None
         rows = None if own is None or not own.any() else torch.nonzero(~own).squeeze(1)
         field_idx, field_tt = (idx, tt) if rows is None else (idx[rows], [t[rows] for t in tt])
-        raws = [_scatter_rows(r.cat(), rows, n) for r in self.deform.at_times(self.params.means[field_idx], field_tt)]
+        raws = [_scatter_rows(r.cat(), rows, n)
+                for r in self.deform.at_times(self.params.means.index_select(0, field_idx), field_tt)]
         if not (self.decomposed and self.config.coarse_to_fine):
             return self._spawned_offsets(idx, tt, [Offsets.split(r) for r in raws])
         # One sparse product for all times: (D, 9 M) offsets side by side.
         coarse = self.neighbour_mean(torch.cat(raws, 1)).split(9, 1)
-        features = self.params.features[field_idx]
+        features = self.params.features.index_select(0, field_idx)
         if shared_fine:
             fine = _scatter_rows(self.fine(features, field_tt[0]).cat(), rows, n)
             return self._spawned_offsets(idx, tt, [Offsets.split(c + fine) for c in coarse])
@@ -489,14 +495,14 @@ class KinematicsGS(nn.Module):
         rows = bounded[:, None]
         if self.config.spawned_motion == "field":
             return [Offsets.split(torch.where(rows, o.cat().detach(), o.cat())) for o in offsets]
-        centre, velocity = self.lifespan[idx, 0], self.own_velocity[idx]
+        centre, velocity = self.lifespan[idx, 0], self.own_velocity.index_select(0, idx)
         still = torch.zeros(len(idx), 6)
         return [Offsets.split(torch.where(rows, torch.cat([velocity * (t - centre)[:, None], still], 1), o.cat()))
                 for o, t in zip(offsets, times)]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
         off = self.offsets(idx, t, noise)
-        return self.params.means[idx] + off.dx, off
+        return self.params.means.index_select(0, idx) + off.dx, off
 
     def at(self, t: float, exposure: float | Tensor = 0.0, dt: float = 1.0, noise: float = 0.0,
            camera_motion: tuple[Tensor, Tensor] | None = None, velocity: bool = True) -> GaussiansAt:
@@ -528,25 +534,25 @@ class KinematicsGS(nn.Module):
         sweep = None if sweep_all is None else (None, sweep_all)
         extras = {}
         if len(idx):
-            d = self._deform(idx, t, exposure, dt, noise, scales[idx], cov6_canonical[idx],
+            d = self._deform(idx, t, exposure, dt, noise, scales.index_select(0, idx), cov6_canonical.index_select(0, idx),
                              camera_motion if blur_camera else None, velocity)
-            means = means.index_put((idx,), d.means)
-            cov6 = cov6.index_put((idx,), d.covars6)
-            velocities = None if d.velocity is None else velocities.index_put((idx,), d.velocity.detach())
+            means = means.index_copy(0, idx, d.means)
+            cov6 = cov6.index_copy(0, idx, d.covars6)
+            velocities = None if d.velocity is None else velocities.index_copy(0, idx, d.velocity.detach())
             # Differentiable, for the flow term (train/flow.py), and only where K.R. computed it:
             # without K.R. the zeros are no measurement (`Trainer.flow_term` reads the motion
             # the step has instead).
             if d.velocity is not None and self.config.kinematic and self.decomposed:
                 extras["dynamic_velocity"] = (idx, d.velocity)
-            dx_all = dx_all.index_put((idx,), d.dx)
+            dx_all = dx_all.index_copy(0, idx, d.dx)
             if sweep_all is not None:  # (without K.R. the dynamic Gaussians are not blurred)
                 rows = d.sweep if d.sweep is not None else torch.zeros_like(d.means)
-                sweep = (None, sweep_all.index_put((idx,), rows))
+                sweep = (None, sweep_all.index_copy(0, idx, rows))
             elif d.sweep is not None:
                 sweep = (idx, d.sweep)
         opacities = self.present(p.opacities, t)
         if self.time_opacity is not None and self.decomposed and len(idx):
-            opacities = opacities.index_put((idx,), opacities[idx] * self.opacity_factor(idx, t))
+            opacities = opacities.index_copy(0, idx, opacities.index_select(0, idx) * self.opacity_factor(idx, t))
         return GaussiansAt(means=means, covars6=cov6, opacities=opacities, sh=p.sh(),
                            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
                            velocity=velocities, offsets_dx=dx_all, sweep=sweep, extras=extras)
@@ -603,11 +609,12 @@ class KinematicsGS(nn.Module):
         rows = self._time_faded(idx)
         if not len(rows):
             return ones
-        logit = self.params.opacity_logits[idx[rows]]
-        offset = self.time_opacity(self.params.features[idx[rows]], torch.full((len(rows),), float(t)))
+        faded = idx[rows]
+        logit = self.params.opacity_logits.index_select(0, faded)
+        offset = self.time_opacity(self.params.features.index_select(0, faded), torch.full((len(rows),), float(t)))
         # sigmoid(l + o) / sigmoid(l), in logs: no 0 / 0 for a nearly transparent Gaussian.
         F = torch.nn.functional
-        return ones.index_put((rows,), torch.exp(F.logsigmoid(logit + offset) - F.logsigmoid(logit)))
+        return ones.index_copy(0, rows, torch.exp(F.logsigmoid(logit + offset) - F.logsigmoid(logit)))
 
     def present(self, opacities: Tensor, t: float) -> Tensor:
         """`opacities (N,)` scaled by each Gaussian's presence at `t` (`lifespan`); unchanged
@@ -659,19 +666,20 @@ class KinematicsGS(nn.Module):
         else:
             offs = self.offsets_at(idx, [t, t + h, t - h] if physical else [t], noise, shared_fine=True)
             off = offs[0]
-        x_t = p.means[idx] + off.dx
+        x_t = p.means.index_select(0, idx) + off.dx
+        quats = p.quats.index_select(0, idx)
         if kinematic:
             v = velocity_from_offsets(offs, h, dt)
         sweep = None
         if kinematic and cfg.kr_form == "convolve":
             v_rel = v if camera_motion is None else v + x_t.detach() @ camera_motion[0].T + camera_motion[1]
             sweep = v_rel * (dt * exposure)
-            cov6 = motion_blur_covariance(residual_covariance(p.quats[idx], scales, off, cfg.lambda_s), sweep)
+            cov6 = motion_blur_covariance(residual_covariance(quats, scales, off, cfg.lambda_s), sweep)
             if not exposure > 0:
                 sweep = None
         elif kinematic:
             speed = safe_norm(v)
-            R = quat_to_rotmat(p.quats[idx])
+            R = quat_to_rotmat(quats)
             r_z = torch.gather(R, 2, scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
             cov6 = pack_covariance(refine_covariance(
                 unpack_covariance(cov6_pred), v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa,
@@ -679,7 +687,7 @@ class KinematicsGS(nn.Module):
         else:
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
             v = None if not velocity else torch.zeros_like(x_t)
-            cov6 = residual_covariance(p.quats[idx], scales, off, cfg.lambda_s)
+            cov6 = residual_covariance(quats, scales, off, cfg.lambda_s)
         return Deformed(x_t, cov6, v, off.dx, sweep)
 
     def at_static(self) -> GaussiansAt:
@@ -814,7 +822,7 @@ def _same_mask(a: Tensor | None, b: Tensor | None) -> bool:
 def _scatter_rows(x: Tensor, rows: Tensor | None, n: int) -> Tensor:
     """`x (M, C)` placed at `rows (M,)` of an `(n, C)` tensor of zeros (`x` itself when `rows`
     is None: every row)."""
-    return x if rows is None else x.new_zeros(n, x.shape[1]).index_put((rows,), x)
+    return x if rows is None else x.new_zeros(n, x.shape[1]).index_copy(0, rows, x)
 
 
 class _SparseRowMean(torch.autograd.Function):

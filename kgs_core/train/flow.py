@@ -152,12 +152,17 @@ def flow_residual(x_t: Tensor, x_next: Tensor, cam_t: tuple[Tensor, Tensor], cam
     uv_n, _ = project(x_next, *cam_next)
     H, W = flow.shape[:2]
     inside = (z_t > 1e-4) & (uv_t[:, 0] >= 0) & (uv_t[:, 0] <= W - 1) & (uv_t[:, 1] >= 0) & (uv_t[:, 1] <= H - 1)
-    uv_t, uv_n, z_t = uv_t[inside], uv_n[inside], z_t[inside]
-    d = sample(depth.detach(), uv_t.detach())[:, 0]
-    front = (d > 0) & (z_t.detach() <= DEPTH_SLACK * d)
-    f = sample(flow, uv_t.detach()[front])
+    # The rows kept are narrowed on detached values and gathered once, with index_select: the
+    # backward of chained boolean indexing is one serial accumulating index_put per link.
+    rows = torch.nonzero(inside).squeeze(1)
+    uv, z = uv_t.detach()[rows], z_t.detach()[rows]
+    d = sample(depth.detach(), uv)[:, 0]
+    front = (d > 0) & (z <= DEPTH_SLACK * d)
+    rows, uv = rows[front], uv[front]
+    f = sample(flow, uv)
     ok = torch.isfinite(f).all(-1)
-    return (uv_n[front][ok] - uv_t[front][ok]) - f[ok]
+    rows = rows[ok]
+    return (uv_n.index_select(0, rows) - uv_t.index_select(0, rows)) - f[ok]
 
 
 def charbonnier(r: Tensor) -> Tensor:

@@ -309,10 +309,11 @@ class Trainer:
             v = torch.zeros(len(idx), 3)
             if model.config.spawned_motion == "own":
                 own = model.lifespan[idx, 1].isfinite()
-                v = torch.where(own[:, None], model.own_velocity[idx], v)
-        x_next = model.params.means[idx] + g.offsets_dx[idx] + v * (nxt.time - frame.time)
+                v = torch.where(own[:, None], model.own_velocity.index_select(0, idx), v)
+        # (index_select, not [idx]: its backward is the faster one, model/dynamic.py)
+        x_next = model.params.means.index_select(0, idx) + g.offsets_dx.index_select(0, idx) + v * (nxt.time - frame.time)
         # (g.means carry this frame's pose correction; the next positions get the next frame's.)
-        res = flow_residual(g.means[idx], self.posed(x_next, nxt), camera_tensors(frame.camera),
+        res = flow_residual(g.means.index_select(0, idx), self.posed(x_next, nxt), camera_tensors(frame.camera),
                             camera_tensors(nxt.camera), flow, out.depth)
         return charbonnier(res)
 
