@@ -126,6 +126,9 @@ def test_settings_follow_the_clip(walk):
     assert paper.lod_lambda * ppu == pytest.approx(LOD_LAMBDA_WIDTH * width, rel=1e-2) and "lod_lambda" in paper.fitted
     assert "lod_lambda" not in cfg.fitted and cfg.lod_lambda == make_config("fast").lod_lambda
     assert make_config("paper", scene=walk, lod_lambda=0.05).lod_lambda == 0.05
+    # The paper preset keeps to the fast preset's Gaussian budget (the paper's own models end
+    # with 33-62k), and a random start fits in it.
+    assert paper.densify.max_gaussians == cfg.densify.max_gaussians and paper.init_points <= paper.densify.max_gaussians
     # A video ingest trains with the flow term; a scene that is not one, or an explicit 0, without.
     from dataclasses import replace
 
