@@ -231,24 +231,24 @@ class TrainConfig:
                    **{k: v for k, v in d.items() if k in known})
 
 
-# The paper preset's Gaussian budget on the 128² demo (fit_to_scene scales it with the pixel
-# count, as the fast preset's). The paper ends with 33-62k Gaussians on its BARD-GS scenes at
+# Both presets' Gaussian budget on the 128² demo (fit_to_scene scales it with the pixel
+# count). For the paper preset: the paper ends with 33-62k Gaussians on its BARD-GS scenes at
 # full resolution (its appendix table); without a tighter budget than the 500k once used here,
 # densification reached 280k on walk at 320 px by iteration 8,500 and a two-core step grew to
 # 3-4 s (docs/real-footage.md, "The paper preset on walk").
-PAPER_MAX_GAUSSIANS = 30_000
+MAX_GAUSSIANS = 30_000
 
 
 def paper_preset(iterations: int = 30_000) -> TrainConfig:
     """The paper's schedule: 30k iterations over five LoD levels, batch 2, densify 500-10k with
     gradient threshold 1e-4, opacity pruning 0.005, opacity reset at 3k; the Gaussian budget
-    PAPER_MAX_GAUSSIANS. Another iteration count scales every schedule point with it."""
+    MAX_GAUSSIANS. Another iteration count scales every schedule point with it."""
     at = lambda i: max(1, round(i * iterations / 30_000))  # noqa: E731
     # A random start (a scene without SfM points) no larger than the budget, so that
     # densification has room from its first step.
-    return TrainConfig(iterations=iterations, batch_size=2, init_points=PAPER_MAX_GAUSSIANS,
+    return TrainConfig(iterations=iterations, batch_size=2, init_points=MAX_GAUSSIANS,
                        densify=DensifyStrategy(start=at(500), stop=at(10_000), opacity_reset_at=(at(3000),),
-                                               max_gaussians=PAPER_MAX_GAUSSIANS),
+                                               max_gaussians=MAX_GAUSSIANS),
                        decompose_at=at(3000), decompose_every=at(2000),
                        model=ModelConfig(sh_degree=3), eval_every=at(1000), checkpoint_every=at(5000))
 
@@ -266,7 +266,7 @@ def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
         iterations=it, batch_size=1, init_points=8_000,
         lr_means=4e-4, lr_means_final=4e-6,
         densify=DensifyStrategy(start=max(1, it // 10), stop=int(0.7 * it), every=150, grad_threshold=2e-4,
-                                opacity_reset_at=(int(0.3 * it),), max_gaussians=30_000),
+                                opacity_reset_at=(int(0.3 * it),), max_gaussians=MAX_GAUSSIANS),
         decompose_at=max(1, int(0.2 * it)), decompose_every=max(1, int(0.2 * it)),
         eval_every=max(1, it // 5), checkpoint_every=max(1, 2 * it // 3), lambda_tv=0.0, lambda_reg=1e-2,
         lod_levels=1, lod_fractions=(1.0,),  # docs/method.md: five levels cost 3 dB at this budget
