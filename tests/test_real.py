@@ -121,11 +121,17 @@ def test_settings_follow_the_clip(walk):
     # 0.02 is 16 px on walk at 320 px), fitted only where there is more than one level.
     from kgs_core.train.config import LOD_LAMBDA_WIDTH
 
+    # A video ingest trains the paper preset with one level (FLoD misplaced kitchen's person at the
+    # sharp camera); five levels when asked for, with the first one's scale fitted.
     paper = make_config("paper", scene=walk)
+    assert paper.lod_levels == 1 and paper.lod_fractions == (1.0,) and "lod_levels" in paper.fitted
+    assert "lod_lambda" not in paper.fitted
+    five = make_config("paper", scene=walk, lod_levels=5)
+    assert five.lod_levels == 5 and "lod_levels" not in five.fitted
     width = walk.train_frames[0].camera.width
-    assert paper.lod_lambda * ppu == pytest.approx(LOD_LAMBDA_WIDTH * width, rel=1e-2) and "lod_lambda" in paper.fitted
+    assert five.lod_lambda * ppu == pytest.approx(LOD_LAMBDA_WIDTH * width, rel=1e-2) and "lod_lambda" in five.fitted
     assert "lod_lambda" not in cfg.fitted and cfg.lod_lambda == make_config("fast").lod_lambda
-    assert make_config("paper", scene=walk, lod_lambda=0.05).lod_lambda == 0.05
+    assert make_config("paper", scene=walk, lod_levels=5, lod_lambda=0.05).lod_lambda == 0.05
     # The paper preset keeps to the fast preset's Gaussian budget (the paper's own models end
     # with 33-62k), and a random start fits in it.
     assert paper.densify.max_gaussians == cfg.densify.max_gaussians and paper.init_points <= paper.densify.max_gaussians
@@ -141,6 +147,7 @@ def test_settings_follow_the_clip(walk):
     no_ingest = replace(walk, extras={k: v for k, v in walk.extras.items() if k != "ingest"})
     assert make_config("fast", scene=no_ingest).lambda_flow == 0.0
     assert make_config("fast", scene=no_ingest).spawn_frames == 0
+    assert make_config("paper", scene=no_ingest).lod_levels == 5
     # ... and with one-way re-splits (a static Gaussian stays static); elsewhere both ways.
     assert cfg.resplit_to_dynamic is False and "resplit_to_dynamic" in cfg.fitted
     assert make_config("fast", scene=no_ingest).resplit_to_dynamic is True

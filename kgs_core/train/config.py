@@ -240,9 +240,10 @@ MAX_GAUSSIANS = 30_000
 
 
 def paper_preset(iterations: int = 30_000) -> TrainConfig:
-    """The paper's schedule: 30k iterations over five LoD levels, batch 2, densify 500-10k with
-    gradient threshold 1e-4, opacity pruning 0.005, opacity reset at 3k; the Gaussian budget
-    MAX_GAUSSIANS. Another iteration count scales every schedule point with it."""
+    """The paper's schedule: 30k iterations over five LoD levels (one on a video ingest:
+    `fit_to_scene`), batch 2, densify 500-10k with gradient threshold 1e-4, opacity pruning
+    0.005, opacity reset at 3k; the Gaussian budget MAX_GAUSSIANS. Another iteration count
+    scales every schedule point with it."""
     at = lambda i: max(1, round(i * iterations / 30_000))  # noqa: E731
     # A random start (a scene without SfM points) no larger than the budget, so that
     # densification has room from its first step.
@@ -360,6 +361,8 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
     * model.deform_temporal: at least one temporal cell per four frames;
     * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units;
+    * lod_levels: one on a video ingest (real footage), where FLoD's coarse levels misplace
+      what moves at a second camera (docs/real-footage.md, "Why it loses on kitchen: FLoD");
     * lod_lambda (with more than one FLoD level): the first level's minimum scale as the same
       fraction of the image width as on the demo (LOD_LAMBDA_WIDTH), in this scene's units;
     * lambda_flow: VIDEO_FLOW_WEIGHT on a video ingest (real footage), where the photometric
@@ -388,32 +391,38 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         cfg.model = m = replace(m, tau=float(f"{(TAU_RMS_PX / ppu) ** 2:.3g}"))
         fitted["model.tau"] = (f"{m.tau:.3g}: an RMS image motion of {TAU_RMS_PX} px at {ppu:.0f} px per scene unit "
                                "(median focal length over median point depth)")
+    video = "ingest" in scene.extras and n_frames > 1
+    if not {"lod_levels", "lod_fractions"} & explicit and cfg.lod_levels > 1 and video:
+        cfg.lod_levels, cfg.lod_fractions = 1, (1.0,)
+        fitted["lod_levels"] = ("1: a video ingest; FLoD's coarse levels misplaced kitchen's moving person at the "
+                                "second camera and the finer levels kept it there (-2.2 dB on the frame, -4.0 where "
+                                "things move; --set lod_levels=5 keeps the paper's five)")
     if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
         px = LOD_LAMBDA_WIDTH * cam.width
         cfg.lod_lambda = float(f"{px / ppu:.3g}")
         fitted["lod_lambda"] = (f"{cfg.lod_lambda:.3g}: FLoD's first level at a minimum scale of {px:.1f} px "
                                 f"({LOD_LAMBDA_WIDTH:.2%} of the image width, as on the demo) at {ppu:.0f} px per "
                                 "scene unit")
-    if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and "ingest" in scene.extras and n_frames > 1:
+    if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and video:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
         fitted["lambda_flow"] = (f"{VIDEO_FLOW_WEIGHT}: a video ingest; optical flow between its frames guides the "
                                  "moving Gaussians (--set lambda_flow=0 turns it off)")
-    if "spawn_frames" not in explicit and cfg.spawn_frames == 0 and "ingest" in scene.extras and n_frames > 1:
+    if "spawn_frames" not in explicit and cfg.spawn_frames == 0 and video:
         cfg.spawn_frames = VIDEO_SPAWN_FRAMES
         fitted["spawn_frames"] = (f"{VIDEO_SPAWN_FRAMES}: a video ingest; the worst-fitted frames get new dynamic "
                                   "Gaussians where something moving is still missing (--set spawn_frames=0 turns "
                                   "it off)")
-    if "flow_split_method" not in explicit and cfg.flow_split_method == "dis" and "ingest" in scene.extras and n_frames > 1:
+    if "flow_split_method" not in explicit and cfg.flow_split_method == "dis" and video:
         cfg.flow_split_method = "dis_full"
         fitted["flow_split_method"] = ("dis_full: a video ingest; the splits read DIS's flow down to full resolution, "
                                        "which sees a small, fast object that its half-resolution search misses "
                                        "(--set flow_split_method=dis keeps DIS's medium preset)")
-    if "resplit_to_dynamic" not in explicit and cfg.resplit_to_dynamic and "ingest" in scene.extras and n_frames > 1:
+    if "resplit_to_dynamic" not in explicit and cfg.resplit_to_dynamic and video:
         cfg.resplit_to_dynamic = False
         fitted["resplit_to_dynamic"] = ("False: a video ingest; a re-split turns no static Gaussian dynamic, since "
                                         "the field's motion where it sits was never fitted to it "
                                         "(--set resplit_to_dynamic=true allows it)")
-    if "model.time_opacity" not in explicit and not m.time_opacity and "ingest" in scene.extras and n_frames > 1:
+    if "model.time_opacity" not in explicit and not m.time_opacity and video:
         cfg.model = m = replace(m, time_opacity=True)
         fitted["model.time_opacity"] = ("True: a video ingest; the dynamic Gaussians' opacity varies in time, so "
                                         "that the loss can fade a ghost the field leaves (--set "
