@@ -128,6 +128,8 @@ def test_settings_follow_the_clip(walk):
     assert "lod_lambda" not in paper.fitted
     five = make_config("paper", scene=walk, lod_levels=5)
     assert five.lod_levels == 5 and "lod_levels" not in five.fitted
+    # Levels laid out by hand are kept too.
+    assert make_config("paper", scene=walk, lod_fractions=(0.5, 1.0)).lod_levels == 5
     width = walk.train_frames[0].camera.width
     assert five.lod_lambda * ppu == pytest.approx(LOD_LAMBDA_WIDTH * width, rel=1e-2) and "lod_lambda" in five.fitted
     assert "lod_lambda" not in cfg.fitted and cfg.lod_lambda == make_config("fast").lod_lambda
