@@ -98,6 +98,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     make_config(args.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
     scene = load_scene(args.scene)
     cfg = make_config(args.preset, ablate=ablate, scene=scene, **overrides)
+    if args.init_from:
+        from dataclasses import replace
+
+        cfg = replace(cfg, init_from=str(Path(args.init_from).resolve()))
     for key, why in cfg.fitted.items():
         print(f"fitted to the scene: {key} = {why}")
     out = Path(args.out)
@@ -412,6 +416,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ablate", help="comma-separated: " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()))
     add_named_settings(p)
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
+    p.add_argument("--init-from", metavar="RUN", help="start from this run directory's final model (fine-tuning), "
+                   "split at this run's τ, instead of from points")
     p.add_argument("--set", action="append", type=setting, metavar="KEY=VALUE",
                    help="any training setting (a TrainConfig field, model.FIELD or densify.FIELD), checked against the schema; "
                         "repeatable, applied after the options above. E.g. --set lambda_reg=0.02 --set model.knn=16")

@@ -10,6 +10,7 @@ checkpoint and the model as they are, ingest unwinds and leaves nothing ("cancel
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import signal
@@ -42,6 +43,8 @@ def run_train(spec: dict) -> None:
     scene = load_scene(spec["scene_dir"])
     if cfg is None:  # the preset fitted to the scene (frames, resolution, scale), overrides winning
         cfg = make_config(spec.get("preset", "fast"), ablate=tuple(spec.get("ablate") or ()), scene=scene, **overrides)
+        if spec.get("init_from"):  # the server's own path of a parent run the request named by id
+            cfg = dataclasses.replace(cfg, init_from=spec["init_from"])
     t0 = time.time()
     state = {"last": 0.0, "psnr": None}
 

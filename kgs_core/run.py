@@ -42,6 +42,13 @@ def save_torch(path: Path, obj) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+def load_torch(path: Path):
+    """A model or checkpoint written by `save_torch`, read with `weights_only=True`: tensors,
+    numbers, strings and containers only. A pickle can run any code while it loads, and a run
+    folder may come from anyone (an upload, a copied workspace), so nothing here is unpickled."""
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
 def write_run_json(run_dir: Path, info: dict) -> None:
     atomic_write_text(run_dir / "run.json", json.dumps({"format_version": RUN_FORMAT_VERSION, **info}, indent=1))
 
@@ -132,7 +139,7 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     if not path.is_file():
         raise RunError(f"{run_dir}: no model.pt (training not finished? status: {info.get('status')})")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = load_torch(path)
     except Exception as exc:
         raise RunError(f"{path}: cannot load ({exc})") from None
     try:

@@ -14,7 +14,7 @@ import torch
 
 from kgs_core.data.formats import load_scene
 from kgs_core.data.synth.generate import synthesize
-from kgs_core.run import load_run, read_log
+from kgs_core.run import load_run, load_torch, read_log
 from kgs_core.train.config import TrainConfig, make_config
 from kgs_core.train.trainer import Trainer, train
 
@@ -62,7 +62,7 @@ def test_psnr_rises_and_run_directory_is_complete(scene, tmp_path):
     # A malformed model state is an error that names the file and the field.
     from kgs_core.run import RunError
 
-    state = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    state = load_torch(tmp_path / "run" / "model.pt")
     state["model"]["knn"] = torch.zeros(3, dtype=torch.long)
     torch.save(state, tmp_path / "run" / "model.pt")
     with pytest.raises(RunError, match=r"model\.pt: malformed model state .*'knn'"):
@@ -159,8 +159,8 @@ def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
     # importance leak 4e-3, with the kNN graph rebuilt on restore 4e-5). The two causes also
     # have direct tests below.
     np.testing.assert_allclose([r["psnr_heldout"] for r in a], [r["psnr_heldout"] for r in b], atol=1e-3)
-    pa = torch.load(tmp_path / "full" / "model.pt", weights_only=False)["model"]
-    pb = torch.load(tmp_path / "part" / "model.pt", weights_only=False)["model"]
+    pa = load_torch(tmp_path / "full" / "model.pt")["model"]
+    pb = load_torch(tmp_path / "part" / "model.pt")["model"]
     for group in ("params", "networks"):
         for k in pa[group]:
             diff = (pa[group][k] - pb[group][k]).abs().float()
@@ -260,11 +260,11 @@ def test_log_and_level_snapshot_see_the_trained_model_before_that_counts_events(
     assert [r["iteration"] for r in b] == [0, 30, 60]
     assert b[1]["psnr_heldout"] == pytest.approx(a[1]["psnr_heldout"], abs=1e-3)
     assert b[1]["psnr_heldout"] > b[0]["psnr_heldout"] + 1.0, b
-    ckpt = torch.load(tmp_path / "reset" / "checkpoints" / "ckpt_000030.pt", weights_only=False)
+    ckpt = load_torch(tmp_path / "reset" / "checkpoints" / "ckpt_000030.pt")
     assert torch.sigmoid(ckpt["model"]["params"]["opacity_logits"]).max() <= 0.0101
     assert len(ckpt["levels"]) == 1  # the level change of 30 happened before the checkpoint
     level = ckpt["levels"][0]["params"]
-    level_plain = torch.load(tmp_path / "plain" / "checkpoints" / "ckpt_000030.pt", weights_only=False)["levels"][0]["params"]
+    level_plain = load_torch(tmp_path / "plain" / "checkpoints" / "ckpt_000030.pt")["levels"][0]["params"]
     assert torch.sigmoid(level["opacity_logits"]).max() > 0.1
     for k, v in level_plain.items():
         assert torch.equal(level[k], v), k
@@ -284,7 +284,7 @@ def test_spawning_on_an_opacity_reset_count_renders_the_trained_model(scene, tmp
                                                                           "model.tau": 1e-9})
     train(scene, tmp_path / "run", cfg, progress=False)
     assert sorted(seen) == [60] and seen[60] > 0.1, seen  # (at 30 the split comes after densification)
-    ckpt = torch.load(tmp_path / "run" / "checkpoints" / "ckpt_000060.pt", weights_only=False)
+    ckpt = load_torch(tmp_path / "run" / "checkpoints" / "ckpt_000060.pt")
     assert torch.sigmoid(ckpt["model"]["params"]["opacity_logits"]).max() <= 0.0101
 
 
@@ -299,8 +299,8 @@ def test_resume_reproduces_the_next_iterations_exactly(scene, tmp_path):
             p.unlink()
     train(scene, tmp_path / "resumed", cfg, resume=True, progress=False)
     for it in (21, 22):
-        a = torch.load(tmp_path / "full" / "checkpoints" / f"ckpt_{it:06d}.pt", weights_only=False)
-        b = torch.load(tmp_path / "resumed" / "checkpoints" / f"ckpt_{it:06d}.pt", weights_only=False)
+        a = load_torch(tmp_path / "full" / "checkpoints" / f"ckpt_{it:06d}.pt")
+        b = load_torch(tmp_path / "resumed" / "checkpoints" / f"ckpt_{it:06d}.pt")
         for k, v in a["model"]["params"].items():
             assert torch.equal(v, b["model"]["params"][k]), (it, k)
 
@@ -319,7 +319,7 @@ def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
     infos = interleave(trainers)
     assert [i["iteration"] for i in infos] == [22, 14]
     for name, tr in zip(cfgs, trainers):
-        alone = torch.load(tmp_path / f"alone_{name}" / "model.pt", weights_only=False)["model"]["params"]
+        alone = load_torch(tmp_path / f"alone_{name}" / "model.pt")["model"]["params"]
         for k, v in tr.model.state()["params"].items():
             assert torch.equal(v, alone[k]), (name, k)
         assert 0 < tr.train_seconds < sum(t.train_seconds for t in trainers)
@@ -429,7 +429,7 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
     for mode in ("poses", "learned"):
         cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur=mode, **{"model.tau": 1e-9})
         train(scene, tmp_path / mode, cfg, progress=False)
-        finals[mode] = torch.load(tmp_path / mode / "checkpoints" / "ckpt_000080.pt", weights_only=False)["camera_motion"]["motion"]
+        finals[mode] = load_torch(tmp_path / mode / "checkpoints" / "ckpt_000080.pt")["camera_motion"]["motion"]
     assert torch.equal(finals["poses"], start)
     assert (finals["learned"] - start).abs().max() > 1e-3
     cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur="learned", **{"model.tau": 1e-9})
@@ -437,7 +437,7 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
     part = Trainer(scene, tmp_path / "part", cfg, progress=False, should_stop=lambda: next(calls) >= 65).run()
     assert part["iteration"] == 65
     train(scene, tmp_path / "part", cfg, resume=True, progress=False)
-    resumed = torch.load(tmp_path / "part" / "checkpoints" / "ckpt_000080.pt", weights_only=False)["camera_motion"]["motion"]
+    resumed = load_torch(tmp_path / "part" / "checkpoints" / "ckpt_000080.pt")["camera_motion"]["motion"]
     moved = (finals["learned"] - start).abs().max()
     assert (resumed - finals["learned"]).abs().max() < 0.05 * moved  # float rounding of the field only
     with pytest.raises(ValueError, match="camera_blur must be one of"):

@@ -13,7 +13,7 @@ from pydantic import Field, create_model, field_validator
 
 from kgs_core.run import RunError, read_log
 from kgs_core.train.config import ABLATIONS, PRESETS, TrainConfig, make_config
-from kgs_core.train.settings import NAMED, NamedSetting, named_overrides, parse_setting, setting_type
+from kgs_core.train.settings import NAMED, NamedSetting, bound, named_overrides, parse_setting, setting_type
 
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
@@ -31,6 +31,8 @@ class TrainRequestBase(StrictRequest):
     ablate: list[str] = []
     settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig field, "
                                 "model.FIELD or densify.FIELD), checked against the schema and applied last, as `kgs-app train --set`")
+    init_from_run: str | None = Field(None, pattern=r"^[0-9a-f]{12}$",
+                                      description="the id of a finished run whose model this one starts from (fine-tuning)")
 
     @field_validator("settings")
     @classmethod
@@ -42,9 +44,13 @@ class TrainRequestBase(StrictRequest):
 
 def named_field(named: NamedSetting) -> tuple[object, object]:
     """A request field for a setting offered by name: the schema's type (optional: None is the
-    preset's value), its bounds and its help."""
+    preset's value), its bounds (`settings.bound`, as every other way of giving it) and its help."""
+    limits = bound(named.key)
+    if limits is None:
+        return setting_type(named.key) | None, Field(None, description=named.help)
     return (setting_type(named.key) | None,
-            Field(None, ge=named.minimum, le=named.maximum, gt=0 if named.positive else None, description=named.help))
+            Field(None, gt=limits.low if limits.above else None, ge=None if limits.above else limits.low,
+                  le=limits.high, description=named.help))
 
 
 # The body of POST /api/runs: the fields above, and one per setting offered by name (`NAMED`,
@@ -131,12 +137,18 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
         make_config(req.preset, ablate=tuple(req.ablate), **overrides)  # refused here, not in the job
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
+    parent = None
+    if req.init_from_run is not None:  # a run of this workspace, by id: a request never names a path
+        parent = get_or_404(ws, "runs", req.init_from_run)
+        if not (Path(parent["path"]) / "model.pt").is_file():
+            raise HTTPException(409, f"run {req.init_from_run} has no model to start from (status: {parent['status']})")
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
     row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",
                     path=str(run_dir), status=JobStatus.QUEUED, params=req.model_dump())
     jr.start("runs", rid, "train", {"scene_dir": scene["path"], "run_dir": str(run_dir), "preset": req.preset,
-                                     "ablate": req.ablate, "overrides": overrides})
+                                     "ablate": req.ablate, "overrides": overrides,
+                                     "init_from": parent["path"] if parent else None})
     return public(ws.get("runs", row["id"]))
 
 

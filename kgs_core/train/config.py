@@ -465,4 +465,6 @@ def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **override
         cfg = replace(cfg, lambda_reg=0.0)
     if "ani" in ablate:
         cfg = replace(cfg, lambda_ani=0.0)
-    return replace(cfg, model=m)
+    from .settings import check_config  # (settings reads this module's schema)
+
+    return check_config(replace(cfg, model=m))

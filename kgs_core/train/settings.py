@@ -11,6 +11,7 @@ the schema's types, so neither keeps a copy, and `named_overrides` turns their v
 from __future__ import annotations
 
 import json
+import math
 import types
 from dataclasses import MISSING, dataclass, fields
 from functools import cache
@@ -19,42 +20,115 @@ from typing import Union, get_args, get_origin
 from ..schema import choices, field_types
 from .config import NESTED, TrainConfig
 
-# Fields that are not settings: the ablations have their own option, `fitted` is an output.
-NOT_SETTINGS = ("ablate", "fitted")
+# Fields that are not settings: the ablations have their own option, `fitted` is an output,
+# and `init_from` is a path, which a request names by run id (POST /api/runs's `init_from_run`,
+# `kgs-app train --init-from`): no setting reaches a file on the server.
+NOT_SETTINGS = ("ablate", "fitted", "init_from")
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The values a numeric setting (or each element of a list setting) may take: `low` to
+    `high` inclusive, `low` excluded when `above`; lists hold at most `length` elements."""
+
+    low: float
+    high: float
+    above: bool = False
+    length: int = 16
+
+    def check(self, key: str, value) -> None:
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"{key} takes numbers, got {v!r}")
+            if not math.isfinite(v):
+                raise ValueError(f"{key} must be a finite number, got {v!r}")
+            if (v <= self.low if self.above else v < self.low) or v > self.high:
+                low = f"above {_number(self.low)}" if self.above else f"at least {_number(self.low)}"
+                raise ValueError(f"{key} must be {low} and at most {_number(self.high)}, got {v!r}")
+        if isinstance(value, tuple) and len(value) > self.length:
+            raise ValueError(f"{key} takes at most {self.length} values, got {len(value)}")
+
+
+def _number(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+
+FRACTION = Bound(0, 1)
+# What a setting not listed in BOUNDS may take: whole numbers are counts and schedule points,
+# other numbers weights, rates and lengths; none negative, none unbounded.
+COUNT, AMOUNT = Bound(0, 10_000_000), Bound(0, 1e6)
+# The bounds that differ: sizes that set memory and time (a request must not ask for a
+# machine's worth), fractions, and the few settings that may be negative or must be positive.
+BOUNDS: dict[str, Bound] = {
+    "iterations": Bound(1, 1_000_000), "batch_size": Bound(1, 16), "seed": Bound(0, 2**31 - 1),
+    "init_points": Bound(1, 1_000_000), "densify.max_gaussians": Bound(1, 5_000_000),
+    "coarse_factor": Bound(1, 64), "spawn_frames": Bound(0, 1000), "spawn_max": Bound(1, 100_000),
+    "spawn_life": Bound(0, 1000, above=True), "lod_levels": Bound(1, 8), "lod_fractions": Bound(0, 1, above=True, length=8),
+    "lod_rho": Bound(0, 1, above=True), "lod_importance_views": Bound(1, 1000), "eval_every": Bound(1, 10_000_000),
+    "eval_frames": Bound(1, 1000), "checkpoint_every": Bound(1, 10_000_000), "nonfinite_max_restores": Bound(0, 100),
+    "nonfinite_lr_factor": Bound(0, 1, above=True), "reg_static_samples": Bound(0, 1_000_000),
+    "densify.opacity_reset_at": Bound(0, 10_000_000, length=100), "densify.every": Bound(1, 10_000_000),
+    "model.sh_degree": Bound(0, 3), "model.feature_dim": Bound(1, 256), "model.knn": Bound(1, 64),
+    "model.variance_times": Bound(2, 256), "model.deform_spatial": Bound(2, 512), "model.deform_temporal": Bound(1, 1024),
+    "model.deform_features": Bound(1, 256), "model.deform_multires": Bound(1, 16, length=4),
+    "model.deform_width": Bound(1, 1024), "model.deform_depth": Bound(0, 8), "model.tau": Bound(0, 1e6, above=True),
+    "model.kappa_init": Bound(-1e3, 1e3), "model.bound": Bound(0, 1e6, above=True),
+    **{key: FRACTION for key in ("exposure", "spawn_from", "noise_until", "noise_delay", "noise_w_delay",
+                                 "frame_sampling_mix", "time_window_start", "lod_prune_importance", "kr_check_at",
+                                 "flow_split_share", "densify.prune_opacity", "densify.percent_dense")},
+}
+
+
+def bound(key: str) -> Bound | None:
+    """The bounds of setting `key`; None for a word or a switch."""
+    kind = setting_type(key)
+    if kind is bool or choices(kind) is not None or kind is str:
+        return None
+    if key in BOUNDS:
+        return BOUNDS[key]
+    default = schema()[key][1]
+    whole = kind is int or (kind is tuple and all(isinstance(v, int) for v in default))
+    return COUNT if whole else AMOUNT
+
+
+def check_setting(key: str, value):
+    """`value`, or ValueError naming `key` when it is out of the setting's bounds (NaN and
+    ±inf included): what every way of giving a setting (`--set`, `--tau`, the REST body,
+    `bench quality`'s `@KEY=VALUE`, `make_config`) goes through."""
+    limits = bound(key)
+    if limits is not None and value is not None:
+        limits.check(key, value)
+    return value
+
+
+def check_config(cfg: TrainConfig) -> TrainConfig:
+    """`cfg`, or ValueError naming the first setting out of its bounds."""
+    for key in schema():
+        part, _, name = key.rpartition(".")
+        check_setting(key, getattr(getattr(cfg, part) if part else cfg, name))
+    return cfg
 
 
 @dataclass(frozen=True)
 class NamedSetting:
-    """A setting offered by name; `key` is its place in the schema, the bounds are inclusive
-    unless `positive` (a number above 0)."""
+    """A setting offered by name; `key` is its place in the schema, its bounds are the
+    setting's (`bound`)."""
 
     key: str
     help: str
-    minimum: float | None = None
-    maximum: float | None = None
-    positive: bool = False
 
     def check(self, value):
         """`value`, or ValueError when it is out of bounds."""
-        if value is None:
-            return value
-        if self.positive and not value > 0:
-            raise ValueError(f"must be above 0, got {value!r}")
-        if self.minimum is not None and value < self.minimum:
-            raise ValueError(f"must be at least {self.minimum}, got {value!r}")
-        if self.maximum is not None and value > self.maximum:
-            raise ValueError(f"must be at most {self.maximum}, got {value!r}")
-        return value
+        return check_setting(self.key, value)
 
 
 NAMED: dict[str, NamedSetting] = {
-    "iterations": NamedSetting("iterations", "override the preset's iteration count (its schedule scales with it)",
-                               minimum=1, maximum=1_000_000),
-    "seed": NamedSetting("seed", "training seed", minimum=0, maximum=2**31 - 1),
+    "iterations": NamedSetting("iterations", "override the preset's iteration count (its schedule scales with it)"),
+    "seed": NamedSetting("seed", "training seed"),
     "tau": NamedSetting("model.tau", "static/dynamic threshold on the temporal variance K (normalised scene units^2; "
-                        "default: fitted to the scene, an RMS image motion of 0.62 px)", positive=True),
+                        "default: fitted to the scene, an RMS image motion of 0.62 px)"),
     "exposure": NamedSetting("exposure", "the training video's exposure, a fraction of the frame interval (default: the "
-                             "scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off", minimum=0, maximum=1),
+                             "scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off"),
     "velocity": NamedSetting("model.velocity", "velocity estimate of the kinematic basis"),
     "basis": NamedSetting("model.basis", "kinematic frame: the paper's (reference-axis switch), branch-free, or "
                           "continuous (principal)"),
@@ -124,9 +198,11 @@ def parse_setting(text: str) -> tuple[str, object]:
         kind = ({bool: "true or false", float: "a number", int: "a whole number", str: "a word",
                  tuple: "a JSON list"}.get(want, getattr(want, "__name__", str(want))))
         raise ValueError(f"{key} takes {kind} (default {default!r}), got {raw!r}")
-    return key, float(value) if want is float and value is not None else value
+    value = float(value) if want is float and value is not None else value
+    return key, check_setting(key, value)
 
 
 def named_overrides(values: dict) -> dict:
     """`make_config` overrides from {name in NAMED: value}; None (not given) is left out."""
-    return {NAMED[name].key: value for name, value in values.items() if name in NAMED and value is not None}
+    return {NAMED[name].key: NAMED[name].check(value) for name, value in values.items()
+            if name in NAMED and value is not None}

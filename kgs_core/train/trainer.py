@@ -24,7 +24,7 @@ from ..model.dynamic import KinematicsGS, otsu_tau, split_counts
 from ..model.gaussians import init_from_points, make_optimizer, random_points
 from ..model.render import camera_tensors, render_model
 from ..render.types import Rendered
-from ..run import save_decomposition, save_torch, write_run_json
+from ..run import load_torch, save_decomposition, save_torch, write_run_json
 from .camera_motion import CameraMotion
 from .config import TrainConfig
 from .densify import DensifyStrategy
@@ -654,7 +654,7 @@ class Trainer:
         return path
 
     def restore(self, path: Path) -> None:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = load_torch(path)
         self.model = KinematicsGS.from_state(state["model"])
         if self.camera_motion is not None and state.get("camera_motion") is not None:
             self.camera_motion.load_state_dict(state["camera_motion"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..scene import Scene, SceneError
+from .common import files_inside, json_object_file
 from .colmap import is_colmap, load_colmap, write_colmap
 from .dnerf import is_dnerf, load_dnerf, write_dnerf
 from .nerfies import is_nerfies, load_nerfies, write_nerfies
@@ -43,10 +44,9 @@ def load_scene(root: str | Path, fmt: str = "auto", normalize: bool = True) -> S
         scene = load_colmap(root)
     else:
         raise SceneError(f"unknown format {fmt!r}; choose from auto, {', '.join(FORMATS)}")
+    files_inside(scene, root)
     if not scene.extras and (root / "kgs.json").is_file():
-        from .common import read_json
-
-        scene.extras = read_json(root / "kgs.json")
+        scene.extras = json_object_file(root / "kgs.json")
     if normalize and not scene.extras.get("normalized", False):
         scene.normalize()
     return scene

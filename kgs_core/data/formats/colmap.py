@@ -5,12 +5,13 @@ unless `times.json` says otherwise: `{image name: t}` or `{image name: {"time": 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from ..scene import Camera, Frame, Scene, SceneError
-from .common import read_json
+from .common import inside, number, read_json
 
 SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
@@ -74,11 +75,16 @@ def load_colmap(root: Path, images_dir: str = "images") -> Scene:
         raise SceneError(f"{mdir}: the model has no registered images")
     times_path = root / "times.json"
     times = read_json(times_path) if times_path.is_file() else None
+    if times_path.is_file() and not isinstance(times, dict):
+        raise SceneError(f"{times_path}: expected a JSON object {{image name: time}}, got {type(times).__name__}")
     frames = []
     for k, im in enumerate(images):
-        path = img_root / im.name
+        where = f"{mdir.name}/images: image {im.name!r}"
+        path = inside(img_root, im.name, where)  # a name may not reach outside the image folder
         if not path.is_file():
-            raise SceneError(f"{mdir}: image {im.name} is not in {img_root}")
+            raise SceneError(f"{where} is not in {images_dir}/")
+        if im.camera_id not in rec.cameras:
+            raise SceneError(f"{where}: camera {im.camera_id} is not in the model")
         K, dist = camera_from_colmap(rec.cameras[im.camera_id], str(mdir / "cameras"))
         viewmat = np.eye(4)
         viewmat[:3] = np.asarray(im.cam_from_world().matrix() if callable(im.cam_from_world) else im.cam_from_world.matrix())
@@ -88,13 +94,15 @@ def load_colmap(root: Path, images_dir: str = "images") -> Scene:
                 raise SceneError(f"{times_path}: no entry for image {im.name}")
             entry = times[im.name]
             info = entry if isinstance(entry, dict) else {"time": entry}
-            if "time" not in info:
-                raise SceneError(f"{times_path}: entry of {im.name} has no 'time'")
+        entry_where = f"{times_path.name} entry {im.name!r}"
+        split = info.get("split", "train")
+        if split not in ("train", "test"):
+            raise SceneError(f"{entry_where}: field 'split' should be train or test, got {json.dumps(split)[:40]}")
         cam = rec.cameras[im.camera_id]
-        frames.append(Frame(id=Path(im.name).stem, image_path=path, time=float(info["time"]),
+        frames.append(Frame(id=Path(im.name).stem, image_path=path, time=number(info, "time", entry_where),
                             camera=Camera(K=K, viewmat=viewmat, width=int(cam.width), height=int(cam.height), distortion=dist),
-                            exposure=float(info.get("exposure", 0.0)), split=str(info.get("split", "train")),
-                            camera_id=int(info.get("camera_id", 0))))
+                            exposure=number(info, "exposure", entry_where, 0.0), split=split,
+                            camera_id=number(info, "camera_id", entry_where, 0, integer=True)))
     frames.sort(key=lambda f: (f.camera_id, f.time, f.id))
     pts = list(rec.points3D.values())
     points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)

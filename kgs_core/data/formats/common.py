@@ -87,6 +87,27 @@ def inside(root: Path, rel: str | Path, where: str) -> Path:
     return path
 
 
+def files_inside(scene, root: Path) -> None:
+    """Every file a loaded scene will read (images, sharp frames, masks, motion) lies inside
+    the dataset folder: the one check every reader's output passes (`load_scene`), so that a
+    reader that forgot `inside` still cannot serve a file from elsewhere."""
+    base = Path(root).resolve()
+    for frame in scene.frames:
+        for kind in ("image_path", "sharp_path", "mask_path", "motion_path"):
+            path = getattr(frame, kind)
+            if path is not None and not Path(path).resolve().is_relative_to(base):
+                raise SceneError(f"{base.name}: frame {frame.id!r}: its {kind.removesuffix('_path')} leaves the "
+                                 "dataset folder")
+
+
+def json_object_file(path: Path) -> dict:
+    """A JSON file that must hold an object, with an error naming it otherwise."""
+    obj = read_json(path)
+    if not isinstance(obj, dict):
+        raise SceneError(f"{path.name}: expected a JSON object, got {type(obj).__name__}")
+    return obj
+
+
 def find_image(root: Path, rel: str | Path, where: str) -> Path:
     """`root / rel` if it is a file, else with a common image extension added; every candidate
     must stay inside `root` (`inside`)."""
