@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..scene import Scene, SceneError
-from .common import files_inside, json_object_file
 from .colmap import is_colmap, load_colmap, write_colmap
+from .common import files_inside, json_object_file
 from .dnerf import is_dnerf, load_dnerf, write_dnerf
 from .nerfies import is_nerfies, load_nerfies, write_nerfies
 
