@@ -1,24 +1,48 @@
 """Starting, watching and cancelling job processes (`kgs_backend.worker`).
 
 A job is a registry row (a scene, run or export) with `status` queued → running → done | failed
-| cancelled, the `pid` of its process and, on failure, the error. A watcher thread per job
-waits for the process and records how it ended; at start-up `recover` marks jobs whose process
-is gone as `interrupted` (a training run keeps its checkpoints and can be resumed).
+| cancelled, the `pid` of its process and, on failure, the error. At most `max_jobs` processes
+run at once (the machine's cores); the rest wait in a first-in first-out queue whose positions
+the API shows. A watcher thread per job waits for the process, records how it ended and starts
+the next queued one; at start-up `recover` marks jobs whose process is gone as `interrupted` (a
+training run keeps its checkpoints and can be resumed).
+
+Each job process gets its own temporary folder (`jobs/<id>.tmp`, its TMPDIR), removed once the
+process has exited however it ended: a library that ends the process on SIGTERM before Python
+unwinds (glog, inside SfM) leaves nothing behind.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import threading
+from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
 
 from kgs_core.threads import cores_to_use, placement_env, placement_off
 
 from .registry import ACTIVE, CANCELLABLE, JobStatus, Workspace
+
+
+def job_process(pid: int | None, job_id: str) -> bool:
+    """Whether `pid` is alive and still the worker of job `job_id`: a PID stored before a
+    restart may since belong to an unrelated process, which must never be signalled. Where
+    /proc is missing the check falls back to `pid_alive`."""
+    if not pid_alive(pid):
+        return False
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True  # no /proc here: only the PID to go by
+    return b"kgs_backend.worker" in cmdline and job_id.encode() in cmdline
 
 
 def pid_alive(pid: int | None) -> bool:
@@ -41,19 +65,62 @@ def last_checkpoint(run_dir: Path) -> int | None:
     return max(its) if its else None
 
 
+@dataclass
+class QueuedJob:
+    table: str
+    id: str
+    kind: str
+    spec: dict
+    on_done: object = None
+
+
 class JobRunner:
-    def __init__(self, ws: Workspace):
+    def __init__(self, ws: Workspace, max_jobs: int | None = None):
         self.ws = ws
         self.procs: dict[str, subprocess.Popen] = {}
+        self.max_jobs = max_jobs or max(1, cores_to_use())
+        self.queue: deque[QueuedJob] = deque()
+        self._lock = threading.RLock()
+        ws.queue_position = self.position
 
     def start(self, table: str, id_: str, kind: str, spec: dict, on_done=None) -> None:
+        """Runs the job now, or queues it (status `queued`) while `max_jobs` others run."""
+        with self._lock:
+            if len(self.live()) >= self.max_jobs:
+                self.queue.append(QueuedJob(table, id_, kind, spec, on_done))
+                self.ws.update(table, id_, status=JobStatus.QUEUED, pid=None, error=None)
+                return
+            self._launch(QueuedJob(table, id_, kind, spec, on_done))
+
+    def position(self, id_: str) -> int | None:
+        """1 for the next job to start, None for a job not in the queue."""
+        with self._lock:
+            return next((k + 1 for k, job in enumerate(self.queue) if job.id == id_), None)
+
+    def _start_queued(self) -> None:
+        with self._lock:
+            while self.queue and len(self.live()) < self.max_jobs:
+                job = self.queue.popleft()
+                row = self.ws.get(job.table, job.id)
+                if row is not None and row["status"] == JobStatus.QUEUED:
+                    self._launch(job)
+
+    def tmp_dir(self, id_: str) -> Path:
+        return self.ws.root / "jobs" / f"{id_}.tmp"
+
+    def _launch(self, job: QueuedJob) -> None:
+        table, id_, kind, spec, on_done = job.table, job.id, job.kind, job.spec, job.on_done
         log = open(self.ws.root / "jobs" / f"{id_}.log", "ab")
+        tmp = self.tmp_dir(id_)
+        tmp.mkdir(exist_ok=True)
         cores = self.share(len(self.live()) + 1)
         # The count is the runner's choice, not the user's: the job's ThreadTuner may change it
         # (unless the server itself was given a fixed count, which its KGS_OMP_FROM_USER says).
         placement = {**placement_env(cores), "KGS_OMP_FROM_USER": os.environ.get("KGS_OMP_FROM_USER", "0")} if cores else {}
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", **placement}
-        proc = subprocess.Popen([sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec)],
+        # A job never compiles the C++ rasteriser (the server started with it built).
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "KGS_EXT_BUILD": "0", "TMPDIR": str(tmp), **placement}
+        # The job id on the command line is what `job_process` recognises the process by.
+        proc = subprocess.Popen([sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec), id_],
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
         log.close()
         self.procs[id_] = proc
@@ -75,7 +142,15 @@ class JobRunner:
 
     def _watch(self, table: str, id_: str, proc: subprocess.Popen, on_done) -> None:
         rc = proc.wait()
-        self.procs.pop(id_, None)
+        shutil.rmtree(self.tmp_dir(id_), ignore_errors=True)
+        with self._lock:
+            self.procs.pop(id_, None)
+        try:
+            self._record(table, id_, rc, on_done)
+        finally:
+            self._start_queued()
+
+    def _record(self, table: str, id_: str, rc: int, on_done) -> None:
         row = self.ws.get(table, id_)
         if row is None:  # deleted meanwhile
             return
@@ -109,8 +184,14 @@ class JobRunner:
         return lines[-1][-2000:] if lines else None
 
     def cancel(self, table: str, id_: str) -> bool:
+        with self._lock:
+            queued = next((job for job in self.queue if job.id == id_), None)
+            if queued is not None:  # never started: nothing to stop
+                self.queue.remove(queued)
+                self.ws.update(table, id_, status=JobStatus.CANCELLED, pid=None)
+                return True
         row = self.ws.get(table, id_)
-        if row is None or row["status"] not in CANCELLABLE or not pid_alive(row["pid"]):
+        if row is None or row["status"] not in CANCELLABLE or not job_process(row["pid"], id_):
             return False
         self.ws.update(table, id_, status=JobStatus.CANCELLING)
         try:
@@ -120,14 +201,14 @@ class JobRunner:
         if table != "runs":
             # A job without checkpoints stops where Python next runs: after the C++ call it is in
             # (SfM can take minutes). Past the grace period it is killed outright.
-            threading.Timer(self.kill_after, self._kill_if_alive, args=(row["pid"],)).start()
+            threading.Timer(self.kill_after, self._kill_if_alive, args=(row["pid"], id_)).start()
         return True
 
     kill_after = 15.0  # seconds a cancelled ingest, synthesis or export has to unwind
 
     @staticmethod
-    def _kill_if_alive(pid: int) -> None:
-        if pid_alive(pid):
+    def _kill_if_alive(pid: int, job_id: str) -> None:
+        if job_process(pid, job_id):
             try:
                 os.killpg(pid, signal.SIGKILL)  # the job's process group: SfM helpers with it
             except (ProcessLookupError, PermissionError):
@@ -139,7 +220,7 @@ class JobRunner:
         for table in ("scenes", "runs", "exports"):
             for row in self.ws.list(table):
                 if row["status"] in ACTIVE:
-                    if pid_alive(row["pid"]):
+                    if job_process(row["pid"], row["id"]):
                         threading.Thread(target=self._poll_foreign, args=(table, row["id"], row["pid"]),
                                          daemon=True).start()
                     else:
@@ -151,8 +232,9 @@ class JobRunner:
     def _poll_foreign(self, table: str, id_: str, pid: int) -> None:
         import time
 
-        while pid_alive(pid):
+        while job_process(pid, id_):
             time.sleep(1.0)
+        shutil.rmtree(self.tmp_dir(id_), ignore_errors=True)
         row = self.ws.get(table, id_)
         if row and table == "runs":
             info_path = Path(row["path"]) / "run.json"

@@ -15,12 +15,15 @@ from pathlib import Path
 
 from fastapi import Depends, FastAPI
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from kgs_frontend import ROOT as FRONTEND
 
+from .deps import relative_text
 from .jobs import JobRunner
 from .registry import JobStatus, Workspace
 from .routers import exports, renders, runs, scenes, stream, system
@@ -124,6 +127,14 @@ def create_app(settings: Settings) -> FastAPI:
             raise exc  # any other error stays a 500 (with its traceback in the server's log)
         return JSONResponse(status_code=failure[0], content={"detail": failure[1]})
 
+    @app.exception_handler(StarletteHTTPException)
+    async def without_server_paths(request, exc: StarletteHTTPException):
+        # An error quoting a file (a scene that cannot load, a run's model) names it relative
+        # to the workspace: the server's own layout is not the client's business.
+        if isinstance(exc.detail, str):
+            exc.detail = relative_text(exc.detail, ws.root)
+        return await http_exception_handler(request, exc)
+
     app.add_exception_handler(OSError, storage_error)
     app.add_exception_handler(sqlite3.OperationalError, storage_error)
 
@@ -150,10 +161,29 @@ def create_app(settings: Settings) -> FastAPI:
     return app
 
 
+def extension_ready() -> None:
+    """The server never compiles: it starts with the C++ rasteriser built, or refuses to start
+    saying what to run (a build inside a request held clients for a minute). Its jobs inherit
+    `KGS_EXT_BUILD=0`. Without a compiler it serves with the slower torch backend."""
+    import os
+    import sys
+
+    from kgs_core.render import _ext
+
+    os.environ["KGS_EXT_BUILD"] = "0"
+    try:
+        _ext.load()
+    except _ext.ExtensionUnavailable as exc:
+        if _ext.compiler_available():
+            raise SystemExit(f"kgs-app serve: {exc}") from None
+        print(f"note: {exc}; serving with the (slower) torch backend", file=sys.stderr)
+
+
 def serve(settings: Settings) -> None:
     import uvicorn
 
-    app = create_app(settings)
+    app = create_app(settings)  # (refuses bad arguments first)
+    extension_ready()
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     url = f"http://{host}:{settings.port}/"
     if settings.token:

@@ -22,6 +22,7 @@ the original.
 from __future__ import annotations
 
 import json
+import shutil
 import sqlite3
 import threading
 import time
@@ -77,6 +78,9 @@ def new_id() -> str:
 @dataclass
 class Workspace:
     root: Path
+
+    # The job runner's queue (`JobRunner.position`): a queued row's place in it.
+    queue_position: object = None
 
     def __post_init__(self) -> None:
         self.root = Path(self.root).resolve()
@@ -149,8 +153,44 @@ class Workspace:
                        (*fields.values(), id_))
 
     def delete(self, table: str, id_: str) -> None:
+        self.remove([(table, id_)])
+
+    def transition(self, table: str, id_: str, allowed, **fields) -> bool:
+        """Sets `fields` only if the row's status is one of `allowed`, in one statement: of two
+        requests racing to start a job on a row, one wins and the other learns it lost."""
+        assert table in TABLES
+        allowed = [str(a) for a in allowed]
         with self._lock, self._connect() as db:
-            db.execute(f"DELETE FROM {table} WHERE id = ?", (id_,))
+            cur = db.execute(f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ? AND status IN "
+                             f"({', '.join('?' * len(allowed))})", (*map(str, fields.values()), id_, *allowed))
+            return cur.rowcount == 1
+
+    def remove(self, rows: list[tuple[str, str]], files: list[Path] = ()) -> None:
+        """Deletes `rows` ((table, id) pairs) and `files` (folders or files inside the
+        workspace) together: the files are first renamed aside, the rows deleted in one
+        transaction, and only then the files removed; if the registry cannot be written (a full
+        disk) the files are renamed back and the error raised, so nothing is half-deleted."""
+        aside = []
+        for path in files:
+            path = Path(path)
+            if path.exists() and path.resolve().is_relative_to(self.root):
+                moved = path.with_name(f".deleting-{new_id()}-{path.name}")
+                path.rename(moved)
+                aside.append((path, moved))
+        try:
+            with self._lock, self._connect() as db:
+                for table, id_ in rows:
+                    assert table in TABLES
+                    db.execute(f"DELETE FROM {table} WHERE id = ?", (id_,))
+        except BaseException:
+            for path, moved in reversed(aside):
+                moved.rename(path)
+            raise
+        for _, moved in aside:
+            if moved.is_dir():
+                shutil.rmtree(moved, ignore_errors=True)
+            else:
+                moved.unlink(missing_ok=True)
 
     def new_dir(self, kind: str, id_: str) -> Path:
         return self.root / kind / id_
@@ -170,4 +210,6 @@ class Workspace:
             d["params"] = json.loads(d["params"] or "{}")
         if "path" in d:
             d["path"] = str(self.root / d["path"])  # an absolute stored path stays as it is
+        if "status" in d:
+            d["queue_position"] = self.queue_position(d["id"]) if self.queue_position and d["status"] == "queued" else None
         return d

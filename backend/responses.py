@@ -22,6 +22,8 @@ class JobRow(Response):
     status: JobStatus
     error: str | None
     created: float = Field(description="Unix time")
+    queue_position: int | None = Field(None, description="while queued behind other jobs (the server runs as many "
+                                       "at once as it has cores): 1 for the next to start")
 
 
 # ------------------------------------------------------------------ system

@@ -1,4 +1,4 @@
-"""The job process: `python -m kgs_backend.worker KIND SPEC_JSON`.
+"""The job process: `python -m kgs_backend.worker KIND SPEC_JSON JOB_ID`.
 
 Every long job (synthesize, ingest, train, export) runs here, in its own process, so that a
 crash or a cancel never takes the server down and training survives a client (or server)
@@ -160,7 +160,7 @@ JOBS = {"train": run_train, "synth": run_synth, "ingest": run_ingest, "export": 
 
 def main(argv: list[str]) -> int:
     signal.signal(signal.SIGTERM, _on_term)
-    kind, spec = argv[0], json.loads(argv[1])
+    kind, spec = argv[0], json.loads(argv[1])  # argv[2], the job id, names the process (JobRunner)
     JOBS[kind](spec)
     return 0
 

@@ -17,3 +17,6 @@ if [ ! -f "$stamp" ]; then
   rm -f "$VENV"/.kgs-stamp-*
   touch "$stamp"
 fi
+# The C++ rasteriser, compiled once here (cached, keyed by its sources and the compiler), so
+# that no later command, and never the server, compiles it.
+"$VENV/bin/kgs-app" build-ext

@@ -12,6 +12,7 @@ trap 'kill "${server:-}" 2>/dev/null || true; rm -rf "$work"' EXIT
 "$work/venv/bin/python" -m pip install -q "torch==2.13.0"
 "$work/venv/bin/python" -m pip install -q "$work"/dist/kinematics_gs-*.whl
 cd "$work"  # nothing of the source tree on the path from here on
+"$work/venv/bin/kgs-app" build-ext  # the set-up step: the server refuses to start without it
 "$work/venv/bin/kgs-app" demo --workspace "$work/ws" --iterations 40 --no-serve
 port=$(( 20000 + RANDOM % 20000 ))
 "$work/venv/bin/kgs-app" serve --workspace "$work/ws" --port "$port" > "$work/serve.log" 2>&1 &

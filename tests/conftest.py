@@ -10,7 +10,11 @@ torch.set_num_threads(min(2, os.cpu_count() or 1))
 @pytest.fixture(autouse=True, scope="session")
 def ingest_cache(tmp_path_factory):
     """Ingest's frame-set cache lives in a temporary folder, not in the user's home."""
+    from kgs_core.render import _ext
+
     folder = tmp_path_factory.mktemp("kgs-cache")
+    # The C++ rasteriser stays where README's set-up built it (servers started here never build).
+    os.environ.setdefault("KGS_EXT_CACHE_DIR", str(_ext.ext_root()))
     old = os.environ.get("KGS_CACHE_DIR")
     os.environ["KGS_CACHE_DIR"] = str(folder)
     yield folder

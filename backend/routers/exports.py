@@ -41,7 +41,7 @@ class ExportRequest(StrictRequest):
 
 
 def public(row: dict) -> dict:
-    return {k: row[k] for k in ("id", "run_id", "format", "status", "error", "created", "params")}
+    return {k: row[k] for k in ("id", "run_id", "format", "status", "error", "created", "params", "queue_position")}
 
 
 @router.post("/api/runs/{run_id}/exports", status_code=202, response_model=ExportSummary)
@@ -105,5 +105,4 @@ def delete_export(export_id: str, ws: Workspace = Depends(workspace)) -> None:
     row = get_or_404(ws, "exports", export_id)
     if row["status"] in ACTIVE:
         raise HTTPException(409, "the export is still running")
-    shutil.rmtree(Path(row["path"]).parent, ignore_errors=True)
-    ws.delete("exports", export_id)
+    ws.remove([("exports", export_id)], [Path(row["path"]).parent])

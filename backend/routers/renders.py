@@ -17,6 +17,20 @@ from kgs_core.data.scene import Camera
 from ..deps import run_view
 
 router = APIRouter(prefix="/api/runs", tags=["renders"])
+# The most pixels one render may ask for (width x height): a 2048 x 2048 render on two cores takes
+# seconds; larger ones held the server's threads for most of a minute.
+MAX_RENDER_PIXELS = 2048 * 2048
+
+
+def scene_frames(view) -> list:
+    """The frames of a run's scene, or a 409 when the scene cannot be read (moved, deleted or
+    malformed)."""
+    from kgs_core.data.formats import load_scene
+
+    try:
+        return load_scene(view.run.scene_path()).frames
+    except ValueError as exc:
+        raise HTTPException(409, f"the run's scene is not available: {exc}") from None
 
 
 def _encode(img: np.ndarray, fmt: str) -> tuple[bytes, str]:
@@ -33,12 +47,7 @@ def _encode(img: np.ndarray, fmt: str) -> tuple[bytes, str]:
 
 def camera_for(view, frame: int | None, viewmat: str | None, width: int | None, height: int | None,
                fx: float | None) -> Camera:
-    from kgs_core.data.formats import load_scene
-
-    try:
-        frames = load_scene(view.run.scene_path()).frames
-    except ValueError as exc:
-        raise HTTPException(409, f"the run's scene is not available: {exc}") from None
+    frames = scene_frames(view)
     base = frames[min(frame or 0, len(frames) - 1)].camera
     if frame is not None and not 0 <= frame < len(frames):
         raise HTTPException(422, f"frame must be in 0..{len(frames) - 1}")
@@ -62,6 +71,9 @@ def camera_for(view, frame: int | None, viewmat: str | None, width: int | None, 
         K = cam.K.copy()
         K[0, 0] = K[1, 1] = fx
         cam = replace(cam, K=K)
+    if cam.width * cam.height > MAX_RENDER_PIXELS:
+        raise HTTPException(422, f"a render of {cam.width}x{cam.height} is above the {MAX_RENDER_PIXELS:,} pixels one "
+                                 "render may have: ask for a smaller width and height")
     return cam
 
 
@@ -70,13 +82,14 @@ async def render(request: Request, run_id: str, t: float = Query(0.0, ge=0, le=1
                  lod: int | None = Query(None, ge=1), set: Literal["all", "static", "dynamic"] = "all",
                  frame: int | None = Query(None, ge=0, description="the camera of this scene frame (default 0)"),
                  viewmat: str | None = Query(None, description="16 numbers, row-major world-to-camera"),
-                 width: int | None = Query(None, ge=8, le=4096), height: int | None = Query(None, ge=8, le=4096),
+                 width: int | None = Query(None, ge=8, le=4096, description="width x height at most 2048²"),
+                 height: int | None = Query(None, ge=8, le=4096),
                  fx: float | None = Query(None, gt=0), format: Literal["png", "jpeg"] = "png",
                  background: Literal["black", "white"] = "black") -> Response:
     view = run_view(request.app, run_id)
     if lod is not None and lod > view.run.n_levels:
         raise HTTPException(422, f"lod must be in 1..{view.run.n_levels}")
-    cam = camera_for(view, frame, viewmat, width, height, fx)
+    cam = await run_in_threadpool(camera_for, view, frame, viewmat, width, height, fx)  # reads the scene
 
     def work():
         from kgs_core.export.bake import render_baked
@@ -92,14 +105,18 @@ async def render(request: Request, run_id: str, t: float = Query(0.0, ge=0, le=1
 @router.get("/{run_id}/frames/{index}/image", responses={200: {"content": {"image/jpeg": {}}}})
 async def frame_image(request: Request, run_id: str, index: int, which: Literal["input", "sharp"] = "input") -> Response:
     """An input frame of the run's scene (or its sharp ground truth, when the scene has one)."""
-    from kgs_core.data.formats import load_scene
-
     view = run_view(request.app, run_id)
-    frames = load_scene(view.run.scene_path()).frames
-    if not 0 <= index < len(frames):
-        raise HTTPException(404, f"frame {index} not in 0..{len(frames) - 1}")
-    img = frames[index].image() if which == "input" else frames[index].sharp()
-    if img is None:
-        raise HTTPException(404, f"frame {index} has no sharp ground truth")
-    data, media = _encode(img, "jpeg")
-    return Response(data, media_type=media)
+
+    def work() -> bytes:  # reading and decoding off the event loop
+        frames = scene_frames(view)
+        if not 0 <= index < len(frames):
+            raise HTTPException(404, f"frame {index} not in 0..{len(frames) - 1}")
+        try:
+            img = frames[index].image() if which == "input" else frames[index].sharp()
+        except ValueError as exc:  # unreadable, or more pixels than a frame may hold
+            raise HTTPException(409, f"frame {index} cannot be read: {exc}") from None
+        if img is None:
+            raise HTTPException(404, f"frame {index} has no sharp ground truth")
+        return _encode(img, "jpeg")[0]
+
+    return Response(await run_in_threadpool(work), media_type="image/jpeg")

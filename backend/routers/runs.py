@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 from typing import Literal
 
@@ -93,7 +92,7 @@ def saved_config(run_id: str, info: dict) -> TrainConfig:
 def public(row: dict) -> dict:
     path = Path(row["path"])
     info = read_json(path / "run.json")
-    out = {k: row[k] for k in ("id", "scene_id", "name", "status", "error", "created")}
+    out = {k: row[k] for k in ("id", "scene_id", "name", "status", "error", "created", "queue_position")}
     # What tells two runs of one name apart on the runs page: their scene and their folder
     # (its last two parts: the server's own layout is not the client's business).
     out["scene_name"] = info.get("scene_name")
@@ -201,7 +200,8 @@ def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
     if scene is None:
         raise HTTPException(409, "the run's scene is no longer in the workspace")
     saved_config(run_id, info)  # a malformed run.json is refused here, not in the job
-    ws.update("runs", run_id, status=JobStatus.QUEUED, error=None)
+    if not ws.transition("runs", run_id, (row["status"],), status=JobStatus.QUEUED, error=None):
+        raise HTTPException(409, f"run {run_id} is already being resumed")
     jr.start("runs", run_id, "train", {"scene_dir": scene["path"], "run_dir": row["path"], "config": info["config"],
                                        "resume": True})
     return public(ws.get("runs", run_id))
@@ -217,15 +217,8 @@ def delete_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)
         raise HTTPException(409, "an export of this run is running: wait for it or cancel it first")
     request.app.state.views.drop(run_id)
     # Its exports go with it: a deleted run's files must not stay downloadable.
-    for e in exports:
-        folder = Path(e["path"]).parent
-        if folder.is_relative_to(ws.root / "exports"):
-            shutil.rmtree(folder, ignore_errors=True)
-        ws.delete("exports", e["id"])
-    path = Path(row["path"])
-    if path.is_relative_to(ws.root):
-        shutil.rmtree(path, ignore_errors=True)
-    ws.delete("runs", run_id)
+    folders = [Path(e["path"]).parent for e in exports if Path(e["path"]).parent.is_relative_to(ws.root / "exports")]
+    ws.remove([*(("exports", e["id"]) for e in exports), ("runs", run_id)], [*folders, Path(row["path"])])
 
 
 @router.post("/{run_id}/tau", response_model=Split)

@@ -7,15 +7,17 @@ import json
 import shutil
 import tempfile
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.concurrency import run_in_threadpool
 from pydantic import Field, model_validator
 
 from kgs_core.data.synth.scenes import SCENES
 
-from ..deps import get_or_404, jobs, workspace
+from ..deps import get_or_404, jobs, relative_text, workspace
 from ..jobs import JobRunner
 from ..registry import ACTIVE, JobStatus, Workspace
 from ..responses import SceneDetail, SceneSummary
@@ -30,10 +32,14 @@ UPLOAD_TYPES = {"zip": ("application/zip", "application/x-zip-compressed", "appl
                 "video": ("video/*", "application/octet-stream")}
 
 
-MAX_SYNTH_PIXELS = 1 << 31  # e.g. 1024² x 2048 x 1, 512² x 512 x 16, the demo's 128² x 60 x 16 = 2^24
+MAX_SYNTH_PIXELS = 1 << 31  # rendered: e.g. 512² x 512 x 16; the demo's 128² x 60 x 16 = 2^24
+MAX_SYNTH_FRAME_PIXELS = 1 << 27  # stored (about 16 bytes a pixel on disk): 1024² x 128, 512² x 512
 
 
 class SynthRequest(StrictRequest):
+    """A built-in synthetic scene. Bounds: size² x frames at most 2^27 pixels stored (about 2 GB
+    on disk), size² x frames x subframes at most 2^31 rendered."""
+
     source: Literal["synth"] = "synth"
     name: str = Field("sheet", description="built-in scene: " + ", ".join(sorted(SCENES)))
     size: int = Field(128, ge=16, le=1024)
@@ -43,8 +49,12 @@ class SynthRequest(StrictRequest):
 
     @model_validator(mode="after")
     def bounded_work(self) -> "SynthRequest":
-        # Each bound alone allows 1024² x 2000 x 64 rendered pixels: days of CPU.
-        renders = self.size * self.size * self.frames * self.subframes
+        # Each bound alone allows 1024² x 2000 x 64 rendered pixels (days of CPU), or 1024² x
+        # 2000 stored (tens of GB).
+        stored = self.size * self.size * self.frames
+        if stored > MAX_SYNTH_FRAME_PIXELS:
+            raise ValueError(f"size² x frames is {stored:,}, above {MAX_SYNTH_FRAME_PIXELS:,} (lower one of them)")
+        renders = stored * self.subframes
         if renders > MAX_SYNTH_PIXELS:
             raise ValueError(f"size² x frames x subframes is {renders:,}, above {MAX_SYNTH_PIXELS:,} "
                              "(lower one of them)")
@@ -56,7 +66,7 @@ INGESTABLE = (JobStatus.UPLOADED, JobStatus.FAILED, JobStatus.CANCELLED, JobStat
 
 
 def public(row: dict, ws: Workspace) -> dict:
-    out = {k: row[k] for k in ("id", "name", "source", "status", "error", "created")}
+    out = {k: row[k] for k in ("id", "name", "source", "status", "error", "created", "queue_position")}
     if row["source"] == "ingest":
         out["videos"] = sum(video_path(ws, row["id"], r).is_file() for r in ("video", "sharp"))
         try:  # the ingest's stages: the current one, and those done with their seconds (worker.stage_writer)
@@ -66,10 +76,10 @@ def public(row: dict, ws: Workspace) -> dict:
     return out
 
 
-def scene_summary(path: Path) -> dict:
+def scene_summary(path: Path, scene=None) -> dict:
     from kgs_core.data.formats import load_scene
 
-    scene = load_scene(path)
+    scene = scene or load_scene(path)
     return {"frames": len(scene.frames), "train_frames": len(scene.train_frames), "test_frames": len(scene.test_frames),
             "image_size": [scene.frames[0].camera.width, scene.frames[0].camera.height], "dt": scene.dt,
             "exposure": scene.exposure, "format": scene.source_format, "has_ground_truth": scene.has_ground_truth}
@@ -160,8 +170,10 @@ def check_video(blob: Path) -> None:
 
 def start_ingest(ws: Workspace, jr: JobRunner, row: dict, req: IngestRequest) -> None:
     sharp = video_path(ws, row["id"], "sharp")
+    # One of two racing requests claims the scene; the other gets a 409.
+    if not ws.transition("scenes", row["id"], INGESTABLE, status=JobStatus.QUEUED, error=None):
+        raise HTTPException(409, f"scene {row['id']} is already being ingested")
     progress_path(ws, row["id"]).unlink(missing_ok=True)
-    ws.update("scenes", row["id"], status=JobStatus.QUEUED, error=None)
     jr.start("scenes", row["id"], "ingest", {
         "video": str(video_path(ws, row["id"])), "eval_video": str(sharp) if sharp.is_file() else None,
         "out": row["path"], "delete_video": True, "progress": str(progress_path(ws, row["id"])),
@@ -184,18 +196,16 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
     try:
         blob = await receive_upload(request, kind, tmp_dir)
         if kind == "zip":
-            if not blob.read_bytes()[:4].startswith(b"PK\x03\x04"):
-                raise HTTPException(415, "kind=zip but the body is not a zip archive")
-            root = _safe_extract(blob, tmp_dir / "x", request.app.state.settings.max_upload_mb * 1024 * 1024 * 4)
-            try:
-                summary = scene_summary(root)
-            except ValueError as exc:
-                raise HTTPException(422, f"the zip is not a readable dataset: {exc}") from None
+            with open(blob, "rb") as f:  # the magic bytes only: the body can be hundreds of MB
+                if f.read(4) != b"PK\x03\x04":
+                    raise HTTPException(415, "kind=zip but the body is not a zip archive")
+            limit = request.app.state.settings.max_upload_mb * 1024 * 1024 * 4
+            summary, root = await run_in_threadpool(read_uploaded_dataset, blob, tmp_dir / "x", limit)
             out = ws.new_dir("scenes", sid)
             shutil.move(str(root), out)
             row = ws.insert("scenes", id=sid, name=name, path=str(out), source="upload", status=JobStatus.DONE)
             return {**public(row, ws), **summary}
-        check_video(blob)
+        await run_in_threadpool(check_video, blob)
         out = ws.new_dir("scenes", sid)
         shutil.move(str(blob), video_path(ws, sid))
         row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status=JobStatus.UPLOADED)
@@ -204,6 +214,36 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
         return public(ws.get("scenes", sid), ws)
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)
+
+
+def read_uploaded_dataset(blob: Path, dest: Path, max_bytes: int) -> tuple[dict, Path]:
+    """The summary and root folder of a dataset zip, extracted into `dest`; 4xx when it is not
+    a readable dataset or a frame holds more pixels than a frame may. Errors name files
+    relative to the dataset, never the server's folders."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.data.images import MAX_IMAGE_PIXELS
+
+    root = _safe_extract(blob, dest, max_bytes)
+    try:
+        scene = load_scene(root)
+        for frame in scene.frames:
+            for path in (frame.image_path, frame.sharp_path, frame.mask_path):
+                if path is not None and path.suffix.lower() != ".npy":
+                    w, h = image_size(path)
+                    if w * h > MAX_IMAGE_PIXELS:
+                        raise HTTPException(413, f"{path.relative_to(root.resolve())} is {w}x{h}, above the "
+                                                 f"{MAX_IMAGE_PIXELS:,} pixels a frame may hold")
+        summary = scene_summary(root, scene)
+    except ValueError as exc:
+        raise HTTPException(422, "the zip is not a readable dataset: " + relative_text(str(exc), root)) from None
+    return summary, root
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the header, nothing decoded."""
+    from kgs_core.data.formats.common import image_size as header_size
+
+    return header_size(path)
 
 
 def waiting_video(ws: Workspace, scene_id: str) -> dict:
@@ -265,7 +305,10 @@ def _safe_extract(zip_path: Path, dest: Path, max_bytes: int) -> Path:
             p = Path(info.filename)
             if p.is_absolute() or ".." in p.parts or (info.external_attr >> 16) & 0o170000 == 0o120000:
                 raise HTTPException(422, f"unsafe path in zip: {info.filename!r}")
-        zf.extractall(dest)
+        try:  # each entry's data is checked against its header (sizes, CRC) as it is read
+            zf.extractall(dest)
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, EOFError, NotImplementedError, ValueError) as exc:
+            raise HTTPException(415, f"corrupt zip archive ({type(exc).__name__}: {exc})") from None
     markers = ("dataset.json", "transforms_train.json", "sparse")
     for cand in [dest, *sorted(p for p in dest.rglob("*") if p.is_dir())]:
         if any((cand / m).exists() for m in markers):
@@ -281,7 +324,7 @@ def get_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> dict:
         try:
             out.update(scene_summary(Path(row["path"])))
         except ValueError as exc:
-            out["error"] = str(exc)
+            out["error"] = relative_text(str(exc), ws.root)
     return out
 
 
@@ -294,10 +337,6 @@ def delete_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> None:
     if runs:  # their renders, input frames and fine-tuning read the scene
         raise HTTPException(409, f"{len(runs)} run(s) use this scene ({', '.join(r['id'] for r in runs[:5])}): "
                                  "delete them first")
-    path = Path(row["path"])
-    if path.is_relative_to(ws.root):  # never delete data the user registered from elsewhere
-        shutil.rmtree(path, ignore_errors=True)
-    for role in ("video", "sharp"):  # uploads whose ingest never ran or failed
-        video_path(ws, scene_id, role).unlink(missing_ok=True)
-    progress_path(ws, scene_id).unlink(missing_ok=True)
-    ws.delete("scenes", scene_id)
+    # Never data the user registered from elsewhere (`remove` touches files inside the workspace only).
+    ws.remove([("scenes", scene_id)], [Path(row["path"]), *(video_path(ws, scene_id, role) for role in ("video", "sharp")),
+                                       progress_path(ws, scene_id)])

@@ -18,7 +18,10 @@ export const exportPanel = {
 
   async pollExport(id, format) {
     const job = await api(`/api/exports/${id}`);
-    if (job.status === "queued" || job.status === "running") return setTimeout(() => this.pollExport(id, format), 700);
+    if (job.status === "queued" || job.status === "running") {
+      $("export-status").textContent = job.queue_position ? `${format}: queued (${job.queue_position} in line)…` : `${format}: running…`;
+      return setTimeout(() => this.pollExport(id, format), 700);
+    }
     const el = $("export-status");
     if (job.status === "done") {
       el.innerHTML = `<a id="export-link" href="${esc(withToken(`/api/exports/${encodeURIComponent(id)}/download`))}">download ${esc(format)}</a>`;

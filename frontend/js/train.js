@@ -17,11 +17,17 @@ function ingestProgress(p) {
   return `${p.stage}${count} · ${Number(p.elapsed).toFixed(0)} s${past ? ` <span class="muted">(${esc(past)})</span>` : ""}`;
 }
 
+// A job's status, with its place in the server's queue while it waits for a core.
+export function statusText(row) {
+  return row.status === "queued" && row.queue_position ? `queued (${row.queue_position} in line)` : row.status;
+}
+
 function sceneItem(s) {
   const id = esc(s.id);
-  const head = `<b>${esc(s.name)}</b> <span class="status">${esc(s.status)}</span>`;
+  const head = `<b>${esc(s.name)}</b> <span class="status">${esc(statusText(s))}</span>`;
   if (ACTIVE.includes(s.status)) {
-    const line = s.source === "ingest" ? ingestProgress(s.progress) : "synthesizing (about two minutes)…";
+    const line = s.status === "queued" ? "waiting for a free core…"
+      : s.source === "ingest" ? ingestProgress(s.progress) : "synthesizing (about two minutes)…";
     return `<li data-scene="${id}">${head} <span class="ingest-progress">${line}</span>
       ${s.status !== "cancelling" ? `<button data-scene-cancel="${id}">cancel</button>` : ""}</li>`;
   }
@@ -45,14 +51,14 @@ export async function showRuns() {
   $("scene-list").innerHTML = scenes.length ? scenes.map(sceneItem).join("") : `<li class="muted">no scenes yet</li>`;
   // Keep the list current while a scene is being made.
   clearTimeout(polling);
-  if (scenes.some((s) => ACTIVE.includes(s.status))) polling = setTimeout(showRuns, 1000);
+  if ([...scenes, ...runs].some((s) => ACTIVE.includes(s.status))) polling = setTimeout(showRuns, 1000);
   const act = (sel, fn) => document.querySelectorAll(sel).forEach((b) => (b.onclick = () => fn(b).catch(report)));
   act("[data-scene-cancel]", (b) => api(`/api/scenes/${b.dataset.sceneCancel}/cancel`, { method: "POST" }).then(showRuns));
   act("[data-scene-delete]", (b) => api(`/api/scenes/${b.dataset.sceneDelete}`, { method: "DELETE" }).then(showRuns));
   act("[data-ingest]", (b) => api(`/api/scenes/${b.dataset.ingest}/ingest`, { method: "POST", body: ingestOptions() })
     .then(showRuns));
   $("run-list").innerHTML = runs.length
-    ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(r.status)}</span>
+    ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(statusText(r))}</span>
         <span class="muted run-where">${esc(r.scene_name || "?")} · ${esc(new Date(r.created * 1000).toLocaleString())} · ${esc(r.folder)}</span>
         ${r.final_psnr_heldout ? ` · ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB` : ""}
         ${r.has_model ? `<a href="#/run/${encodeURIComponent(r.id)}">open</a>` : ""}

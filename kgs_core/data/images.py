@@ -15,11 +15,23 @@ class ImageError(ValueError):
     pass
 
 
+# The most pixels a dataset image may hold (a 4096 x 4096 frame). Checked from the header,
+# before anything is decoded: a small compressed file can claim gigabytes of pixels.
+MAX_IMAGE_PIXELS = 4096 * 4096
+
+
+def _bounded(im: Image.Image, path: Path) -> None:
+    w, h = im.size
+    if w * h > MAX_IMAGE_PIXELS:
+        raise ImageError(f"image {path.name} is {w}x{h}, above the {MAX_IMAGE_PIXELS:,} pixels a frame may hold")
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """`(H, W, 3)` float32 in [0, 1]; alpha, if any, is composited over black."""
     path = Path(path)
     try:
         with Image.open(path) as im:
+            _bounded(im, path)
             im.load()
             if im.mode in ("RGBA", "LA"):
                 arr = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
@@ -39,6 +51,7 @@ def read_mask(path: str | Path) -> np.ndarray:
     path = Path(path)
     try:
         with Image.open(path) as im:
+            _bounded(im, path)
             return np.asarray(im.convert("L")) > 127
     except FileNotFoundError:
         raise ImageError(f"mask file not found: {path}") from None

@@ -56,7 +56,7 @@ def _number(x: float) -> str:
 FRACTION = Bound(0, 1)
 # What a setting not listed in BOUNDS may take: whole numbers are counts and schedule points,
 # other numbers weights, rates and lengths; none negative, none unbounded.
-COUNT, AMOUNT = Bound(0, 10_000_000), Bound(0, 1e6)
+COUNT, AMOUNT = Bound(0, 2**31 - 1), Bound(0, 1e6)
 # The bounds that differ: sizes that set memory and time (a request must not ask for a
 # machine's worth), fractions, and the few settings that may be negative or must be positive.
 BOUNDS: dict[str, Bound] = {
@@ -64,10 +64,10 @@ BOUNDS: dict[str, Bound] = {
     "init_points": Bound(1, 1_000_000), "densify.max_gaussians": Bound(1, 5_000_000),
     "coarse_factor": Bound(1, 64), "spawn_frames": Bound(0, 1000), "spawn_max": Bound(1, 100_000),
     "spawn_life": Bound(0, 1000, above=True), "lod_levels": Bound(1, 8), "lod_fractions": Bound(0, 1, above=True, length=8),
-    "lod_rho": Bound(0, 1, above=True), "lod_importance_views": Bound(1, 1000), "eval_every": Bound(1, 10_000_000),
-    "eval_frames": Bound(1, 1000), "checkpoint_every": Bound(1, 10_000_000), "nonfinite_max_restores": Bound(0, 100),
+    "lod_rho": Bound(0, 1, above=True), "lod_importance_views": Bound(1, 1000), "eval_every": Bound(1, 2**31 - 1),
+    "eval_frames": Bound(1, 1000), "checkpoint_every": Bound(1, 2**31 - 1), "nonfinite_max_restores": Bound(0, 100),
     "nonfinite_lr_factor": Bound(0, 1, above=True), "reg_static_samples": Bound(0, 1_000_000),
-    "densify.opacity_reset_at": Bound(0, 10_000_000, length=100), "densify.every": Bound(1, 10_000_000),
+    "densify.opacity_reset_at": Bound(0, 2**31 - 1, length=100), "densify.every": Bound(1, 2**31 - 1),
     "model.sh_degree": Bound(0, 3), "model.feature_dim": Bound(1, 256), "model.knn": Bound(1, 64),
     "model.variance_times": Bound(2, 256), "model.deform_spatial": Bound(2, 512), "model.deform_temporal": Bound(1, 1024),
     "model.deform_features": Bound(1, 256), "model.deform_multires": Bound(1, 16, length=4),
