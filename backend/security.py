@@ -5,6 +5,7 @@ parameter (browsers cannot set headers on WebSockets)."""
 
 from __future__ import annotations
 
+import re
 import secrets
 
 from fastapi import HTTPException, Request, WebSocket
@@ -119,16 +120,16 @@ class HostOriginGuard:
 class BodyLimit:
     """ASGI middleware: a JSON body larger than MAX_JSON_BODY gets 413 before anything reads
     it (a 200 MB `POST /tau` was parsed whole), and one without a Content-Length gets 411.
-    Uploads (`/api/scenes/upload`) have their own, streamed limit."""
+    Uploads (a scene, and a second camera's video) have their own, streamed limit."""
 
     MAX_JSON_BODY = 1 << 20
-    STREAMED = ("/api/scenes/upload",)
+    STREAMED = re.compile(r"^/api/scenes/(upload|[0-9a-f]{12}/video)$")
 
     def __init__(self, app):
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or scope["method"] in SAFE_METHODS or scope["path"] in self.STREAMED:
+        if scope["type"] != "http" or scope["method"] in SAFE_METHODS or self.STREAMED.match(scope["path"]):
             return await self.app(scope, receive, send)
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         length = headers.get("content-length")

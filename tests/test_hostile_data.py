@@ -113,3 +113,40 @@ def test_deep_json_and_decompression_bomb(scene_dir, tmp_path):
     (root / "rgb" / "1x" / "c0_00001.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
     with pytest.raises(SceneError, match=r"c0_00001\.png"):
         load_scene(root, fmt="dnerf")
+
+
+@pytest.fixture(scope="module")
+def colmap_dir(scene_dir, tmp_path_factory) -> Path:
+    from kgs_core.data.formats import write_colmap
+
+    root = tmp_path_factory.mktemp("hostile-colmap") / "c"
+    write_colmap(load_scene(scene_dir), root)
+    return root
+
+
+def load_colmap_edited(colmap_dir: Path, rel: str, edit) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp) / "c"
+        shutil.copytree(colmap_dir, root)
+        path = root / rel
+        path.write_text(json.dumps(edit(json.loads(path.read_text()) if path.is_file() else {})))
+        try:
+            load_scene(root, fmt="colmap")
+        except SceneError as exc:
+            assert str(exc), "a SceneError says what is wrong"
+
+
+@SETTINGS
+@given(key=st.sampled_from(["time", "exposure", "camera_id", "split"]), value=JSON, whole=st.booleans())
+def test_colmap_times_fields(colmap_dir, key, value, whole):
+    def edit(js):
+        first = next(iter(js))
+        js[first] = value if whole else {**js[first], key: value}
+        return js
+    load_colmap_edited(colmap_dir, "times.json", edit)
+
+
+@SETTINGS
+@given(rel=st.sampled_from(["times.json", "kgs.json"]), value=JSON)
+def test_colmap_whole_files_replaced(colmap_dir, rel, value):
+    load_colmap_edited(colmap_dir, rel, lambda js: value)

@@ -392,3 +392,14 @@ def test_a_zip_upload_is_never_read_whole_into_memory(client, tiny_run, monkeypa
     monkeypatch.setattr(Path, "read_bytes", guarded)
     r = client.post("/api/scenes/upload", params={"name": "ok", "kind": "zip"}, headers=ZIP, content=zipped(files))
     assert r.status_code == 201, r.text
+
+
+def test_a_second_camera_video_over_a_mebibyte_uploads(client, room_video):
+    """The second camera's upload is streamed under the upload limit, not the JSON body cap."""
+    data = Path(room_video[0]).read_bytes()
+    vt = {"content-type": "video/mp4"}
+    sid = client.post("/api/scenes/upload", params={"name": "clip", "kind": "video", "hold": "true"}, content=data,
+                      headers=vt).json()["id"]
+    padded = data + b"\0" * ((1 << 20) + 1024 - len(data))  # an mp4 reader ignores trailing bytes
+    r = client.post(f"/api/scenes/{sid}/video", params={"role": "sharp"}, content=padded, headers=vt)
+    assert r.status_code == 201 and r.json()["videos"] == 2, r.text
