@@ -68,9 +68,9 @@ def test_training_fits_the_exposure_and_records_the_choice(tmp_path):
     from kgs_core.train.trainer import Trainer
 
     walk = load_scene(Path(__file__).parent / "fixtures" / "walk96")
-    # τ 0: every Gaussian dynamic from the split on, so that K.R. blurs (and the fit acts) at once.
+    # τ ~0 (a τ must be above 0): every Gaussian dynamic from the split on, so that K.R. blurs (and the fit acts) at once.
     cfg = make_config("fast", scene=walk, iterations=40, decompose_at=10, decompose_every=0, eval_every=20,
-                      checkpoint_every=20, fit_exposure=True, exposure=0.3, tau_auto=False, **{"model.tau": 0.0})
+                      checkpoint_every=20, fit_exposure=True, exposure=0.3, tau_auto=False, **{"model.tau": 1e-12})
     t = Trainer(walk, tmp_path / "r", cfg, progress=False)
     info = t.run()
     assert info["exposure"] != pytest.approx(0.3, abs=1e-4) and 0 < info["exposure"] < 1

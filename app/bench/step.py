@@ -1,10 +1,12 @@
 """Training-step benchmark: `kgs-app bench step`.
 
-Where one training step of the whole model goes at the demo's scale (`bench raster` times the
-rasteriser alone): synthesize a scene, train the fast preset past its split, then time steps
-of each configuration, split into the model's evaluation (deformation field, coarse-to-fine,
-K.R., covariances), render + loss, backward, and the optimisers. Configurations use the
-`bench quality` short names: `full`, `kr` (no K.R.), `split` (the D3DGS-like baseline), ...
+Where one training step of the whole model goes (`bench raster` times the rasteriser alone):
+synthesize a scene (or read a scene folder, e.g. an ingest at full size, with the preset fitted
+to it), train the fast preset past its split, then time steps of each configuration, split into
+the model's evaluation (deformation field, coarse-to-fine, K.R., covariances), render + loss,
+backward, and the optimisers; `--profile` adds the operations that take the time (torch's
+profiler, self time). Configurations use the `bench quality` short names: `full`, `kr` (no
+K.R.), `split` (the D3DGS-like baseline), ...
 """
 
 from __future__ import annotations
@@ -68,7 +70,7 @@ def main(argv: list[str]) -> int:
     from kgs_core.train.trainer import Trainer
 
     ap = argparse.ArgumentParser(prog="kgs-app bench step", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="sheet")
+    ap.add_argument("--scene", default="sheet", help="a synthetic scene's name, or a scene folder")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--blur", choices=["none", "mild", "severe"], default="mild",
@@ -77,25 +79,38 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--steps", type=int, default=60, help="steps timed per configuration")
     ap.add_argument("--configs", default="full,kr,split", help="short names, as in bench quality")
     ap.add_argument("--repeats", type=int, default=2, help="timing rounds, configurations interleaved")
+    ap.add_argument("--decompose-at", type=int, help="the split's iteration (default: the preset's; set it below "
+                    "--warmup to time a large scene after its split without training to it)")
+    ap.add_argument("--profile", action="store_true", help="also list the operations of the first configuration's "
+                    "steps by self time")
     args = ap.parse_args(argv)
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(tempfile.mkdtemp(prefix="kgs-bench-step-"))
-    scene = load_scene(synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames,
-                                  progress=False))
+    folder = Path(args.scene)
+    if folder.is_dir():
+        scene = load_scene(folder)
+    else:
+        scene = load_scene(synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames,
+                                      progress=False))
     trainers = {}
     for name in names:
         over = config_overrides(name)
         ablate = over.pop("ablate", ())
-        cfg = make_config("fast", ablate=ablate, eval_every=10**9, checkpoint_every=10**9, **over)
+        if args.decompose_at is not None:
+            over["decompose_at"] = args.decompose_at
+        cfg = make_config("fast", ablate=ablate, scene=scene if folder.is_dir() else None, eval_every=10**9,
+                          checkpoint_every=10**9, **over)
         tr = Trainer(scene, root / config_slug(name), cfg, progress=False)
         tr.init_model()
         for it in range(args.warmup):
             tr.train_step(it)
             tr.after_step(it)
         trainers[name] = tr
-    print(f"# {args.scene} {args.size}², {args.frames} frames, {args.blur} blur, fast preset after {args.warmup} iterations; "
-          f"{args.steps} steps x {args.repeats} rounds; {machine()}")
+    cam = scene.train_frames[0].camera
+    what = (f"{folder.name} {cam.width}x{cam.height}, {len(scene.train_frames)} training frames" if folder.is_dir() else
+            f"{args.scene} {args.size}², {args.frames} frames, {args.blur} blur")
+    print(f"# {what}, fast preset after {args.warmup} iterations; {args.steps} steps x {args.repeats} rounds; {machine()}")
     print("| configuration | Gaussians | dynamic | model ms | render + loss ms | backward ms | optimiser ms | step ms |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     best: dict[str, dict] = {}
@@ -109,4 +124,25 @@ def main(argv: list[str]) -> int:
         dyn = int(m.dynamic.sum()) if m.decomposed else len(m)
         print(f"| {name} | {len(m):,} | {dyn / max(len(m), 1):.0%} | {t['model']:.1f} | {t['render + loss']:.1f} | "
               f"{t['backward']:.1f} | {t['optimiser']:.1f} | **{t['step']:.1f}** |")
+    if args.profile:
+        name, tr = next(iter(trainers.items()))
+        print(f"\n{name}: operations by self time over {args.steps} steps (ms a step)")
+        print(profile_table(tr, args.steps, args.warmup + args.repeats * args.steps))
     return 0
+
+
+def profile_table(trainer, steps: int, start: int, rows: int = 20) -> str:
+    """The operations of `steps` training steps by self CPU time, as a markdown table."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for it in range(start, start + steps):
+            trainer.train_step(it)
+            trainer.after_step(it)
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in events)
+    lines = ["| operation | calls a step | self ms a step | share |", "| --- | ---: | ---: | ---: |"]
+    for e in events[:rows]:
+        lines.append(f"| {e.key} | {e.count / steps:.1f} | {e.self_cpu_time_total / 1000 / steps:.1f} | "
+                     f"{e.self_cpu_time_total / max(total, 1):.1%} |")
+    return "\n".join(lines)
