@@ -149,13 +149,16 @@ def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
         r = kgs("bench", what, "--help")
         assert r.returncode == 0 and "usage: kgs-app bench " + what in r.stdout, (what, r.stderr)
     r = kgs("bench", "step", "--size", "32", "--frames", "6", "--warmup", "20", "--steps", "3", "--repeats", "1",
-            "--configs", "full,split", timeout=300)
+            "--configs", "full,split", "--levels", "1,2", "--profile", timeout=300)
     assert r.returncode == 0, r.stderr
     rows = [line for line in r.stdout.splitlines() if line.startswith("| full") or line.startswith("| no split")]
     assert len(rows) == 2
     for row in rows:
         step_ms = float(row.rstrip(" |").split("|")[-1].strip(" *"))
         assert step_ms > 0
+    # Each level at its own size, and the profile's operations, the rasteriser among them.
+    assert "| 1/1 (32x32) |" in r.stdout and "| 1/2 (16x16) |" in r.stdout, r.stdout
+    assert "| _Rasterize |" in r.stdout, r.stdout
 
 
 def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averages_them(tmp_path, monkeypatch, capsys):
