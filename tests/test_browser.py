@@ -280,3 +280,69 @@ def test_bench_open_times_the_first_full_frame(browser, server):
     cold, warm = measure(server["run_dir"], 1, browser, log=lines.append)
     assert len(cold) == len(warm) == 1 and 0 < cold[0] < 120 and 0 < warm[0] < 120
     assert "receiving Gaussians" in lines[0] and "static" in lines[0], lines
+
+
+INSIDE_SHARE = """() => {
+  const vm = kgs.currentViewmat(), K = kgs.intrinsics(), w = kgs.canvas.width, h = kgs.canvas.height;
+  let inside = 0, total = 0;
+  for (const s of [kgs.static, kgs.dynamic]) {
+    if (!s) continue;
+    for (let i = 0; i < s.count; i++) {
+      const p = [s.positions[3 * i], s.positions[3 * i + 1], s.positions[3 * i + 2]];
+      const row = (r) => vm[4 * r] * p[0] + vm[4 * r + 1] * p[1] + vm[4 * r + 2] * p[2] + vm[4 * r + 3];
+      const z = row(2), u = K[0] * row(0) / z + K[2], v = K[4] * row(1) / z + K[5];
+      total += 1;
+      if (z > 0 && u >= 0 && u < w && v >= 0 && v < h) inside += 1;
+    }
+  }
+  return inside / total;
+}"""
+
+
+def test_keys_step_frames_play_and_frame_or_reset_the_view(page):
+    """Arrows step onto the training frames' own times (the label says which), space plays,
+    W/A/S/D typed into a focused dropdown stay its own, F frames every splat, R goes back to the
+    opening view."""
+    times = page.evaluate("kgs.frameTimes()")
+    assert len(times) >= 4 and times == sorted(times)
+    page.evaluate("kgs.setTime(0); document.activeElement.blur()")
+    page.keyboard.press("ArrowRight")
+    assert page.evaluate("kgs.t") == times[1]
+    assert page.text_content("#time-label").startswith(f"frame 2 of {len(times)}")
+    page.evaluate(f"kgs.setTime({(times[2] + times[3]) / 2})")
+    assert page.text_content("#time-label").startswith("near frame")
+    page.keyboard.press("ArrowLeft")
+    assert page.evaluate("kgs.t") == times[2]
+    page.focus("#time")  # the slider's own arrow keys step a frame too
+    page.keyboard.press("ArrowRight")
+    assert page.evaluate("kgs.t") == times[3]
+    page.evaluate("document.activeElement.blur()")
+    page.keyboard.press("Space")
+    assert page.evaluate("kgs.playing") and page.text_content("#play") == "Pause"
+    page.keyboard.press("Space")
+    assert not page.evaluate("kgs.playing")
+    page.select_option("#mode", "fly")
+    page.focus("#mode")
+    before = page.evaluate("kgs.currentViewmat()")
+    page.keyboard.down("KeyD")  # held: a fly move, were it the viewer's
+    page.wait_for_timeout(300)
+    held = page.evaluate("kgs.keys.has('KeyD')")
+    page.keyboard.up("KeyD")
+    assert page.input_value("#mode") == "fly" and not held
+    assert np.allclose(page.evaluate("kgs.currentViewmat()"), before)
+    page.evaluate("document.activeElement.blur()")
+    # F: orbit about the splats, every one of them (but outliers) in the picture.
+    page.evaluate("kgs.fixedView = false; kgs.mode = 'orbit'; kgs.orbit.distance /= 20")  # too close to see it all
+    assert page.evaluate(INSIDE_SHARE) < 0.9
+    page.keyboard.press("KeyF")
+    assert page.evaluate("kgs.mode") == "orbit" and page.input_value("#mode") == "orbit"
+    assert page.evaluate(INSIDE_SHARE) >= 0.9
+    assert pixels(page).mean() > 10
+    # R: the opening view, whatever was done since.
+    page.keyboard.press("KeyR")
+    opening = page.evaluate("kgs.currentViewmat()")
+    page.evaluate("kgs.orbit.rotate(0.8, 0.3); kgs.orbit.zoom(3)")
+    assert not np.allclose(page.evaluate("kgs.currentViewmat()"), opening)
+    page.click("#reset-view")
+    assert np.allclose(page.evaluate("kgs.currentViewmat()"), opening, atol=1e-9)
+    assert pixels(page).mean() > 10

@@ -1,8 +1,17 @@
 // Moving the viewer's camera with the mouse and keyboard: orbit (drag to turn, right-drag or
-// shift-drag to pan, wheel to zoom) or fly (drag to look, wheel and W/A/S/D/Q/E to move). Mixed
-// into `Viewer` (viewer.js); the editing tools take the pointer while one is active.
+// shift-drag to pan, wheel to zoom) or fly (drag to look, wheel and W/A/S/D/Q/E to move), and
+// the viewer's shortcuts (docs/viewer.md). Mixed into `Viewer` (viewer.js); the editing tools
+// take the pointer while one is active.
 
 import { ORBIT_RADIANS_PER_PIXEL, flyMove, flyTurn } from "./camera.js";
+
+// Fly speed in scene units per second (the same at any frame rate).
+const FLY_SPEED = 1.2;
+
+// Keys typed into a form control belong to it (a focused dropdown would also take W/A/S/D).
+function typing(target) {
+  return ["INPUT", "SELECT", "TEXTAREA", "BUTTON"].includes(target.tagName) || target.isContentEditable;
+}
 
 export const navigation = {
   initMouse() {
@@ -10,6 +19,8 @@ export const navigation = {
     let drag = null;
     c.addEventListener("contextmenu", (e) => e.preventDefault());
     c.addEventListener("pointerdown", (e) => {
+      // The canvas takes the keyboard back from whichever control had it.
+      if (document.activeElement && document.activeElement !== document.body) document.activeElement.blur();
       if (this.tool !== "none") return this.editPointer(e, "down");
       drag = { x: e.clientX, y: e.clientY, button: e.button };
       c.setPointerCapture(e.pointerId);
@@ -43,13 +54,34 @@ export const navigation = {
       this.requestSort();
     }, { passive: false });
     this.keys = new Set();
-    window.addEventListener("keydown", (e) => { if (e.target.tagName !== "INPUT") this.keys.add(e.code); });
+    window.addEventListener("keydown", (e) => {
+      if (typing(e.target) || e.ctrlKey || e.metaKey || e.altKey) return;
+      if (this.shortcut(e.code)) e.preventDefault();
+      else this.keys.add(e.code);
+    });
     window.addEventListener("keyup", (e) => this.keys.delete(e.code));
+    window.addEventListener("blur", () => this.keys.clear());
   },
 
-  fly() {
+  // One-press shortcuts; true when `code` is one.
+  shortcut(code) {
+    const actions = {
+      Space: () => this.togglePlay(),
+      ArrowLeft: () => this.stepFrame(-1),
+      ArrowRight: () => this.stepFrame(1),
+      KeyF: () => this.frameScene(),
+      KeyR: () => this.resetView(),
+      Home: () => this.resetView(),
+      Delete: () => this.selected && this.selected.size && this.edit("delete", [...this.selected]),
+    };
+    if (!(code in actions)) return false;
+    actions[code]();
+    return true;
+  },
+
+  fly(dt) {
     if (this.mode !== "fly" || !this.keys || !this.keys.size) return;
-    const s = 0.02;
+    const s = FLY_SPEED * dt;
     const k = this.keys;
     const f = (k.has("KeyW") ? s : 0) - (k.has("KeyS") ? s : 0);
     const r = (k.has("KeyD") ? s : 0) - (k.has("KeyA") ? s : 0);

@@ -252,13 +252,15 @@ export class Viewer {
   // ------------------------------------------------------------------ the frame loop
 
   loop(now) {
+    // A slow frame (a sort, a new buffer) advances time and the fly camera by at most a tenth of
+    // a second, so that playback and flying do not jump.
+    const dt = this.lastNow ? Math.min(0.1, (now - this.lastNow) / 1000) : 0;
     if (this.playing) {
-      const dt = this.lastNow ? (now - this.lastNow) / 1000 : 0;
-      const duration = Math.max(1, this.meta.frames.length) / 30;  // play at 30 frames per second
+      const duration = Math.max(1, this.frameTimes().length) / 30;  // play at 30 frames per second
       this.setTime((this.t + (dt * this.speed) / duration) % 1);
     }
     this.lastNow = now;
-    this.fly();
+    this.fly(dt);
     if (this.dirty && this.sortPending === null) {
       const viewmat = this.currentViewmat();
       this.renderer.draw({ viewmat, K: this.intrinsics(), show: this.show, overlay: this.overlay,
@@ -292,8 +294,80 @@ export class Viewer {
   setTime(t, fromSlider = false) {
     this.t = Math.min(1, Math.max(0, t));
     if (!fromSlider) $("time").value = Math.round(this.t * 1000);
-    $("time-label").textContent = `t = ${this.t.toFixed(3)}`;
+    const times = this.frameTimes(), k = this.nearestFrame();
+    const at = times.length && Math.abs(times[k] - this.t) < 1e-6 ? "frame" : "near frame";
+    $("time-label").textContent = times.length ? `${at} ${k + 1} of ${times.length} · t = ${this.t.toFixed(3)}`
+      : `t = ${this.t.toFixed(3)}`;
     this.requestTime();
+  }
+
+  // The training camera's frame times, in order (what frame steps snap to).
+  frameTimes() {
+    if (!this._frameTimes) {
+      const train = this.meta.frames.filter((f) => f.split === "train" && (f.camera_id || 0) === 0);
+      this._frameTimes = [...new Set((train.length ? train : this.meta.frames).map((f) => f.time))].sort((a, b) => a - b);
+    }
+    return this._frameTimes;
+  }
+
+  nearestFrame() {
+    const times = this.frameTimes();
+    let best = 0;
+    times.forEach((t, k) => { if (Math.abs(t - this.t) < Math.abs(times[best] - this.t)) best = k; });
+    return best;
+  }
+
+  // One frame back or forward, onto the frame's own time (from between two frames, to the next).
+  stepFrame(dir) {
+    const times = this.frameTimes();
+    if (!times.length) return this.setTime(this.t + dir * this.meta.dt);
+    const k = this.nearestFrame();
+    const off = Math.abs(times[k] - this.t) < 1e-6 ? dir : (Math.sign(times[k] - this.t) === dir ? 0 : dir);
+    this.setTime(times[Math.min(times.length - 1, Math.max(0, k + off))]);
+  }
+
+  togglePlay() {
+    this.playing = !this.playing;
+    $("play").textContent = this.playing ? "Pause" : "Play";
+  }
+
+  // The opening view again: the first training camera, orbiting about what it sees.
+  resetView() {
+    this.fixedView = false;
+    this.fixedK = null;
+    this.initCamera();
+    $("mode").value = "orbit";
+    this.pivotOnContent(this.static && this.static.count ? this.static : this.dynamic);
+    this.dirty = true;
+    this.requestSort();
+  }
+
+  // Orbit about the middle of the selection, or of every shown splat, from far enough to see it
+  // whole (its points within the 5th to 95th percentile of their distance from the middle).
+  frameScene() {
+    const points = [];
+    for (const set of [this.static, this.dynamic]) {
+      if (!set || !set.count) continue;
+      for (let i = 0; i < set.count; i++) {
+        if (this.selected && this.selected.size && !this.selected.has(set.index ? set.index[i] : i)) continue;
+        points.push([set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
+      }
+    }
+    if (!points.length) return;
+    const median = (v) => { const s = [...v].sort((a, b) => a - b); return s[s.length >> 1]; };
+    const centre = [0, 1, 2].map((k) => median(points.map((p) => p[k])));
+    const dist = points.map((p) => Math.hypot(p[0] - centre[0], p[1] - centre[1], p[2] - centre[2])).sort((a, b) => a - b);
+    const radius = Math.max(1e-3, dist[Math.floor(0.95 * (dist.length - 1))]);
+    const K = this.intrinsics(), h = this.canvas.height;
+    const halfFov = Math.atan(h / (2 * K[4]));
+    this.fixedView = false;
+    this.orbit = OrbitCamera.fromViewmat(this.currentViewmat(), centre, this.up);
+    this.orbit.distance = 1.1 * radius / Math.sin(halfFov);
+    this.mode = "orbit";
+    $("mode").value = "orbit";
+    this.pivotSet = true;
+    this.dirty = true;
+    this.requestSort();
   }
 
   // ------------------------------------------------------------------ controls
@@ -301,10 +375,18 @@ export class Viewer {
   initControls() {
     const m = this.meta;
     $("time").oninput = (e) => this.setTime(e.target.value / 1000, true);
-    $("play").onclick = () => { this.playing = !this.playing; $("play").textContent = this.playing ? "Pause" : "Play"; };
+    $("play").onclick = () => this.togglePlay();
+    $("reset-view").onclick = () => this.resetView();
+    $("frame-scene").onclick = () => this.frameScene();
+    // The slider's arrow keys step a frame, not a thousandth of the clip.
+    $("time").onkeydown = (e) => {
+      if (e.key !== "ArrowLeft" && e.key !== "ArrowRight") return;
+      e.preventDefault();
+      this.stepFrame(e.key === "ArrowRight" ? 1 : -1);
+    };
     $("speed").onchange = (e) => (this.speed = parseFloat(e.target.value));
-    $("step-back").onclick = () => this.setTime(this.t - m.dt);
-    $("step-fwd").onclick = () => this.setTime(this.t + m.dt);
+    $("step-back").onclick = () => this.stepFrame(-1);
+    $("step-fwd").onclick = () => this.stepFrame(1);
     $("show-static").onchange = $("show-dynamic").onchange = () => {
       this.show = ($("show-static").checked ? 1 : 0) | ($("show-dynamic").checked ? 2 : 0);
       this.dirty = true;
