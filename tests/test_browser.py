@@ -346,3 +346,20 @@ def test_keys_step_frames_play_and_frame_or_reset_the_view(page):
     page.click("#reset-view")
     assert np.allclose(page.evaluate("kgs.currentViewmat()"), opening, atol=1e-9)
     assert pixels(page).mean() > 10
+
+
+def test_a_bad_run_id_leaves_no_live_control_and_fine_tuning_asks_first(browser, server, page):
+    ctx = browser.new_context()
+    bad = ctx.new_page()
+    bad.goto(f"{server['base']}/#/run/0123456789ab")
+    bad.wait_for_selector("body[data-failed='1']", timeout=30_000)
+    assert "404" in bad.text_content("#status")
+    assert bad.evaluate("[...document.querySelectorAll('#controls fieldset')].every((f) => f.disabled)")
+    ctx.close()
+    runs = lambda: json.loads(urllib.request.urlopen(f"{server['base']}/api/runs").read())  # noqa: E731
+    before = len(runs())
+    asked = []
+    page.once("dialog", lambda d: (asked.append(d.message), d.dismiss()))
+    page.click("#finetune")
+    page.wait_for_timeout(500)
+    assert asked and "τ" in asked[0] and len(runs()) == before  # dismissed: nothing started

@@ -16,6 +16,9 @@ async function route() {
     } catch (e) {
       $("loading").hidden = true;
       $("status").textContent = e.message;
+      // Nothing to act on: every control of the panel goes inert (a bad id, a run without a model).
+      document.querySelectorAll("#controls fieldset").forEach((f) => (f.disabled = true));
+      document.body.dataset.failed = "1";
       throw e;
     }
   } else {

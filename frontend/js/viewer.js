@@ -427,6 +427,9 @@ export class Viewer {
     };
     $("tau-label").textContent = `τ = ${m.tau.toExponential(2)}`;
     $("finetune").onclick = async () => {
+      const iterations = 300;  // FinetuneRequest's default
+      if (!window.confirm(`Start a new training run: this run's model, split at τ = ${this.meta.tau.toExponential(2)}, `
+                          + `trained ${iterations} more iterations?`)) return;
       const run = await api(`/api/runs/${this.runId}/finetune`, { method: "POST", body: { tau: this.meta.tau } });
       $("finetune-status").innerHTML = `training <a href="#/">${esc(run.name)}</a> (runs page)`;
     };
