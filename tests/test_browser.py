@@ -363,3 +363,15 @@ def test_a_bad_run_id_leaves_no_live_control_and_fine_tuning_asks_first(browser,
     page.click("#finetune")
     page.wait_for_timeout(500)
     assert asked and "τ" in asked[0] and len(runs()) == before  # dismissed: nothing started
+
+
+def test_the_canvas_draws_in_device_pixels_on_a_hidpi_screen(browser, server):
+    ctx = browser.new_context(viewport={"width": 600, "height": 400}, device_scale_factor=2)
+    page = ctx.new_page()
+    page.goto(f"{server['base']}/#/run/{server['run_id']}")
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    size = page.evaluate("[kgs.canvas.width, kgs.canvas.height, kgs.canvas.clientWidth, kgs.canvas.clientHeight]")
+    assert abs(size[0] - 2 * size[2]) <= 1 and abs(size[1] - 2 * size[3]) <= 1, size
+    img = pixels(page)
+    assert img.shape[:2] == (size[1], size[0]) and img.mean() > 5
+    ctx.close()

@@ -112,9 +112,11 @@ export class Viewer {
 
   resize() {
     if (this.fixedSize) return;
-    const r = this.canvas.getBoundingClientRect();
-    this.canvas.width = Math.max(16, Math.round(r.width));
-    this.canvas.height = Math.max(16, Math.round(r.height));
+    // Device pixels on a HiDPI screen (sharp splats), at most two per CSS pixel: the splats'
+    // blending cost grows with the pixel count.
+    const r = this.canvas.getBoundingClientRect(), dpr = Math.min(2, window.devicePixelRatio || 1);
+    this.canvas.width = Math.max(16, Math.round(r.width * dpr));
+    this.canvas.height = Math.max(16, Math.round(r.height * dpr));
     this.dirty = true;
     this.requestSort();
   }
