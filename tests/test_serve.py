@@ -387,7 +387,12 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     e = client.post(f"/api/runs/{done['id']}/exports", json={"format": "splat", "times": "0.5"}).json()
     e = wait_status(client, f"/api/exports/{e['id']}")
     assert e["status"] == "done", e
-    blob = client.get(f"/api/exports/{e['id']}/download").content
+    got = client.get(f"/api/exports/{e['id']}/download")
+    blob = got.content
+    # Named after the run (its name, made safe for a file name), not its id.
+    run_name = client.get(f"/api/runs/{done['id']}").json()["name"]
+    safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in run_name).strip("._")
+    assert f'filename="{safe}-' in got.headers["content-disposition"], got.headers["content-disposition"]
     with zipfile.ZipFile(io.BytesIO(blob)) as z:
         names = z.namelist()
         assert "frame_00000.splat" in names and len(z.read("frame_00000.splat")) % 32 == 0

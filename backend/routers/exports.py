@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import threading
 import uuid
@@ -79,7 +80,10 @@ def download(export_id: str, ws: Workspace = Depends(workspace)) -> FileResponse
         path = zipped(path)
     if not path.is_file():
         raise HTTPException(410, "the export's files are gone")
-    return FileResponse(path, filename=f"{row['run_id']}-{path.name}", media_type="application/octet-stream")
+    run = ws.get("runs", row["run_id"])
+    # Named after the run, as the user named it (letters, digits, dot, dash and underscore kept).
+    stem = re.sub(r"[^\w.\-]+", "_", run["name"]).strip("._") if run else ""
+    return FileResponse(path, filename=f"{stem or row['run_id']}-{path.name}", media_type="application/octet-stream")
 
 
 _zip_lock = threading.Lock()
