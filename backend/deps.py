@@ -25,15 +25,6 @@ def views(request: Request) -> RunViews:
     return request.app.state.views
 
 
-def relative_text(text: str, *roots: Path) -> str:
-    """`text` with each of `roots` (and its resolved form) removed from the paths it names:
-    answers name files relative to the workspace (or a dataset), never the server's folders."""
-    for root in roots:
-        for form in sorted({str(Path(root).resolve()), str(root)}, key=len, reverse=True):
-            text = text.replace(form + "/", "").replace(form, ".")
-    return text
-
-
 def get_or_404(ws: Workspace, table: str, id_: str) -> dict:
     row = ws.get(table, id_)
     if row is None:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from kgs_core.threads import cores_to_use, placement_env, placement_off
 
-from .registry import ACTIVE, CANCELLABLE, JobStatus, Workspace
+from .registry import ACTIVE, CANCELLABLE, JobStatus, Workspace, relative_text
 
 
 def job_process(pid: int | None, job_id: str) -> bool:
@@ -176,8 +176,7 @@ class JobRunner:
             return None
         # Paths inside the workspace are told relative to it: the server's own layout is not
         # the client's business.
-        root = str(self.ws.root.resolve()) + os.sep
-        lines = [ln.replace(root, "") for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+        lines = [relative_text(ln, self.ws.root) for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
         for ln in reversed(lines):
             if ln and not ln.startswith(" ") and ("Error" in ln or "Exception" in ln):
                 return ln[-2000:]

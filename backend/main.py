@@ -23,9 +23,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from kgs_frontend import ROOT as FRONTEND
 
-from .deps import relative_text
 from .jobs import JobRunner
-from .registry import JobStatus, Workspace
+from .registry import JobStatus, Workspace, relative_text
 from .routers import exports, renders, runs, scenes, stream, system
 from .schemas import finite_json
 from .security import BodyLimit, HostOriginGuard, require_token

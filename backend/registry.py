@@ -71,6 +71,15 @@ ACTIVE = frozenset({JobStatus.QUEUED, JobStatus.RUNNING, JobStatus.CANCELLING})
 CANCELLABLE = frozenset({JobStatus.QUEUED, JobStatus.RUNNING})
 
 
+def relative_text(text: str, *roots: Path) -> str:
+    """`text` with each of `roots` (and its resolved form) removed from the paths it names:
+    answers name files relative to the workspace (or a dataset), never the server's folders."""
+    for root in roots:
+        for form in sorted({str(Path(root).resolve()), str(root)}, key=len, reverse=True):
+            text = text.replace(form + "/", "").replace(form, ".")
+    return text
+
+
 def new_id() -> str:
     return uuid.uuid4().hex[:12]
 

@@ -92,3 +92,50 @@ def room_video(tmp_path_factory):
     gt = load_scene(syn)
     frames = [(f.image() * 255).round().astype(np.uint8) for f in gt.train_frames]
     return encode_video(frames, root / "room.mp4", fps=12), gt
+
+
+class RunsCode:
+    """Unpickling this runs `open(path, "w")`: whether the marker file exists says whether a
+    load ran code from a pickle."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+@pytest.fixture(scope="session")
+def runs_code():
+    return RunsCode
+
+
+def write_colmap_text(scene_dir, root, first_image: str | None = None):
+    """The scene in `scene_dir` as a COLMAP text model in `root` (images, times.json), its first
+    image renamed `first_image` in images.txt and times.json when given (a hostile name)."""
+    import json
+
+    import pycolmap
+
+    from kgs_core.data.formats import load_scene, write_colmap
+
+    write_colmap(load_scene(scene_dir), root)
+    model = root / "sparse" / "0"
+    pycolmap.Reconstruction(str(model)).write_text(str(model))
+    for name in ("cameras.bin", "images.bin", "points3D.bin", "frames.bin", "rigs.bin"):
+        (model / name).unlink(missing_ok=True)
+    if first_image is not None:
+        lines = (model / "images.txt").read_text().splitlines()
+        k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
+        old = lines[k].split(" ")[-1]
+        lines[k] = " ".join(lines[k].split(" ")[:-1] + [first_image])
+        (model / "images.txt").write_text("\n".join(lines) + "\n")
+        times = json.loads((root / "times.json").read_text())
+        times[first_image] = times.pop(old)
+        (root / "times.json").write_text(json.dumps(times))
+    return root
+
+
+@pytest.fixture(scope="session")
+def colmap_text():
+    return write_colmap_text

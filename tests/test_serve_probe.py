@@ -74,18 +74,11 @@ def zip_folder(folder: Path, prefix: str = "data") -> dict[str, bytes]:
 ZIP = {"content-type": "application/zip"}
 
 
-class RunsCode:
-    def __init__(self, path):
-        self.path = str(path)
-
-    def __reduce__(self):
-        return (open, (self.path, "w"))
-
-
 # ---------------------------------------------------------------- 1. code execution
 
 
-def test_a_training_request_cannot_name_a_path_and_a_pickled_parent_runs_nothing(client, tmp_path):
+def test_a_training_request_cannot_name_a_path_and_a_pickled_parent_runs_nothing(client, tmp_path, runs_code):
+    RunsCode = runs_code
     marker = tmp_path / "code-ran"
     evil = tmp_path / "evil"
     evil.mkdir()
@@ -126,42 +119,24 @@ def test_a_training_request_starts_from_a_parent_run_by_id(client):
 # ---------------------------------------------------------------- 2. a dataset reading any file
 
 
-def colmap_zip(tmp_path: Path, tiny_run: Path, image_name: str) -> bytes:
-    """The tiny run's scene as a COLMAP text model whose first image is called `image_name`."""
-    import pycolmap
-
-    from kgs_core.data.formats import load_scene, write_colmap
-
-    root = tmp_path / "colmap"
-    write_colmap(load_scene(tiny_run.parent.parent / "scenes" / "bounce"), root)
-    model = root / "sparse" / "0"
-    pycolmap.Reconstruction(str(model)).write_text(str(model))
-    for name in ("cameras.bin", "images.bin", "points3D.bin", "frames.bin", "rigs.bin"):
-        (model / name).unlink(missing_ok=True)
-    lines = (model / "images.txt").read_text().splitlines()
-    k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
-    old = lines[k].split(" ")[-1]
-    lines[k] = " ".join(lines[k].split(" ")[:-1] + [image_name])
-    (model / "images.txt").write_text("\n".join(lines) + "\n")
-    times = json.loads((root / "times.json").read_text())
-    times[image_name] = times.pop(old)
-    (root / "times.json").write_text(json.dumps(times))
-    return zipped(zip_folder(root))
+def colmap_zip(colmap_text, tmp_path: Path, tiny_run: Path, image_name: str) -> bytes:
+    """The tiny run's scene as a zipped COLMAP text model whose first image is `image_name`."""
+    return zipped(zip_folder(colmap_text(tiny_run.parent.parent / "scenes" / "bounce", tmp_path / "colmap", image_name)))
 
 
 @pytest.mark.parametrize("name", ["ABSOLUTE", "../../../../../../../../SECRET", "../images/../../x.png"])
-def test_a_colmap_upload_cannot_name_a_file_outside_it(client, tiny_run, tmp_path, name):
+def test_a_colmap_upload_cannot_name_a_file_outside_it(client, tiny_run, tmp_path, name, colmap_text):
     secret = tmp_path / "secret.png"
     Image.fromarray(np.full((8, 8, 3), 200, np.uint8)).save(secret)
     name = str(secret) if name == "ABSOLUTE" else name.replace("SECRET", str(secret).lstrip("/"))
     r = client.post("/api/scenes/upload", params={"name": "c", "kind": "zip"}, headers=ZIP,
-                    content=colmap_zip(tmp_path, tiny_run, name))
+                    content=colmap_zip(colmap_text, tmp_path, tiny_run, name))
     assert r.status_code == 422 and ("leaves the dataset folder" in r.text or "absolute path" in r.text), r.text
     assert str(client.ws.root) not in r.text and ".upload-" not in r.text
     # The answer is the same whether the file exists: it tells nothing about the server's disk.
     secret.unlink()
     again = client.post("/api/scenes/upload", params={"name": "c", "kind": "zip"}, headers=ZIP,
-                        content=colmap_zip(tmp_path / "again", tiny_run, name))
+                        content=colmap_zip(colmap_text, tmp_path / "again", tiny_run, name))
     assert again.status_code == 422 and again.json() == r.json()
 
 

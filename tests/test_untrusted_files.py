@@ -10,23 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from kgs_core.data.formats import load_scene, write_colmap
+from kgs_core.data.formats import load_scene
 from kgs_core.data.scene import SceneError
 from kgs_core.data.synth.generate import synthesize
 from kgs_core.run import RunError, load_run, load_torch, write_run_json
 
 
-class RunsCode:
-    """Unpickling this runs `open(path, "w")`: the marker file says whether it ran."""
-
-    def __init__(self, path):
-        self.path = str(path)
-
-    def __reduce__(self):
-        return (open, (self.path, "w"))
-
-
-def test_a_pickled_model_or_checkpoint_runs_no_code(tmp_path):
+def test_a_pickled_model_or_checkpoint_runs_no_code(tmp_path, runs_code):
+    RunsCode = runs_code
     marker = tmp_path / "code-ran"
     run = tmp_path / "evil"
     run.mkdir()
@@ -81,37 +72,20 @@ def test_every_preset_is_inside_the_bounds():
 
 
 @pytest.fixture(scope="module")
-def colmap_scene(tmp_path_factory):
-    import pycolmap
-
-    root = tmp_path_factory.mktemp("colmap")
-    scene = load_scene(synthesize("bounce", root / "synth", blur="none", size=32, frames=4, subframes=1, progress=False))
-    write_colmap(scene, root / "c")
-    model = root / "c" / "sparse" / "0"
-    pycolmap.Reconstruction(str(model)).write_text(str(model))
-    for name in ("cameras.bin", "images.bin", "points3D.bin", "frames.bin", "rigs.bin"):
-        (model / name).unlink(missing_ok=True)
-    return root / "c"
+def synth_scene(tmp_path_factory):
+    return synthesize("bounce", tmp_path_factory.mktemp("colmap") / "synth", blur="none", size=32, frames=4, subframes=1,
+                      progress=False)
 
 
-def renamed_first_image(src, dst, name: str):
-    shutil.copytree(src, dst)
-    path = dst / "sparse" / "0" / "images.txt"
-    lines = path.read_text().splitlines()
-    k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
-    parts = lines[k].split(" ")
-    old = parts[-1]
-    lines[k] = " ".join(parts[:-1] + [name])
-    path.write_text("\n".join(lines) + "\n")
-    times = json.loads((dst / "times.json").read_text())
-    times[name] = times.pop(old)
-    (dst / "times.json").write_text(json.dumps(times))
+@pytest.fixture(scope="module")
+def colmap_scene(synth_scene, colmap_text):
+    return colmap_text(synth_scene, synth_scene.parent / "c")
 
 
 @pytest.mark.parametrize("name", ["../../outside.png", "ABSOLUTE", "../synth/sharp/0000.png"])
-def test_colmap_image_names_cannot_leave_the_image_folder(colmap_scene, tmp_path, name):
+def test_colmap_image_names_cannot_leave_the_image_folder(colmap_scene, synth_scene, colmap_text, tmp_path, name):
     name = str(tmp_path / "outside.png") if name == "ABSOLUTE" else name
-    renamed_first_image(colmap_scene, tmp_path / "d" / "c", name)
+    colmap_text(synth_scene, tmp_path / "d" / "c", name)
     reached = (tmp_path / "d" / "c" / "images" / name).resolve()
     messages = []
     for exists in (True, False):  # the answer does not tell whether the file it names exists

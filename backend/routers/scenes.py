@@ -17,9 +17,9 @@ from pydantic import Field, model_validator
 
 from kgs_core.data.synth.scenes import SCENES
 
-from ..deps import get_or_404, jobs, relative_text, workspace
+from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
-from ..registry import ACTIVE, JobStatus, Workspace
+from ..registry import ACTIVE, JobStatus, Workspace, relative_text
 from ..responses import SceneDetail, SceneSummary
 from ..schemas import StrictRequest
 
@@ -221,6 +221,7 @@ def read_uploaded_dataset(blob: Path, dest: Path, max_bytes: int) -> tuple[dict,
     a readable dataset or a frame holds more pixels than a frame may. Errors name files
     relative to the dataset, never the server's folders."""
     from kgs_core.data.formats import load_scene
+    from kgs_core.data.formats.common import image_size  # (from the header, nothing decoded)
     from kgs_core.data.images import MAX_IMAGE_PIXELS
 
     root = _safe_extract(blob, dest, max_bytes)
@@ -237,13 +238,6 @@ def read_uploaded_dataset(blob: Path, dest: Path, max_bytes: int) -> tuple[dict,
     except ValueError as exc:
         raise HTTPException(422, "the zip is not a readable dataset: " + relative_text(str(exc), root)) from None
     return summary, root
-
-
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the header, nothing decoded."""
-    from kgs_core.data.formats.common import image_size as header_size
-
-    return header_size(path)
 
 
 def waiting_video(ws: Workspace, scene_id: str) -> dict:
