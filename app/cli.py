@@ -329,10 +329,10 @@ def add_named_settings(p: argparse.ArgumentParser) -> None:
     def typed(name, kind):
         def convert(text: str):
             try:
-                value = kind(text)
-            except ValueError:
-                raise argparse.ArgumentTypeError(f"expected {'a whole number' if kind is int else 'a number'}, "
-                                                 f"got {text!r}") from None
+                value = (NAMED[name].parse or kind)(text)
+            except ValueError as exc:
+                raise argparse.ArgumentTypeError(str(exc) if NAMED[name].parse else f"expected "
+                                                 f"{'a whole number' if kind is int else 'a number'}, got {text!r}") from None
             try:
                 return NAMED[name].check(value)
             except ValueError as exc:
@@ -376,6 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_synth)
 
+    from kgs_core.data.ingest import DEFAULT_MAX_SIZE
     from kgs_core.data.sfm import LENSES, MAPPERS
 
     p = sub.add_parser("ingest", help="structure from motion on a (blurry) video -> scene folder")
@@ -399,7 +400,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-cache", action="store_true",
                    help="do not reuse or keep decoded frames, features, matches and poses (cache: $KGS_CACHE_DIR "
                         "or ~/.cache/kinematics-gs)")
-    p.add_argument("--max-size", type=int, default=960, help="downscale so the long side is at most this")
+    p.add_argument("--max-size", type=int, default=DEFAULT_MAX_SIZE,
+                   help="downscale so the long side is at most this (default %(default)s)")
     p.add_argument("--keep-distortion", action="store_true",
                    help="keep the SfM camera's lens distortion instead of undistorting frames to pinhole "
                         "(the rasteriser is pinhole: only for export to other tools)")

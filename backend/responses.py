@@ -105,6 +105,13 @@ class RunSummary(JobRow):
     lod_levels: int | None = None
 
 
+class EditHistory(Response):
+    undo: str | None = Field(description="the label of the step an undo reverts (None: nothing to undo)")
+    undo_steps: int
+    redo: str | None
+    redo_steps: int
+
+
 class Split(Response):
     """The static/dynamic split at the run's live τ, with what the edit layer keeps."""
 
@@ -118,6 +125,7 @@ class Split(Response):
     kept: int
     dynamic_kept: int
     static_kept: int
+    history: EditHistory | None = Field(None, description="what undo and redo would revert, and how many steps each has")
     version: int = Field(description="bumped by every τ change or edit; splat buffers carry it")
 
 
@@ -158,6 +166,14 @@ class Edits(Response):
     format_version: int
     levels: dict[str, EditLevel]
     crop: Crop | None
+    history: dict | None = Field(None, description="earlier and undone layers, oldest first: "
+                                 "{undo: [{label, layer}], redo: [...]}")
+
+
+class LearnedBlur(Response):
+    objects: bool = Field(description="K.R.'s blur along each moving Gaussian's motion acts in this run")
+    camera: str = Field(description="the camera's own blur: off, poses or learned")
+    note: str
 
 
 class RunDetail(RunSummary):
@@ -169,6 +185,7 @@ class RunDetail(RunSummary):
     levels: list[Level] | None = None
     dt: float | None = None
     exposure: float | None = Field(None, description="the exposure the run trained with")
+    blur: LearnedBlur | None = Field(None, description="what an 'as captured' render shows (`kgs_core.run.learned_blur`)")
     static_only: bool | None = None
     sh_degree: int | None = None
     frames: list[FrameInfo] | None = None

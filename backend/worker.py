@@ -109,7 +109,7 @@ def stage_writer(path: Path, min_interval: float = 0.5):
 
 
 def run_ingest(spec: dict) -> None:
-    from kgs_core.data.ingest import ingest
+    from kgs_core.data.ingest import DEFAULT_MAX_SIZE, ingest
     from kgs_core.progress import listen
 
     # Cancelling (SIGTERM) raises between SfM's steps: ingest writes into temporary folders and
@@ -122,7 +122,7 @@ def run_ingest(spec: dict) -> None:
 
     previous = signal.signal(signal.SIGTERM, cancel)
     options = {k: spec[k] for k in ("max_size", "mapper", "holdout_every", "fixed_camera", "exposure") if k in spec}
-    options.setdefault("max_size", 960)
+    options.setdefault("max_size", DEFAULT_MAX_SIZE)
     listener = stage_writer(Path(spec["progress"])) if spec.get("progress") else (lambda *a: None)
     try:
         try:

@@ -8,6 +8,10 @@ consumer (exports, the server, the viewers) asks `keep_mask` which Gaussians to 
  "crop": {"min": [-1, -1, -1], "max": [1, 1, 1]}}
 ```
 
+Every change keeps the layer it replaced under `history.undo` (with a label such as "delete 12
+splats"; at most HISTORY_LIMIT steps), and an undo moves it back, keeping the undone one under
+`history.redo` until the next change: so an undo survives a reload, a crop included.
+
 Indices are per LoD level (each level has its own Gaussians). `hidden` is what a viewer toggles
 off for a while, `deleted` what the user removed; both are left out of exports, and clearing the
 layer restores everything. The crop box tests the *canonical* centres, so a moving Gaussian does
@@ -26,6 +30,7 @@ from .io import atomic_write_text
 
 EDITS_FORMAT_VERSION = 1
 EDITS_FILE = "edits.json"
+HISTORY_LIMIT = 50  # undo steps kept
 
 
 class EditsError(ValueError):
@@ -43,6 +48,9 @@ class EditLayer:
     levels: dict[int, LevelEdits] = field(default_factory=dict)
     crop_min: np.ndarray | None = None  # (3,)
     crop_max: np.ndarray | None = None  # (3,)
+    # Earlier and undone layers, oldest first: [{"label": str, "layer": to_dict() without history}]
+    undo: list[dict] = field(default_factory=list)
+    redo: list[dict] = field(default_factory=list)
 
     @property
     def empty(self) -> bool:
@@ -75,7 +83,39 @@ class EditLayer:
                    "levels": {str(k): {"deleted": sorted(v.deleted), "hidden": sorted(v.hidden)}
                               for k, v in sorted(self.levels.items()) if v.deleted or v.hidden}}
         d["crop"] = None if self.crop_min is None else {"min": self.crop_min.tolist(), "max": self.crop_max.tolist()}
+        if self.undo or self.redo:
+            d["history"] = {"undo": self.undo, "redo": self.redo}
         return d
+
+    def state(self) -> dict:
+        """The layer without its history (what a history step holds)."""
+        d = self.to_dict()
+        d.pop("history", None)
+        return d
+
+    def changed(self, label: str) -> "EditLayer":
+        """The layer that a change labelled `label` starts from: this one's edits, with this
+        state pushed onto the undo history and the redo history dropped."""
+        out = EditLayer.from_dict(self.state())
+        out.undo = [*self.undo, {"label": label, "layer": self.state()}][-HISTORY_LIMIT:]
+        return out
+
+    def step(self, back: bool) -> "EditLayer":
+        """The layer after an undo (`back`) or a redo; EditsError when there is none."""
+        source = self.undo if back else self.redo
+        if not source:
+            raise EditsError(f"nothing to {'undo' if back else 'redo'}")
+        entry = source[-1]
+        out = EditLayer.from_dict(entry["layer"], "history")
+        mine = {"label": entry["label"], "layer": self.state()}
+        out.undo = self.undo[:-1] if back else [*self.undo, mine][-HISTORY_LIMIT:]
+        out.redo = [*self.redo, mine] if back else self.redo[:-1]
+        return out
+
+    def history_labels(self) -> dict:
+        """{"undo": label of the step an undo reverts or None, "redo": likewise, counts}."""
+        return {"undo": self.undo[-1]["label"] if self.undo else None, "undo_steps": len(self.undo),
+                "redo": self.redo[-1]["label"] if self.redo else None, "redo_steps": len(self.redo)}
 
     @classmethod
     def from_dict(cls, d: dict, source: str = EDITS_FILE) -> "EditLayer":
@@ -112,6 +152,20 @@ class EditLayer:
             if np.any(lo > hi):
                 raise EditsError(f"{source}: crop.min must not exceed crop.max")
             layer.crop_min, layer.crop_max = lo, hi
+        history = d.get("history")
+        if history is not None:
+            if not isinstance(history, dict):
+                raise EditsError(f"{source}: history must be {{'undo': [...], 'redo': [...]}}")
+            for name in ("undo", "redo"):
+                steps = history.get(name, [])
+                if not isinstance(steps, list) or len(steps) > HISTORY_LIMIT or not all(
+                        isinstance(st, dict) and isinstance(st.get("label"), str) and isinstance(st.get("layer"), dict)
+                        and "history" not in st["layer"] for st in steps):
+                    raise EditsError(f"{source}: history.{name} must be at most {HISTORY_LIMIT} "
+                                     "{'label': text, 'layer': edits without history} steps")
+                for k, st in enumerate(steps):  # each step must itself be a valid layer
+                    cls.from_dict(st["layer"], f"{source}: history.{name}[{k}]")
+                setattr(layer, name, [{"label": st["label"][:200], "layer": st["layer"]} for st in steps])
         return layer
 
 

@@ -199,6 +199,58 @@ def gradient_energy(img: np.ndarray, mask: np.ndarray) -> float:
     return float((gx ** 2 + gy ** 2)[mask].mean())
 
 
+def detail_crop(target: np.ndarray, size: int = 160, exclude: np.ndarray | None = None) -> tuple[int, int]:
+    """Top-left corner (y, x) of the `size`² window of `target (H, W, 3)` with the most fine
+    detail (`gradient_energy`), on a grid of half-windows, skipping windows that overlap
+    `exclude (H, W)` by more than a quarter: where a full-size crop shows sharpness (text, edges)."""
+    h, w = target.shape[:2]
+    size = min(size, h, w)
+    everywhere = np.ones((size, size), bool)
+    best, corner = -1.0, (0, 0)
+    for y in range(0, h - size + 1, max(1, size // 2)):
+        for x in range(0, w - size + 1, max(1, size // 2)):
+            if exclude is not None and exclude[y:y + size, x:x + size].mean() > 0.25:
+                continue
+            e = gradient_energy(target[y:y + size, x:x + size], everywhere)
+            if e > best:
+                best, corner = e, (y, x)
+    return corner
+
+
+class DetailShare:
+    """Fine detail of renders and of the blurry inputs as shares of their sharp targets'
+    (`gradient_energy` summed over frames), over the whole frame and inside a mask. An input
+    of another size than its target (a second camera) counts over the whole frame only, where
+    the per-pixel mean compares across sizes."""
+
+    def __init__(self):
+        self.sums = np.zeros((2, 4))  # [frame, mask] x [render, its target, input, its target]
+
+    def add(self, render: np.ndarray, blurry_input: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -> None:
+        everywhere = np.ones(target.shape[:2], bool)
+        for row, m in enumerate((everywhere, mask)):
+            if m is None or not m.any():
+                continue
+            sharp = gradient_energy(target, m)
+            self.sums[row, :2] += (gradient_energy(render, m), sharp)
+            if row == 0:
+                self.sums[row, 2:] += (gradient_energy(blurry_input, np.ones(blurry_input.shape[:2], bool)), sharp)
+            elif blurry_input.shape == target.shape:
+                self.sums[row, 2:] += (gradient_energy(blurry_input, m), sharp)
+
+    def result(self) -> dict:
+        """{detail, detail_input, detail_dynamic, detail_input_dynamic}: None where nothing was added."""
+        share = lambda row, col: float(self.sums[row, col] / self.sums[row, col + 1]) if self.sums[row, col + 1] > 0 else None  # noqa: E731
+        return {"detail": share(0, 0), "detail_input": share(0, 2), "detail_dynamic": share(1, 0),
+                "detail_input_dynamic": share(1, 2)}
+
+
+def nearest_input(scene: Scene, frame: Frame) -> np.ndarray:
+    """The blurry training frame nearest `frame` in time (the input that held-out frame is
+    compared with); its own image when `frame` is a training frame."""
+    return min(scene.train_frames, key=lambda g: (g is not frame, abs(g.time - frame.time))).image()
+
+
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = (a | b).sum()
     return float("nan") if union == 0 else float((a & b).sum() / union)
@@ -228,6 +280,7 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: 
     ious = []
     for name, items in groups.items():
         ps, ss, mps, mss, lp = [], [], [], [], []
+        detail = DetailShare()
         for f, gt_np in items:
             gt = torch.from_numpy(gt_np)
             # A held-out frame is compared as it was captured: sharp cameras at exposure 0, frames
@@ -238,6 +291,7 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: 
             ps.append(psnr(img, gt))
             ss.append(float(ssim(img, gt)))
             m = f.mask()
+            detail.add(img.numpy(), nearest_input(scene, f), gt_np, m)
             if m is not None and m.any():
                 mps.append(psnr(img, gt, torch.from_numpy(m)))
                 s = masked_ssim(img, gt, m)
@@ -250,7 +304,7 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: 
                 lp.append(float(lpips_model(to(img), to(gt))))
         mean = lambda v: float(np.mean(v)) if v else None
         result[name] = {"frames": len(items), "psnr": mean(ps), "ssim": mean(ss), "psnr_dynamic": mean(mps),
-                        "ssim_dynamic": mean(mss), "lpips": mean(lp)}
+                        "ssim_dynamic": mean(mss), "lpips": mean(lp), **detail.result()}
     if scene.test_frames:
         result["heldout"]["kind"] = heldout_kind(scene)
     result["decomposition_iou"] = float(np.nanmean(ious)) if ious and not all(math.isnan(v) for v in ious) else None
@@ -292,12 +346,16 @@ def metrics_markdown(m: dict, info: dict) -> str:
     lines = [f"# Evaluation of {info.get('scene_name', '')}", "",
              f"Preset/ablations: {info['config'].get('ablate') or 'full method'}; training time {f(m.get('train_seconds'), 1)} s; "
              f"{m['gaussians']:,} Gaussians, {m['dynamic_share']:.1%} dynamic.", "",
-             "| views | frames | PSNR | SSIM | PSNR (dynamic mask) | SSIM (dynamic mask) | LPIPS |", "|---|---|---|---|---|---|---|"]
+             "| views | frames | PSNR | SSIM | PSNR (dynamic mask) | SSIM (dynamic mask) | detail (input) | "
+             "detail in mask (input) | LPIPS |", "|---|---|---|---|---|---|---|---|---|"]
     for name in ("heldout", "train_view_deblur"):
         if name in m:
             r = m[name]
             lines.append(f"| {name} | {r['frames']} | {f(r['psnr'])} | {f(r['ssim'], 3)} | {f(r['psnr_dynamic'])} | "
-                         f"{f(r['ssim_dynamic'], 3)} | {f(r['lpips'], 3)} |")
+                         f"{f(r['ssim_dynamic'], 3)} | {f(r.get('detail'))} ({f(r.get('detail_input'))}) | "
+                         f"{f(r.get('detail_dynamic'))} ({f(r.get('detail_input_dynamic'))}) | {f(r['lpips'], 3)} |")
+    lines += ["", "Detail: the render's fine detail as a share of the sharp target's (1: as sharp; "
+              "`evaluate.gradient_energy`), beside the blurry input's share; read it with PSNR, since noise raises it."]
     if m.get("heldout", {}).get("kind"):
         lines += ["", f"Held-out views: {m['heldout']['kind']}."]
     if info.get("kr_note"):

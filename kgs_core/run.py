@@ -66,6 +66,41 @@ def read_run_json(run_dir: Path) -> dict:
     return info
 
 
+def learned_blur(info: dict) -> dict:
+    """What a run's "as captured" render can show, from its run.json `info`: `objects` (K.R.'s
+    blur along each moving Gaussian's motion acts), `camera` (the camera's own motion within
+    the exposure was modelled: "off", "poses" or "learned") and `note`, a sentence for the
+    viewer beside its exposure control."""
+    from .evaluate import KR_MIN_GAIN_DB
+
+    cfg = info.get("config") or {}
+    exposure = float(info.get("exposure") or 0.0)
+    camera = str(cfg.get("camera_blur") or "off")
+    kinematic = (cfg.get("model") or {}).get("kinematic", True) and "kr" not in (cfg.get("ablate") or ())
+    check, effect = info.get("kr_check"), info.get("kr_effect")
+    if exposure <= 0:
+        return {"objects": False, "camera": camera, "note": "trained at exposure 0: no blur was modelled"}
+    if not kinematic or "split" in (cfg.get("ablate") or ()) or "deform" in (cfg.get("ablate") or ()):
+        return {"objects": False, "camera": camera, "note": "trained without K.R.: no motion blur was modelled"}
+    measured = check if check is not None else effect
+    if check is not None and not check.get("kept", True):
+        objects = False
+        why = (f"K.R. was turned off at iteration {check.get('iteration')}: its blur changed "
+               f"{check.get('changed_share', 0):.1%} of the training pixels visibly")
+    elif measured is not None and measured.get("gain_db", 0.0) < KR_MIN_GAIN_DB:
+        objects = False
+        why = f"K.R.'s blur changes {measured.get('changed_share', 0):.1%} of the training pixels visibly"
+    else:
+        objects = True
+        why = "blur along each moving Gaussian's motion within the exposure (K.R.)"
+        if measured is not None:
+            why += f", visible in {measured.get('changed_share', 0):.1%} of the training pixels"
+    cam = ("the camera's own shake is not modelled (train with --camera-blur learned)" if camera == "off" else
+           "the camera's own shake was modelled at the training cameras only, so a free view shows the objects' blur")
+    lead = f"exposure {exposure:.2f}: " + ("shows the learned " if objects else "next to no learned blur; ")
+    return {"objects": objects, "camera": camera, "note": f"{lead}{why}; {cam}"}
+
+
 @dataclass
 class LoadedRun:
     path: Path

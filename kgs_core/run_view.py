@@ -185,6 +185,14 @@ def split_copy(model, tau: float):
     return m
 
 
+def edit_label(op: str, count: int) -> str:
+    """What an edit did, as the undo history shows it."""
+    some = f"{count:,} splat{'s' if count != 1 else ''}"
+    return {"delete": f"delete {some}", "hide": f"hide {some}", "crop": "crop",
+            "unhide": f"unhide {some}" if count else "unhide all", "clear": "clear all edits",
+            "restore": f"restore {some}" if count else "restore deleted"}.get(op, op)
+
+
 class RunView:
     """One run loaded for viewing: the model at each LoD, the live τ and the edit layer.
 
@@ -349,7 +357,7 @@ class RunView:
         counts = split_counts(m, self.run.static_only)
         dyn = self._dynamic_mask(m)
         return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()), "dynamic_kept": int((dyn & keep).sum()),
-                "static_kept": int((~dyn & keep).sum()), "version": version}
+                "static_kept": int((~dyn & keep).sum()), "version": version, "history": self.edits.history_labels()}
 
     def histogram(self, lod: int | None = None) -> dict:
         _, m = self.model(lod)
@@ -364,9 +372,14 @@ class RunView:
             bad = [i for i in ids if not 0 <= i < n]
             if bad:
                 raise ValueError(f"indices {bad[:5]} outside 0..{n - 1} for LoD {lod}")
-            edits = EditLayer.from_dict(self.edits.to_dict())  # edit a copy: readers keep theirs
+            if op in ("undo", "redo"):  # a new layer: readers keep theirs
+                edits = self.edits.step(back=op == "undo")
+            else:
+                edits = self.edits.changed(edit_label(op, len(ids)))
             e = edits.level(lod)
-            if op == "delete":
+            if op in ("undo", "redo"):
+                pass
+            elif op == "delete":
                 e.deleted.update(ids)
             elif op == "hide":
                 e.hidden.update(ids)
@@ -378,9 +391,9 @@ class RunView:
                 layer = EditLayer.from_dict({"crop": crop}, "crop")
                 edits.crop_min, edits.crop_max = layer.crop_min, layer.crop_max
             elif op == "clear":
-                edits = EditLayer()
+                edits.levels, edits.crop_min, edits.crop_max = {}, None, None
             else:
-                raise ValueError(f"unknown edit op {op!r} (delete, hide, unhide, restore, crop, clear)")
+                raise ValueError(f"unknown edit op {op!r} (delete, hide, unhide, restore, crop, clear, undo, redo)")
             save_edits(self.run.path, edits)
             self.edits = edits
             self._invalidate()

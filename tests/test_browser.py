@@ -117,6 +117,10 @@ def test_every_control_is_labelled_and_explained(page):
     assert missing == []
     captured = page.eval_on_selector('#exposure option[value="captured"]', "o => [o.textContent, o.disabled]")
     assert captured[0].startswith("as captured (exposure ") and captured[1] is False  # the test run's is 0.5
+    # What the run learned is said beside the control (kgs_core.run.learned_blur's note).
+    note = page.text_content("#exposure-note")
+    assert note.startswith("exposure 0.50: ") and "camera's own shake" in note
+    assert ("no learned blur" in captured[0]) == ("next to no learned blur" in note)
 
 
 def test_frame_matches_the_server_render(page, server):
@@ -172,6 +176,34 @@ def test_edit_then_export_drops_deleted_splats(page, server):
     page.click("#edit-restore")
     page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts')"
                            f".dataset.static == {total}", timeout=30_000)
+
+
+def test_undo_after_a_crop_restores_the_scene_and_a_reload_keeps_it(page, server):
+    """Crop to a selection, then Ctrl+Z: everything is back; the undo button names the step, and
+    the undone state is what a reload shows; Ctrl+Shift+Z redoes the crop, the button undoes it."""
+    pixels(page, 0.5)
+    kept = lambda: int(page.get_attribute("#run-title", "data-kept"))  # noqa: E731
+    total = kept()
+    page.select_option("#tool", "box")
+    assert page.evaluate("kgs.selectBox(10, 10, 40, 40)") > 0
+    page.click("#edit-crop")
+    page.wait_for_function(f"+document.querySelector('#run-title').dataset.kept < {total}", timeout=30_000)
+    cropped = kept()
+    assert page.get_attribute("#edit-undo", "title") == 'Undo "crop" (Ctrl+Z)' and page.is_enabled("#edit-undo")
+    page.click("#canvas")  # the keyboard to the viewer, not a control
+    page.keyboard.press("Control+z")
+    page.wait_for_function(f"+document.querySelector('#run-title').dataset.kept == {total}", timeout=30_000)
+    assert page.is_enabled("#edit-redo") and "crop" in page.inner_text("#edit-history") + page.get_attribute(
+        "#edit-redo", "title")
+    page.reload()
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    assert kept() == total and page.is_enabled("#edit-redo")
+    page.click("#canvas")
+    page.keyboard.press("Control+Shift+z")
+    page.wait_for_function(f"+document.querySelector('#run-title').dataset.kept == {cropped}", timeout=30_000)
+    page.click("#edit-undo")
+    page.wait_for_function(f"+document.querySelector('#run-title').dataset.kept == {total}", timeout=30_000)
+    page.select_option("#tool", "none")
 
 
 def test_cold_open_shows_its_steps_then_clears(browser, server):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kgs_app.bench.real import dynamic_masks, resolve_clip, sharp_camera_metrics
+from kgs_app.bench.real import CROP_PX, dynamic_masks, resolve_clip, sharp_camera_metrics
 from kgs_core.data.formats import load_scene
 from kgs_core.run import load_run
 from kgs_core.train.config import make_config
@@ -75,6 +75,50 @@ def test_detail_falls_with_blur_and_reads_only_the_mask(walk):
     left[:, : frame.shape[1] // 2] = True
     busy[:, : frame.shape[1] // 2 + 1] = 0.5
     assert gradient_energy(busy, left) == 0.0 and gradient_energy(busy, ~left) > 0.01
+
+
+def test_detail_share_sets_render_and_input_against_the_sharp_target(walk):
+    """`DetailShare`: the render's and the blurry input's gradient energy over the target's,
+    summed over frames, over the frame and in the mask; an input from a camera of another size
+    counts over the frame only."""
+    from scipy import ndimage
+
+    from kgs_core.evaluate import DetailShare, gradient_energy
+
+    sharp = walk.test_frames[len(walk.test_frames) // 2].image().astype(np.float64)
+    soft = ndimage.gaussian_filter(sharp, (1.5, 1.5, 0))
+    everywhere = np.ones(sharp.shape[:2], bool)
+    left = np.zeros(sharp.shape[:2], bool)
+    left[:, : sharp.shape[1] // 3] = True
+    share = DetailShare()
+    share.add(sharp, soft, sharp, left)
+    share.add(soft, soft, sharp, left)  # a second frame: the sums, not the mean of ratios
+    r = share.result()
+    assert r["detail"] == pytest.approx((gradient_energy(sharp, everywhere) + gradient_energy(soft, everywhere))
+                                        / (2 * gradient_energy(sharp, everywhere)))
+    assert r["detail_input"] == pytest.approx(gradient_energy(soft, everywhere) / gradient_energy(sharp, everywhere))
+    assert r["detail_input_dynamic"] == pytest.approx(gradient_energy(soft, left) / gradient_energy(sharp, left))
+    assert 0 < r["detail_input"] < r["detail"] < 1 and r["detail_dynamic"] != r["detail"]
+    other = DetailShare()
+    other.add(sharp, soft[:-8], sharp, left)  # the input from another camera size
+    o = other.result()
+    assert o["detail_input_dynamic"] is None and o["detail_input"] < 1 and o["detail_dynamic"] == pytest.approx(1)
+    assert DetailShare().result() == dict.fromkeys(r)  # nothing added: no share at all
+
+
+def test_detail_crop_finds_the_most_detailed_window_outside_the_mask():
+    from kgs_core.evaluate import detail_crop
+
+    img = np.full((300, 400, 3), 0.5)
+    rng = np.random.default_rng(0)
+    img[40:120, 240:320] = rng.random((80, 80, 3))  # busy
+    img[200:280, 40:120] = rng.random((80, 80, 3)) * 0.3 + 0.35  # less busy
+    y, x = detail_crop(img, 80)
+    assert (y, x) == (40, 240)
+    busy = np.zeros(img.shape[:2], bool)  # the busy patch and around it: a window may overlap a quarter
+    busy[:160, 200:] = True
+    assert detail_crop(img, 80, exclude=busy) == (200, 40)
+    assert detail_crop(img, 1000) == (0, 0)  # a window larger than the image is the image
 
 
 @pytest.mark.slow
@@ -253,6 +297,33 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
         assert row["psnr"] == pytest.approx((seeds["0"]["psnr"] + seeds["1"]["psnr"]) / 2)
     assert results["full"]["seeds"]["0"]["psnr"] != results["full"]["seeds"]["1"]["psnr"]
     table = (out / "results.md").read_text()
-    assert "PSNR in mask" in table and "detail in mask" in table and "| **full** | mean |" in table
-    assert all(0 < row["detail_mask"] < 3 for row in results.values())
+    assert "PSNR in mask" in table and "detail in mask (input)" in table and "| **full** | mean |" in table
+    assert all(0 < row["detail_mask"] < 3 and 0 < row["detail"] < 3 and 0 < row["detail_input"] < 3
+               for row in results.values())
     assert (out / "views_walk.png").stat().st_size > 1000 and (out / "psnr_vs_time_walk.png").is_file()
+    from PIL import Image
+
+    crops = Image.open(out / "crops_walk.png")  # two rows of full-size crops, one column per picture
+    assert crops.height == 2 * min(CROP_PX, 54) and crops.width == 5 * min(CROP_PX, 54)
+
+
+def test_the_viewer_is_told_what_blur_a_run_learned():
+    """`learned_blur`: no exposure, K.R. ablated, K.R. turned off by the mid-run check, K.R.
+    measured as doing nothing, and K.R. acting each read from run.json; the camera's own blur
+    from the configuration."""
+    from kgs_core.evaluate import KR_MIN_GAIN_DB
+    from kgs_core.run import learned_blur
+
+    cfg = {"camera_blur": "off", "model": {"kinematic": True}, "ablate": []}
+    base = {"exposure": 0.5, "config": cfg}
+    assert learned_blur({**base, "exposure": 0.0}) == {"objects": False, "camera": "off",
+                                                     "note": "trained at exposure 0: no blur was modelled"}
+    assert not learned_blur({**base, "config": {**cfg, "ablate": ["kr"]}})["objects"]
+    off = learned_blur({**base, "kr_check": {"iteration": 600, "kept": False, "changed_share": 0.001, "gain_db": 0.0}})
+    assert not off["objects"] and "turned off at iteration 600" in off["note"] and "0.1%" in off["note"]
+    weak = learned_blur({**base, "kr_effect": {"changed_share": 0.02, "gain_db": KR_MIN_GAIN_DB / 2}})
+    assert not weak["objects"] and weak["note"].startswith("exposure 0.50: next to no learned blur")
+    acts = learned_blur({**base, "config": {**cfg, "camera_blur": "learned"},
+                         "kr_effect": {"changed_share": 0.05, "gain_db": 2 * KR_MIN_GAIN_DB}})
+    assert acts["objects"] and acts["camera"] == "learned" and "5.0% of the training pixels" in acts["note"]
+    assert "modelled at the training cameras" in acts["note"] and "not modelled" in weak["note"]

@@ -87,6 +87,7 @@ def test_system_docs_and_run_metadata(client):
     assert meta["split"]["dynamic"] + meta["split"]["static"] == meta["split"]["gaussians"]
     assert 0 < meta["split"]["dynamic"] < meta["split"]["gaussians"]
     assert meta["tau"] > 0
+    assert meta["blur"]["camera"] == "off" and meta["blur"]["note"].startswith("exposure 0.50")
 
 
 def test_openapi_documents_every_json_response(client):
@@ -206,6 +207,42 @@ def test_edits_change_sets_and_are_stored(client, copy_run):
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "explode"}).status_code == 422
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "restore"}).json()["kept"] == client.get(
         f"/api/runs/{rid}").json()["split"]["gaussians"]
+
+
+def test_undo_and_redo_walk_the_edit_history_and_survive_a_reload(client, copy_run):
+    """Each edit (a crop included) can be undone and redone; the history is in edits.json, so a
+    fresh view of the run (a reload, a restarted server) keeps the undone state; a new edit
+    drops what could be redone; a hand-broken history is refused naming the field."""
+    from kgs_core.edits import EditsError, load_edits
+    from kgs_core.run_view import RunView
+
+    rid = client.run_id
+    edit = lambda **body: client.post(f"/api/runs/{rid}/edits", json=body)  # noqa: E731
+    total = client.get(f"/api/runs/{rid}").json()["split"]["gaussians"]
+    assert edit(op="undo").status_code == 422  # nothing to undo yet
+    assert edit(op="delete", indices=[0, 1, 2]).json()["kept"] == total - 3
+    cropped = edit(op="crop", crop={"min": [-0.01, -0.01, -0.01], "max": [0.01, 0.01, 0.01]}).json()
+    assert cropped["kept"] < total - 3 and cropped["history"]["undo"] == "crop"
+    undone = edit(op="undo").json()
+    assert undone["kept"] == total - 3 and undone["history"] == {"undo": "delete 3 splats", "undo_steps": 1,
+                                                                 "redo": "crop", "redo_steps": 1}
+    stored = json.loads((copy_run / "edits.json").read_text())
+    assert stored["crop"] is None and [s["label"] for s in stored["history"]["redo"]] == ["crop"]
+    reloaded = RunView(copy_run)  # what a reload or a restarted server reads
+    assert reloaded.edits.crop_min is None and reloaded.split()["kept"] == total - 3
+    assert edit(op="redo").json()["kept"] == cropped["kept"]
+    assert edit(op="undo").json()["kept"] == total - 3
+    assert edit(op="undo").json()["kept"] == total  # back to the start
+    assert edit(op="redo").json()["history"]["redo"] == "crop"
+    after = edit(op="hide", indices=[5]).json()  # a new edit: the undone crop cannot come back
+    assert after["history"]["redo"] is None and edit(op="redo").status_code == 422
+    assert after["history"]["undo_steps"] == 2
+    stored = json.loads((copy_run / "edits.json").read_text())
+    stored["history"]["undo"][0]["layer"] = {"crop": {"min": [1, 1, 1], "max": [0, 0, 0]}}
+    (copy_run / "edits.json").write_text(json.dumps(stored))
+    with pytest.raises(EditsError, match=r"history.undo\[0\]: crop.min must not exceed"):
+        load_edits(copy_run)
+    assert edit(op="clear").json()["kept"] == total  # (the server's copy was valid)
 
 
 def test_runs_list_tells_runs_apart(client):

@@ -11,16 +11,19 @@ and evaluated on every sharp-camera frame:
   static 3DGS of the first round (same iterations as the full method) errs by more than 0.15,
   as regions, dilated (`kgs_core.evaluate.static_error_mask`). It is computed once per clip and
   is the same for every configuration;
-* how much of the sharp frames' fine detail the renders hold inside the mask (`detail_mask`):
-  a soft render scores well below 1 however well it is placed;
+* how much of the sharp frames' fine detail the renders hold, over the whole frame (`detail`)
+  and inside the mask (`detail_mask`), each beside the blurry input's share (the training frame
+  nearest in time): a soft render scores well below 1 however well it is placed, and a
+  reconstruction that deblurs scores above its input;
 * beside them, the mask PSNR with every held-out frame rendered up to a frame earlier or later
   (`best_time_offset`): how far the model's moving parts are from the sharp camera's along
   their motion;
-* side-by-side pictures (blurry input | full method | D3DGS-like | sharp frame, mask outlined)
-  and held-out PSNR against training time.
+* side-by-side pictures (blurry input | full method | D3DGS-like | sharp frame, mask outlined),
+  the same columns as crops at full size where the sharp frame holds the most detail outside the
+  mask (`crops_<clip>.png`: text, edges), and held-out PSNR against training time.
 
 Everything lands in `--out` (a markdown table `results.md`, `views_<clip>.png`,
-`psnr_vs_time_<clip>.png`); copy what should stay into docs/.
+`crops_<clip>.png`, `psnr_vs_time_<clip>.png`); copy what should stay into docs/.
 """
 
 from __future__ import annotations
@@ -75,29 +78,35 @@ def ingest_cached(name: str, blur: Path, sharp: Path, size: int, root: Path) -> 
 @torch.no_grad()
 def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) -> dict:
     """PSNR/SSIM over every held-out (sharp camera) frame, whole and inside `masks` (one per
-    frame; frames whose mask is empty are left out of the masked means), and `detail_mask`:
-    the renders' fine detail inside the masks as a share of the sharp frames'
-    (`evaluate.gradient_energy`, summed over the frames; 1 is as detailed as the sharp camera)."""
-    from kgs_core.evaluate import gradient_energy, masked_ssim, render_at
+    frame; frames whose mask is empty are left out of the masked means), and the renders' fine
+    detail as a share of the sharp frames' over the frame (`detail`) and inside the masks
+    (`detail_mask`), each beside the blurry input's (`evaluate.DetailShare`; 1 is as detailed
+    as the sharp camera)."""
+    from kgs_core.evaluate import DetailShare, masked_ssim, nearest_input, render_at
     from kgs_core.losses import psnr, ssim
 
     ps, ss, mps, mss = [], [], [], []
-    detail = np.zeros(2)  # render, sharp frame
+    detail = DetailShare()
     for f, mask in zip(scene.test_frames, masks):
         gt = torch.from_numpy(f.image())
         img = render_at(model, f, 0.0, scene.dt, static=static)[0].image.clamp(0, 1)
         ps.append(psnr(img, gt))
         ss.append(float(ssim(img, gt)))
+        detail.add(img.numpy(), nearest_input(scene, f), gt.numpy(), mask)
         if mask.any():
             mps.append(psnr(img, gt, torch.from_numpy(mask)))
-            detail += (gradient_energy(img.numpy(), mask), gradient_energy(gt.numpy(), mask))
             s = masked_ssim(img, gt, mask)
             if s is not None:
                 mss.append(s)
     mean = lambda v: float(np.mean(v)) if v else math.nan  # noqa: E731
+    nan = lambda v: math.nan if v is None else v  # noqa: E731
+    d = detail.result()
     return {"psnr": mean(ps), "ssim": mean(ss), "psnr_mask": mean(mps), "ssim_mask": mean(mss),
-            "detail_mask": float(detail[0] / detail[1]) if detail[1] > 0 else math.nan}
+            "detail": nan(d["detail"]), "detail_input": nan(d["detail_input"]),
+            "detail_mask": nan(d["detail_dynamic"]), "detail_input_mask": nan(d["detail_input_dynamic"])}
 
+
+CROP_PX = 160  # side of the full-size crops (crops_<clip>.png)
 
 # Frame intervals by which `best_time_offset` shifts the held-out renders in time.
 TIME_OFFSETS = (-1.0, -0.5, 0.5, 1.0)
@@ -138,28 +147,35 @@ def dynamic_masks(static_model, scene) -> list[np.ndarray]:
 
 
 @torch.no_grad()
-def side_by_side(runs: list, scene, masks: list[np.ndarray], path: Path, count: int = 4) -> None:
+def side_by_side(runs: list, scene, masks: list[np.ndarray], path: Path, count: int = 4, crop: int = 0) -> None:
     """Rows at `count` times: blurry input | each run at the sharp camera | sharp frame (the
-    dynamic-region mask outlined in red on it)."""
+    dynamic-region mask outlined in red on it). `crop` > 0: each cell is the `crop`² window at
+    full size where the sharp frame holds the most detail outside the mask (`detail_crop`),
+    unscaled, so that sharpness shows."""
     from PIL import Image
     from scipy import ndimage
 
-    from kgs_core.evaluate import render_at
+    from kgs_core.evaluate import detail_crop, nearest_input, render_at
     from kgs_core.io import atomic_write_bytes
 
-    test, train = scene.test_frames, scene.train_frames
+    test = scene.test_frames
     rows = []
     for k in np.linspace(0, len(test) - 1, count + 2).round().astype(int)[1:-1]:
         f = test[k]
-        blurry = min(train, key=lambda g: abs(g.time - f.time)).image()
         gt = f.image().copy()
-        edge = masks[k] & ~ndimage.binary_erosion(masks[k], iterations=1)
-        gt[edge] = (1.0, 0.1, 0.1)
-        cells = [blurry] + [render_at(r.model, f, 0.0, scene.dt, static=r.static_only)[0].image.clamp(0, 1).numpy()
-                            for r in runs] + [gt]
-        h = min(c.shape[0] for c in cells)
-        w = min(c.shape[1] for c in cells)
-        rows.append(np.concatenate([c[:h, :w] for c in cells], 1))
+        cells = [nearest_input(scene, f)] + [render_at(r.model, f, 0.0, scene.dt, static=r.static_only)[0].image
+                                             .clamp(0, 1).numpy() for r in runs]
+        h = min(c.shape[0] for c in cells + [gt])
+        w = min(c.shape[1] for c in cells + [gt])
+        if crop:
+            size = min(crop, h, w)
+            y, x = detail_crop(gt[:h, :w], size, exclude=masks[k][:h, :w])
+            window = (slice(y, y + size), slice(x, x + size))
+        else:
+            edge = masks[k] & ~ndimage.binary_erosion(masks[k], iterations=1)
+            gt[edge] = (1.0, 0.1, 0.1)
+            window = (slice(0, h), slice(0, w))
+        rows.append(np.concatenate([c[:h, :w][window] for c in cells + [gt]], 1))
     import io
 
     buf = io.BytesIO()
@@ -190,7 +206,8 @@ def plot_curves(curves: dict, title: str, path: Path) -> None:
 def table_row(label: str, seed: str, r: dict) -> str:
     dyn = "static" if r["dynamic_share"] is None else f"{r['dynamic_share']:.0%}"
     return (f"| {label} | {seed} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} | "
-            f"{r['detail_mask']:.2f} | {r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
+            f"{r['detail']:.2f} ({r['detail_input']:.2f}) | {r['detail_mask']:.2f} ({r['detail_input_mask']:.2f}) | "
+            f"{r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
             f"{dyn} | {r['gaussians']:,.0f} | {r['iterations']:.0f} | {r['seconds']:.0f} |")
 
 
@@ -299,9 +316,10 @@ def main(argv: list[str]) -> int:
                           f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at "
                           f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; dynamic-region mask: "
                           f"{share:.1%} of the sharp-camera pixels." + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""),
-                          "", "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | detail in mask | in mask at "
-                          "the best time offset (frames) | dynamic | Gaussians | iterations | train s |",
-                          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                          "", "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | detail (input) | detail in mask "
+                          "(input) | in mask at the best time offset (frames) | dynamic | Gaussians | iterations | "
+                          "train s |",
+                          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
                 print("\n".join(lines[-5:]), flush=True)
             curves, shown = {}, []
             for t in first + second:
@@ -326,6 +344,7 @@ def main(argv: list[str]) -> int:
             if seed == seeds[0]:  # pictures and curves of the first seed
                 pictures = root / f"views_{name}.png"
                 side_by_side([r for _, r in shown], scene, masks, pictures)
+                side_by_side([r for _, r in shown], scene, masks, root / f"crops_{name}.png", count=2, crop=CROP_PX)
                 plot_curves(curves, f"{name}: held-out (sharp camera) PSNR, same {args.budget}, seed {seed}",
                             root / f"psnr_vs_time_{name}.png")
         fill_equal_time(per_seed)
@@ -333,8 +352,10 @@ def main(argv: list[str]) -> int:
         if len(seeds) > 1:
             rows += [table_row(f"**{label}**", "mean", r) for label, r in results.items()]
         lines += rows
-        lines += ["", f"Pictures ({pictures.name}, seed {seeds[0]}), columns: blurry input | "
-                  + " | ".join(lb for lb, _ in shown) + " | sharp frame (mask outlined).", ""]
+        lines += ["", f"Pictures ({pictures.name}; crops_{name}.png at full size, {CROP_PX} px windows where the sharp "
+                  f"frame has the most detail outside the mask; seed {seeds[0]}), columns: blurry input | "
+                  + " | ".join(lb for lb, _ in shown) + " | sharp frame (mask outlined). Detail: the render's fine detail "
+                  "as a share of the sharp frame's, the blurry input's in brackets.", ""]
         summary[name] = results
     (root / "results.md").write_text("\n".join(lines) + "\n")
     (root / "results.json").write_text(json.dumps(summary, indent=1))

@@ -10,7 +10,7 @@ import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
 from pydantic import Field, create_model, field_validator
 
-from kgs_core.run import RunError, read_log
+from kgs_core.run import RunError, learned_blur, read_log
 from kgs_core.train.config import ABLATIONS, PRESETS, TrainConfig, make_config
 from kgs_core.train.settings import NAMED, NamedSetting, bound, named_overrides, parse_setting, setting_type
 
@@ -68,7 +68,7 @@ class FinetuneRequest(StrictRequest):
 
 
 class EditRequest(StrictRequest):
-    op: Literal["delete", "hide", "unhide", "restore", "crop", "clear"]
+    op: Literal["delete", "hide", "unhide", "restore", "crop", "clear", "undo", "redo"]
     lod: int | None = None
     indices: list[int] = Field([], max_length=5_000_000)
     crop: dict | None = None
@@ -166,6 +166,7 @@ def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -
     out["levels"] = [{"level": lvl, "gaussians": len(view.run.level(lvl))} for lvl in range(1, view.run.n_levels + 1)]
     out["dt"] = view.dt
     out["exposure"] = view.run.info.get("exposure", 0.0)
+    out["blur"] = learned_blur(view.run.info)
     out["static_only"] = view.run.static_only
     out["sh_degree"] = view.run.model.config.sh_degree
     out["frames"] = view.frames()

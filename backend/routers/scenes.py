@@ -15,6 +15,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from pydantic import Field, model_validator
 
+from kgs_core.data.ingest import DEFAULT_MAX_SIZE
 from kgs_core.data.synth.scenes import SCENES
 
 from ..deps import get_or_404, jobs, workspace
@@ -107,7 +108,7 @@ def create_scene(req: SynthRequest, ws: Workspace = Depends(workspace), jr: JobR
 class IngestRequest(StrictRequest):
     """How an uploaded video becomes a scene (`kgs_core.data.ingest.ingest`)."""
 
-    max_size: int = Field(320, ge=64, le=4096, description="long side of the frames, in pixels")
+    max_size: int = Field(DEFAULT_MAX_SIZE, ge=64, le=4096, description="long side of the frames, in pixels")
     mapper: Literal["auto", "keyframes", "global", "incremental"] = "auto"
     holdout_every: int | None = Field(None, ge=0, le=1000,
                                       description="with one video, every n-th frame is a test view (0: none; default 8)")
@@ -210,7 +211,7 @@ async def upload_scene(request: Request, name: str = Query(..., min_length=1, ma
         shutil.move(str(blob), video_path(ws, sid))
         row = ws.insert("scenes", id=sid, name=name, path=str(out), source="ingest", status=JobStatus.UPLOADED)
         if not hold:
-            start_ingest(ws, jr, row, IngestRequest(max_size=960))
+            start_ingest(ws, jr, row, IngestRequest())
         return public(ws.get("scenes", sid), ws)
     finally:
         shutil.rmtree(tmp_dir, ignore_errors=True)

@@ -1,6 +1,7 @@
 // Selecting and editing splats in the viewer: box and brush selection of the splats in front
 // (or through, at every depth), then hide, delete, restore or crop through the server's edit
-// layer (`/api/runs/{id}/edits`; the model itself is never changed). Mixed into `Viewer`.
+// layer (`/api/runs/{id}/edits`; the model itself is never changed), with undo and redo kept
+// there too, so that they survive a reload. Mixed into `Viewer`.
 
 import { api } from "./api.js";
 import { project } from "./camera.js";
@@ -16,6 +17,21 @@ export const editing = {
     $("edit-unhide").onclick = () => this.edit("unhide", []);
     $("edit-restore").onclick = () => this.edit("restore", []);
     $("edit-crop").onclick = () => this.cropToSelection();
+    $("edit-undo").onclick = () => this.edit("undo", []);
+    $("edit-redo").onclick = () => this.edit("redo", []);
+  },
+
+  // The undo and redo buttons say which step they revert (the server's edit history).
+  updateHistory(h) {
+    const undo = $("edit-undo"), redo = $("edit-redo");
+    undo.disabled = !(h && h.undo);
+    redo.disabled = !(h && h.redo);
+    undo.title = h && h.undo ? `Undo "${h.undo}" (Ctrl+Z)` : "Nothing to undo (Ctrl+Z)";
+    redo.title = h && h.redo ? `Redo "${h.redo}" (Ctrl+Shift+Z or Ctrl+Y)` : "Nothing to redo";
+    $("edit-history").textContent = h && (h.undo_steps || h.redo_steps)
+      ? `${h.undo_steps} step${h.undo_steps === 1 ? "" : "s"} back${h.undo ? `, last: ${h.undo}` : ""}`
+        + (h.redo_steps ? ` · ${h.redo_steps} to redo` : "")
+      : "";
   },
 
   // Indices (within the LoD level) of drawn splats whose centre projects inside `inside(u, v)`.

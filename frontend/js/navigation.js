@@ -4,6 +4,7 @@
 // take the pointer while one is active.
 
 import { ORBIT_RADIANS_PER_PIXEL, flyMove, flyTurn } from "./camera.js";
+import { $ } from "./dom.js";
 
 // Fly speed in scene units per second (the same at any frame rate).
 const FLY_SPEED = 1.2;
@@ -55,7 +56,14 @@ export const navigation = {
     }, { passive: false });
     this.keys = new Set();
     window.addEventListener("keydown", (e) => {
-      if (typing(e.target) || e.ctrlKey || e.metaKey || e.altKey) return;
+      if (typing(e.target)) return;
+      if ((e.ctrlKey || e.metaKey) && !e.altKey && (e.code === "KeyZ" || e.code === "KeyY")) {
+        e.preventDefault();  // (the browser's own undo would act on no field here)
+        const redo = e.code === "KeyY" || e.shiftKey;
+        if (!$(redo ? "edit-redo" : "edit-undo").disabled) this.edit(redo ? "redo" : "undo", []);
+        return;
+      }
+      if (e.ctrlKey || e.metaKey || e.altKey) return;
       if (this.shortcut(e.code)) e.preventDefault();
       else this.keys.add(e.code);
     });

@@ -67,7 +67,8 @@ export async function showRuns() {
     : `<li class="muted">no runs yet: make the demo scene, then train it</li>`;
   document.querySelectorAll("[data-train]").forEach((b) => (b.onclick = async () => {
     const run = await api("/api/runs", { method: "POST", body: { scene_id: b.dataset.train, preset: $("train-preset").value,
-      iterations: parseInt($("train-iterations").value, 10) || null } });
+      iterations: parseInt($("train-iterations").value, 10) || null,
+      time_budget: parseFloat($("train-budget").value) * 60 || null } });
     await showRuns();
     watch(run.id);
   }));

@@ -405,10 +405,13 @@ export class Viewer {
       this.buildArrows();
       this.dirty = true;
     };
-    // Say which exposure "as captured" renders with; with none recorded it would change nothing.
+    // Say which exposure "as captured" renders with and what blur the run learned; with no
+    // exposure it would change nothing.
     const captured = document.querySelector('#exposure option[value="captured"]');
-    captured.textContent = `as captured (exposure ${Number(m.exposure || 0).toFixed(2)})`;
+    const learned = m.blur ? (m.blur.objects ? "" : ", no learned blur") : "";
+    captured.textContent = `as captured (exposure ${Number(m.exposure || 0).toFixed(2)}${learned})`;
     captured.disabled = !(m.exposure > 0);
+    $("exposure-note").textContent = m.blur ? m.blur.note : "";
     $("exposure").onchange = (e) => {
       this.exposure = e.target.value === "captured" ? m.exposure : 0;
       this.requestTime();
@@ -466,6 +469,7 @@ export class Viewer {
     $("counts").dataset.static = s.static_kept;
     const option = document.querySelector(`#lod option[value="${Number(s.lod)}"]`);
     if (option) option.textContent = `LoD ${Number(s.lod)} (${s.kept.toLocaleString()})`;
+    this.updateHistory(s.history);
   }
 
   nearestInput() {

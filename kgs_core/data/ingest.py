@@ -287,8 +287,13 @@ def frame_ranges(indices: list[int]) -> str:
     return ", ".join(out)
 
 
+# The long side frames are kept at (the CLI's, REST's and UI's default): BARD-GS's full size, so
+# that every training budget can use the detail; a training's time budget picks what it affords.
+DEFAULT_MAX_SIZE = 960
+
+
 def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = None, every: int | None = None,
-           max_frames: int | None = None, max_size: int | None = 960, exposure: float = 0.5,
+           max_frames: int | None = None, max_size: int | None = DEFAULT_MAX_SIZE, exposure: float = 0.5,
            mapper: str = "auto", holdout_every: int | None = None, fixed_camera: bool = False,
            cache_dir: str | Path | None | bool = True, min_registered: float = 0.3, overwrite: bool = False,
            undistort: bool = True, lens: str = "opencv", progress: bool = True) -> IngestReport:

@@ -33,6 +33,9 @@ ABLATIONS = {
 @dataclass
 class TrainConfig:
     iterations: int = 3000
+    # Seconds the training may take on this machine (0: none). Before training a short pilot picks
+    # the iterations, and for a small budget the Gaussian budget, that fit (train/budget.py).
+    time_budget: float = 0.0
     batch_size: int = 1
     seed: int = 0
     init_points: int = 20_000  # SfM points used to initialise (random subset when more)
@@ -431,7 +434,12 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     return cfg
 
 
-def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **overrides) -> TrainConfig:
+def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budget: bool = True,
+                **overrides) -> TrainConfig:
+    """The preset with the ablations and overrides applied, fitted to `scene` when given, and,
+    with a `time_budget` and a scene (unless `plan_budget` is False), planned to fit it on this
+    machine (`budget.fit_time_budget`, which runs a short pilot)."""
+    given = dict(overrides)
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     bad = [a for a in ablate if a not in ABLATIONS]
@@ -467,4 +475,15 @@ def make_config(preset: str = "fast", ablate: tuple = (), scene=None, **override
         cfg = replace(cfg, lambda_ani=0.0)
     from .settings import check_config  # (settings reads this module's schema)
 
-    return check_config(replace(cfg, model=m))
+    cfg = check_config(replace(cfg, model=m))
+    if cfg.time_budget > 0 and scene is not None and plan_budget:
+        from .budget import fit_time_budget
+
+        preset_budget = cfg.densify.max_gaussians
+
+        def remake(iterations: int, max_gaussians: int) -> TrainConfig:
+            budget = {"densify.max_gaussians": max_gaussians} if max_gaussians != preset_budget else {}
+            return make_config(preset, ablate, scene, plan_budget=False, **{**given, "iterations": iterations, **budget})
+
+        cfg = fit_time_budget(cfg, scene, remake, explicit)
+    return cfg

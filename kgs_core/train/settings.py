@@ -13,11 +13,13 @@ from __future__ import annotations
 import json
 import math
 import types
+from collections.abc import Callable
 from dataclasses import MISSING, dataclass, fields
 from functools import cache
 from typing import Union, get_args, get_origin
 
 from ..schema import choices, field_types
+from .budget import parse_duration
 from .config import NESTED, TrainConfig
 
 # Fields that are not settings: the ablations have their own option, `fitted` is an output,
@@ -60,7 +62,7 @@ COUNT, AMOUNT = Bound(0, 2**31 - 1), Bound(0, 1e6)
 # The bounds that differ: sizes that set memory and time (a request must not ask for a
 # machine's worth), fractions, and the few settings that may be negative or must be positive.
 BOUNDS: dict[str, Bound] = {
-    "iterations": Bound(1, 1_000_000), "batch_size": Bound(1, 16), "seed": Bound(0, 2**31 - 1),
+    "iterations": Bound(1, 1_000_000), "time_budget": Bound(0, 7 * 24 * 3600), "batch_size": Bound(1, 16), "seed": Bound(0, 2**31 - 1),
     "init_points": Bound(1, 1_000_000), "densify.max_gaussians": Bound(1, 5_000_000),
     "coarse_factor": Bound(1, 64), "spawn_frames": Bound(0, 1000), "spawn_max": Bound(1, 100_000),
     "spawn_life": Bound(0, 1000, above=True), "lod_levels": Bound(1, 8), "lod_fractions": Bound(0, 1, above=True, length=8),
@@ -116,6 +118,8 @@ class NamedSetting:
 
     key: str
     help: str
+    # How the command line reads the value (None: the schema's type).
+    parse: Callable[[str], object] | None = None
 
     def check(self, value):
         """`value`, or ValueError when it is out of bounds."""
@@ -124,6 +128,9 @@ class NamedSetting:
 
 NAMED: dict[str, NamedSetting] = {
     "iterations": NamedSetting("iterations", "override the preset's iteration count (its schedule scales with it)"),
+    "time_budget": NamedSetting("time_budget", "train within this time on this machine, e.g. 10m or 600 (seconds): a "
+                                "short pilot picks the iterations and Gaussian budget that fit, recorded in run.json "
+                                "(default: none, the preset's schedule)", parse=parse_duration),
     "seed": NamedSetting("seed", "training seed"),
     "tau": NamedSetting("model.tau", "static/dynamic threshold on the temporal variance K (normalised scene units^2; "
                         "default: fitted to the scene, an RMS image motion of 0.62 px)"),

@@ -1,0 +1,169 @@
+"""A training that fits a time budget (`kgs-app train --time-budget 10m`).
+
+The budget is turned into settings before training, on this machine: a short pilot times real
+training steps of the configuration on the scene at two Gaussian counts, a line through the two
+gives a step's cost for any count, and the count's path over the run (densification grows it to
+the budget between its start and stop) gives the run's time for an iteration count. The
+iterations (and, when they would fall below half the preset's, the Gaussian budget) are the
+largest that fit; never more than the preset's own, which is what it was tuned to need. The
+choice and its reason go into `TrainConfig.fitted`, so run.json says what was picked and why.
+"""
+
+from __future__ import annotations
+
+import re
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass, replace
+
+import torch
+
+# Steps timed at each Gaussian count of the pilot (after one untimed step); the median counts.
+PILOT_STEPS = 7
+# Training frames the pilot uses (its flows are computed for these only).
+PILOT_FRAMES = 4
+# The fewest iterations a budget may leave; a smaller budget is refused.
+MIN_ITERATIONS = 200
+# Below this share of the preset's iterations a budget also lowers the Gaussian budget.
+MIN_ITERATION_SHARE = 0.5
+# The pilot's steps are the warm-up's (every Gaussian deforms), dearer than the ones after the
+# split; the plan is kept this far under the budget for what the pilot does not see (events,
+# evaluation, the thread tuner settling).
+HEADROOM = 0.9
+
+_UNITS = {"s": 1, "m": 60, "min": 60, "h": 3600}
+
+
+def parse_duration(text: str | float | int) -> float:
+    """Seconds from `600`, `600s`, `10m`, `1.5h` (or a number); ValueError naming the value."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        seconds = float(text)
+    else:
+        m = re.fullmatch(r"\s*(\d+(?:\.\d*)?)\s*(s|m|min|h)?\s*", str(text))
+        if not m:
+            raise ValueError(f"time_budget takes seconds or a duration such as 90s, 10m, 1.5h, got {text!r}")
+        seconds = float(m.group(1)) * _UNITS[m.group(2) or "s"]
+    if not seconds > 0 or seconds > 7 * 24 * 3600:
+        raise ValueError(f"time_budget must be above 0 and at most a week, got {text!r}")
+    return seconds
+
+
+@dataclass(frozen=True)
+class StepCost:
+    """Seconds a training step costs on this machine at `n` Gaussians: `fixed + per_gaussian * n`
+    (per-pixel work, and per-Gaussian work), from two pilot measurements."""
+
+    fixed: float
+    per_gaussian: float
+
+    def at(self, n: float) -> float:
+        return self.fixed + self.per_gaussian * n
+
+    def run_seconds(self, cfg, start: int) -> float:
+        """The run's training time for `cfg` starting from `start` Gaussians: the count held
+        until densification starts, grown linearly to the budget by its stop (densification
+        usually reaches it sooner: an overestimate), then held."""
+        n_it, d = cfg.iterations, cfg.densify
+        top = max(start, d.max_gaussians)
+        grow_from, grow_to = min(d.start, n_it), min(max(d.stop, d.start), n_it)
+        flat_before = grow_from * self.at(start)
+        ramp = (grow_to - grow_from) * self.at(0.5 * (start + top))
+        flat_after = (n_it - grow_to) * self.at(top)
+        return flat_before + ramp + flat_after
+
+
+def pilot_cost(cfg, scene) -> tuple[StepCost, int, int]:
+    """Times `PILOT_STEPS` real training steps of `cfg` on `PILOT_FRAMES` of `scene`'s training
+    frames at its initial Gaussians and at its Gaussian budget (copies of them), the median
+    step of each, and fits `StepCost`; also returns the two counts."""
+    from .trainer import Trainer
+
+    pilot_scene = replace(scene, frames=scene.train_frames[:PILOT_FRAMES])
+    quiet = replace(cfg, eval_every=10**9, checkpoint_every=10**9, iterations=10**6)
+    with tempfile.TemporaryDirectory(prefix="kgs-budget-") as tmp:
+        tr = Trainer(pilot_scene, tmp, quiet, progress=False)
+        tr.init_model()
+        start = len(tr.model)
+        points = []
+        for target in (start, max(2 * start, cfg.densify.max_gaussians)):
+            _grow(tr, target)
+            tr.train_step(0)  # untimed: first-call costs
+            times = []
+            for i in range(PILOT_STEPS):
+                t0 = time.perf_counter()
+                tr.train_step(1 + i)
+                times.append(time.perf_counter() - t0)
+            points.append((len(tr.model), statistics.median(times)))
+    (n0, t0_), (n1, t1_) = points
+    per = max(0.0, (t1_ - t0_) / max(n1 - n0, 1))
+    return StepCost(fixed=max(t0_ - per * n0, 0.0), per_gaussian=per), n0, n1
+
+
+def _grow(trainer, target: int) -> None:
+    """Appends copies of the Gaussians (each its own parent's) until there are `target`."""
+    from ..model.gaussians import GaussianParams
+
+    model = trainer.model
+    n = len(model)
+    if target <= n:
+        return
+    parents = torch.arange(target - n) % n
+    with torch.no_grad():
+        new = GaussianParams(**{k: v.detach()[parents].clone() for k, v in vars(model.params).items()})
+    model.add_gaussians(new, parents, trainer.opt, trainer.strategy.state)
+
+
+def fit_time_budget(cfg, scene, remake, explicit: set[str]):
+    """`cfg` with its iterations (and, for a small budget, its Gaussian budget) chosen to fit
+    `cfg.time_budget` seconds on this machine; the plan and its reason in `fitted`.
+    `remake(iterations, max_gaussians)` builds the configuration again (the preset lays its
+    schedule out for the iteration count). ValueError when `iterations` was also given, or
+    when not even `MIN_ITERATIONS` at the initial Gaussian count fit."""
+    budget = cfg.time_budget
+    if "iterations" in explicit:
+        raise ValueError("give iterations or time_budget, not both (the budget picks the iterations)")
+    cost, start, top = pilot_cost(cfg, scene)
+    target = HEADROOM * budget
+    preset_it, preset_g = cfg.iterations, cfg.densify.max_gaussians
+    full = cost.run_seconds(cfg, start)
+    pilot = (f"a pilot of {1000 * cost.at(start):.0f} ms a step at {start:,} Gaussians and "
+             f"{1000 * cost.at(top):.0f} ms at {top:,}")
+    if full <= target:
+        cfg.fitted["time_budget"] = (f"{budget:.0f} s: the preset's {preset_it} iterations up to {preset_g:,} "
+                                     f"Gaussians fit ({full:.0f} s planned from {pilot})")
+        return cfg
+    fits = lambda n, g: cost.run_seconds(remake(n, g), start) <= target  # noqa: E731
+    g = preset_g
+    n = _largest(lambda k: fits(k, g), MIN_ITERATIONS, preset_it)
+    if n < MIN_ITERATION_SHARE * preset_it and "densify.max_gaussians" not in explicit:
+        # Fewer Gaussians before fewer iterations: a short run cannot use a large budget anyway.
+        n = max(MIN_ITERATIONS, int(MIN_ITERATION_SHARE * preset_it))
+        g = _largest(lambda gg: fits(n, gg), start, preset_g)
+        if not fits(n, g):  # not even at the initial count: fewer iterations still
+            n = _largest(lambda k: fits(k, g), MIN_ITERATIONS, n)
+    if not fits(n, g):
+        raise ValueError(f"time_budget of {budget:.0f} s is too short for this scene on this machine: "
+                         f"{MIN_ITERATIONS} iterations would take about "
+                         f"{cost.run_seconds(remake(MIN_ITERATIONS, g), start) / HEADROOM:.0f} s ({pilot})")
+    out = remake(n, g)
+    planned = cost.run_seconds(out, start)
+    fewer = f", a Gaussian budget of {g:,} of its {preset_g:,}" if g != preset_g else ""
+    out.fitted["time_budget"] = (f"{budget:.0f} s: {n} of the preset's {preset_it} iterations{fewer} ({planned:.0f} s "
+                                 f"planned, the preset's would take {full:.0f} s; from {pilot})")
+    return out
+
+
+def _largest(fits, low: int, high: int) -> int:
+    """The largest whole number in [low, high] for which `fits` holds (it holds for all below
+    one that does), or `low` when none does."""
+    if fits(high):
+        return high
+    lo, hi = low, high - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if fits(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
