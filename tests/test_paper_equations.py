@@ -7,6 +7,7 @@ alternative reference, eta without its max, a missing residual."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from kgs_core.model.kinematics import kinematic_basis, refine_covariance
@@ -128,3 +129,72 @@ def test_coarse_to_fine_offsets_are_the_dynamic_neighbours_mean_of_the_field_plu
     # (the check can fail: over all Gaussians the neighbourhoods are others)
     _, nn_all = cKDTree(means.numpy()).query(means[idx].numpy(), k=6)
     assert (np.sort(idx.numpy()[nn], 1) != np.sort(nn_all, 1)).any()
+
+
+def _trainer(tmp_path, **over):
+    """A trainer on the real fixture, split with about half its Gaussians dynamic, no time noise."""
+    from pathlib import Path
+
+    from kgs_core.data.formats import load_scene
+    from kgs_core.train.config import make_config
+    from kgs_core.train.trainer import Trainer
+
+    scene = load_scene(Path(__file__).parent / "fixtures" / "walk96")
+    cfg = make_config("fast", iterations=10, noise_init_frames=0.0, lambda_tv=0.0, eval_every=100,
+                      checkpoint_every=100, **over)
+    tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
+    tr.init_model()
+    m = tr.model
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():  # a field that moves things (a fresh one's offsets are zero)
+        for mlp in (m.deform.mlp, m.fine.mlp):
+            mlp[-1].weight.normal_(0, 0.3, generator=g)
+        for grid in m.deform.planes.grids:
+            grid.add_(0.2 * torch.randn(grid.shape, generator=g))
+    m.decompose(tau=1e-12)
+    m.dynamic = torch.arange(len(m)) % 2 == 0
+    m._knn, m._knn_mean = None, None
+    return tr
+
+
+def test_l_reg_after_a_split_is_both_of_eq_22_terms(tmp_path):
+    """Eq. (22): mean |dx| over the dynamic set (their rendered offsets) plus mean |dx| of the
+    field over the static set (every static Gaussian when the sample covers them all)."""
+    tr = _trainer(tmp_path, lambda_reg=1.0, lambda_ani=0.0, reg_static_samples=10**6)
+    frame = tr.scene.train_frames[3]
+    m = tr.model
+    torch.manual_seed(0)
+    with_reg, _ = tr.loss_for(frame, 5)
+    tr.cfg = __import__("dataclasses").replace(tr.cfg, lambda_reg=0.0)
+    torch.manual_seed(0)
+    without, _ = tr.loss_for(frame, 5)
+    with torch.no_grad():
+        dyn, stat = torch.nonzero(m.dynamic).squeeze(1), torch.nonzero(~m.dynamic).squeeze(1)
+        dynamic_term = m.offsets(dyn, frame.time).dx.norm(dim=-1).mean()
+        field = m.deform.at_times(m.params.means[stat], [torch.full((len(stat),), frame.time)])[0].dx
+        static_term = field.norm(dim=-1).mean()
+    assert static_term > 1e-4 and dynamic_term > 1e-4  # both terms carry weight
+    assert float(with_reg - without) == pytest.approx(float(dynamic_term + static_term), rel=1e-4)
+
+
+def test_l_ani_is_eq_23_on_the_scales_it_acts_on(tmp_path):
+    """Eq. (23): mean of max(s) / (min(s) + eps_ani) over every Gaussian's scales."""
+    tr = _trainer(tmp_path, lambda_reg=0.0, lambda_ani=1.0, eps_ani=1e-3)
+    frame = tr.scene.train_frames[2]
+    with torch.no_grad():
+        tr.model.params.log_scales.add_(torch.randn_like(tr.model.params.log_scales))  # anisotropic
+    torch.manual_seed(0)
+    with_ani, _ = tr.loss_for(frame, 5)
+    tr.cfg = __import__("dataclasses").replace(tr.cfg, lambda_ani=0.0)
+    torch.manual_seed(0)
+    without, _ = tr.loss_for(frame, 5)
+    s = tr.model.params.log_scales.detach().exp()
+    want = (s.max(-1).values / (s.min(-1).values + 1e-3)).mean()
+    assert float(with_ani - without) == pytest.approx(float(want), rel=1e-4)
+
+
+def test_flod_minimum_scale_decays_geometrically_to_none_at_the_top_level(tmp_path):
+    """Eq. (3) as we read it (docs/method.md: the exponent's sign flipped so that levels go coarse
+    to fine): s_min(l) = lambda rho^(l-1) for l < L_max, 0 at L_max."""
+    tr = _trainer(tmp_path, lod_levels=5, lod_fractions=(0.1, 0.2, 0.35, 0.55, 1.0), lod_lambda=0.02, lod_rho=0.5)
+    assert [tr.level_min_scale(i) for i in range(5)] == pytest.approx([0.02, 0.01, 0.005, 0.0025, 0.0])
