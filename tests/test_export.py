@@ -270,6 +270,10 @@ def test_edits_are_honoured_and_static_exports_one_frame(copy_run, tmp_path):
     save_edits(copy_run, layer)
     res = export_run(copy_run, "splat", out=tmp_path / "a", times="0", progress=False)
     assert res.files[0].stat().st_size == 32 * (n - 4)
+    # Beside it the training cameras in the 3DGS convention, which both web viewers read on drop.
+    cams = json.loads((tmp_path / "a" / "cameras.json").read_text())
+    assert cams and {"position", "rotation", "fx", "fy", "width", "height"} <= set(cams[0])
+    assert np.asarray(cams[0]["rotation"]).shape == (3, 3)
     # Delete every dynamic Gaussian: nothing moves, so one frame, not five.
     layer.level(src.lod).deleted.update(np.nonzero(dyn)[0].tolist())
     save_edits(copy_run, layer)

@@ -79,7 +79,7 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
         from .ply import write_ply
         from .splat import write_splat
 
-        frames = _scene_frames(source, required=False) if times is None else []
+        frames = _scene_frames(source, required=False)
         ts = parse_times(times, default_times(source, frames))
         if not source.moves:
             report["note"] = f"the run does not move: one frame written instead of {len(ts)} identical ones"
@@ -95,6 +95,10 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
                 files.append(fname)
             report["frames"] = [{"file": f, "time": t} for f, t in zip(files, ts)]
             atomic_write_text(tmp / "export.json", json.dumps(report, indent=1))
+            if frames:  # the 3DGS convention: dropped on antimatter15/splat or splaTV, it sets their view
+                from .splatv import splatv_cameras
+
+                atomic_write_text(tmp / "cameras.json", json.dumps(splatv_cameras(frames), indent=1))
         return ExportResult(out, [out / f for f in files], report)
 
     if fmt == "splatv":
