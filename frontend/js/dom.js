@@ -10,3 +10,20 @@ export function esc(value) {
 
 // The page's element with this id.
 export const $ = (id) => document.getElementById(id);
+
+// An ingest's finished stages as one short line: repeats of a stage ("register", "register, pass
+// 2", …) merged into one entry with their count and summed seconds.
+export function stageSummary(stages) {
+  const merged = [];
+  for (const [name, seconds] of stages || []) {
+    const base = String(name).split(",")[0];
+    const last = merged[merged.length - 1];
+    if (last && last.base === base) {
+      last.seconds += Number(seconds);
+      last.count += 1;
+    } else {
+      merged.push({ base, seconds: Number(seconds), count: 1 });
+    }
+  }
+  return merged.map((m) => `${m.base}${m.count > 1 ? ` ×${m.count}` : ""} ${m.seconds.toFixed(0)} s`).join(" · ");
+}

@@ -3,7 +3,7 @@
 
 import { api, openStream, upload } from "./api.js";
 import { drawChart } from "./chart.js";
-import { $, esc } from "./dom.js";
+import { $, esc, stageSummary } from "./dom.js";
 
 const ACTIVE = ["queued", "running", "cancelling"];
 const RETRYABLE = ["uploaded", "failed", "cancelled", "interrupted"];
@@ -13,7 +13,7 @@ const RETRYABLE = ["uploaded", "failed", "cancelled", "interrupted"];
 function ingestProgress(p) {
   if (!p) return "starting…";
   const count = p.total ? ` ${p.done}/${p.total}` : "";
-  const past = (p.stages || []).map(([name, s]) => `${name} ${Number(s).toFixed(0)} s`).join(" · ");
+  const past = stageSummary(p.stages);
   return `${p.stage}${count} · ${Number(p.elapsed).toFixed(0)} s${past ? ` <span class="muted">(${esc(past)})</span>` : ""}`;
 }
 
@@ -60,7 +60,7 @@ export async function showRuns() {
   $("run-list").innerHTML = runs.length
     ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(statusText(r))}</span>
         <span class="muted run-where">${esc(r.scene_name || "?")} · ${esc(new Date(r.created * 1000).toLocaleString())} · ${esc(r.folder)}</span>
-        ${r.final_psnr_heldout ? ` · ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB` : ""}
+        ${r.final_psnr_heldout ? ` · <span title="PSNR on the held-out views at the end of training">held-out ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB</span>` : ""}
         ${r.has_model ? `<a href="#/run/${encodeURIComponent(r.id)}">open</a>` : ""}
         ${["queued", "running"].includes(r.status) ? `<button data-watch="${esc(r.id)}">watch</button> <button data-cancel="${esc(r.id)}">cancel</button>` : ""}
         ${r.resumable ? `<button data-resume="${esc(r.id)}" title="${esc(r.error || "")}">resume</button>` : ""}</li>`).join("")

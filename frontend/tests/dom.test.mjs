@@ -1,6 +1,6 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
-import { esc } from "../js/dom.js";
+import { esc, stageSummary } from "../js/dom.js";
 
 test("esc turns every HTML-significant character into an entity", () => {
   assert.equal(esc(`<img src=x onerror="alert('1')">`), "&lt;img src=x onerror=&quot;alert(&#39;1&#39;)&quot;&gt;");
@@ -12,4 +12,11 @@ test("esc leaves plain names alone and accepts non-strings", () => {
   assert.equal(esc(42), "42");
   assert.equal(esc(null), "");
   assert.equal(esc(undefined), "");
+});
+
+test("stageSummary merges a stage's passes into one entry with their count and seconds", () => {
+  const stages = [["frames", 2.2], ["register", 3.4], ["register, pass 2", 0.2], ["register, pass 3", 0.4], ["points", 1]];
+  assert.equal(stageSummary(stages), "frames 2 s · register ×3 4 s · points 1 s");
+  assert.equal(stageSummary([]), "");
+  assert.equal(stageSummary(undefined), "");
 });
