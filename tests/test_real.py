@@ -327,3 +327,39 @@ def test_the_viewer_is_told_what_blur_a_run_learned():
                          "kr_effect": {"changed_share": 0.05, "gain_db": 2 * KR_MIN_GAIN_DB}})
     assert acts["objects"] and acts["camera"] == "learned" and "5.0% of the training pixels" in acts["note"]
     assert "modelled at the training cameras" in acts["note"] and "not modelled" in weak["note"]
+
+
+def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
+    """`camera_blur_px`: cameras that slide sideways by D a frame at depth z draw streaks of
+    f D / z px a frame interval, times the exposure (median over points); a still camera none.
+    A video ingest whose streak reaches CAMERA_BLUR_MIN_PX trains with the camera's blur learned,
+    unless it is set by hand or the K.R. form cannot carry it."""
+    import dataclasses
+
+    from kgs_core.train.config import CAMERA_BLUR_MIN_PX, camera_blur_px
+
+    frames = sorted(walk.train_frames, key=lambda f: f.time)
+    base = frames[0].camera
+    step = 0.01
+
+    def moved(i, f):
+        vm = base.viewmat.copy()
+        vm[0, 3] += i * step
+        return dataclasses.replace(f, camera=dataclasses.replace(f.camera, viewmat=vm))
+
+    sliding = dataclasses.replace(walk, frames=[moved(i, f) for i, f in enumerate(frames)] + walk.test_frames)
+    z = walk.points @ base.viewmat[2, :3] + base.viewmat[2, 3]
+    expected = float(np.median(base.K[0, 0] * step / z[z > 1e-6]))
+    # (a random sample of 2,000 points: the median agrees to a percent)
+    assert camera_blur_px(sliding, exposure=1.0) == pytest.approx(expected, rel=0.03)
+    assert camera_blur_px(sliding, exposure=0.5) == pytest.approx(0.5 * camera_blur_px(sliding, exposure=1.0))
+    still = dataclasses.replace(walk, frames=[moved(0, f) for f in frames] + walk.test_frames)
+    assert camera_blur_px(still) == 0.0
+    streak = camera_blur_px(walk)
+    assert streak >= CAMERA_BLUR_MIN_PX  # the fixture's hand-held camera
+    assert make_config("fast", scene=walk).camera_blur == "learned"
+    assert f"{streak:.1f} px streak" in make_config("fast", scene=walk).fitted["camera_blur"]
+    assert make_config("fast", scene=walk, camera_blur="off").camera_blur == "off"
+    assert make_config("fast", scene=walk, **{"model.kr_form": "paper"}).camera_blur == "off"
+    assert make_config("fast", scene=walk, ablate=("split",)).camera_blur == "off"
+    assert make_config("fast", scene=still).camera_blur == "off"

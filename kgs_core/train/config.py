@@ -322,6 +322,38 @@ VIDEO_FLOW_WEIGHT = 0.003
 # +0.33 in the mask (seeds 0 and 1), kitchen level (+0.03 / +0.10), for 7-19 % more training
 # time on walk (docs/real-footage.md, "Spawned Gaussians", "Six frames a densification").
 VIDEO_SPAWN_FRAMES = 6
+# The camera's own blur (`camera_blur_px`) from which a video ingest models it (`camera_blur` =
+# "learned"): below it the streak is too short for the blur to change what the model learns
+# (docs/real-footage.md, "The camera's own blur").
+CAMERA_BLUR_MIN_PX = 2.0
+
+
+def camera_blur_px(scene, exposure: float | None = None) -> float | None:
+    """The median length in pixels of the streak the training camera's own motion draws during
+    the exposure: the SfM points' image motion between each frame's neighbours in time (half of
+    it per frame interval, median over points, then over frames) times the exposure. None
+    without points or fewer than three training frames."""
+    import numpy as np
+
+    frames = sorted(scene.train_frames, key=lambda f: f.time)
+    if len(scene.points) < 10 or len(frames) < 3:
+        return None
+    pts = scene.points[np.random.default_rng(0).choice(len(scene.points), min(2000, len(scene.points)), replace=False)]
+
+    def project(camera):
+        c = pts @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
+        uv = c @ camera.K.T
+        return uv[:, :2] / np.maximum(c[:, 2:3], 1e-6), c[:, 2] > 1e-6
+
+    per_frame = []
+    for a, b in zip(frames[:-2], frames[2:]):
+        (ua, fa), (ub, fb) = project(a.camera), project(b.camera)
+        seen = fa & fb
+        if seen.any():
+            per_frame.append(0.5 * float(np.median(np.linalg.norm(ub[seen] - ua[seen], axis=1))))
+    if not per_frame:
+        return None
+    return float(np.median(per_frame)) * (scene.exposure if exposure is None else exposure)
 
 
 def scene_pixels_per_unit(scene) -> float | None:
@@ -373,6 +405,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
       the field still loses (docs/real-footage.md, "Spawned Gaussians");
     * resplit_to_dynamic: False on a video ingest (docs/method.md, "Splits in place");
+    * camera_blur: "learned" on a video ingest whose camera's own streak during the exposure
+      (`camera_blur_px`) reaches CAMERA_BLUR_MIN_PX: the render is blurred along the camera's
+      motion as the footage is, and the model stays sharp;
     * model.time_opacity: on for a video ingest, where the field leaves ghosts of what it
       could not follow (docs/real-footage.md, "Opacity that varies in time")."""
     n_frames = len(scene.train_frames)
@@ -425,6 +460,14 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         fitted["resplit_to_dynamic"] = ("False: a video ingest; a re-split turns no static Gaussian dynamic, since "
                                         "the field's motion where it sits was never fitted to it "
                                         "(--set resplit_to_dynamic=true allows it)")
+    # (Only the convolve form of K.R. carries the camera's blur, and only after a split.)
+    blurs = m.kr_form == "convolve" and not {"split", "deform"} & set(cfg.ablate)
+    streak = camera_blur_px(scene, cfg.exposure) if video and blurs and "camera_blur" not in explicit else None
+    if cfg.camera_blur == "off" and streak is not None and streak >= CAMERA_BLUR_MIN_PX:
+        cfg.camera_blur = "learned"
+        fitted["camera_blur"] = (f"learned: a video ingest whose camera draws a {streak:.1f} px streak during the "
+                                 "exposure (median), which the render must blur by to match the footage, so that the "
+                                 "model itself can be sharp (--camera-blur off turns it off)")
     if "model.time_opacity" not in explicit and not m.time_opacity and video:
         cfg.model = m = replace(m, time_opacity=True)
         fitted["model.time_opacity"] = ("True: a video ingest; the dynamic Gaussians' opacity varies in time, so "
