@@ -143,8 +143,8 @@ NAMED: dict[str, NamedSetting] = {
                             "the predicted covariance convolved with the motion during the exposure (docs/method.md)"),
     "camera_blur": NamedSetting("camera_blur", "also blur every Gaussian along the camera's own motion during the "
                                 "exposure (hand-held shake): from the poses' differences, or learned per frame from "
-                                "there (default: learned for a video ingest whose camera draws a streak of 2 px or more during the exposure, "
-                                "else off; docs/method.md)"),
+                                "there (default: learned for a video ingest whose camera draws a streak of 2 px or "
+                                "more during the exposure, else off; docs/method.md)"),
     "pose_refine": NamedSetting("pose_refine", "fit a rigid correction of each training camera's pose, for footage "
                                 "whose structure-from-motion poses are poor (default off; docs/real-footage.md)"),
     "on_nonfinite": NamedSetting("on_nonfinite", "NaN/Inf in training: stop with an error naming the tensor (default), "
