@@ -29,7 +29,7 @@ def _on_term(signum, frame) -> None:
 def run_train(spec: dict) -> None:
     from kgs_core.data.formats import load_scene
     from kgs_core.io import atomic_write_text
-    from kgs_core.model.dynamic import split_counts
+    from kgs_core.model.decomposition import split_counts
     from kgs_core.threads import omp_threads, tuner_for_process
     from kgs_core.train.config import TrainConfig, make_config
     from kgs_core.train.trainer import Trainer

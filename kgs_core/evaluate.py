@@ -16,7 +16,8 @@ from .data.formats import load_scene
 from .data.scene import Frame, Scene
 from .io import atomic_write_text
 from .losses import psnr, ssim
-from .model.dynamic import KinematicsGS, split_counts
+from .model.decomposition import split_counts
+from .model.dynamic import KinematicsGS
 from .model.render import render_model
 from .render import rasterize
 from .run import LoadedRun, load_run

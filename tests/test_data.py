@@ -80,7 +80,7 @@ def test_generator_is_deterministic(tmp_path):
     assert any(p.read_bytes() != (c / "rgb" / "1x" / p.name).read_bytes() for p in (a / "rgb" / "1x").iterdir())
 
 
-@pytest.mark.parametrize("name", ["die", "top", "sheet", "cross", "swing", "panel", "fastpanel", "room"])
+@pytest.mark.parametrize("name", ["die", "top", "sheet", "cross", "swing", "spin", "panel", "fastpanel", "room"])
 def test_every_named_scene_renders(name, tmp_path):
     out = synthesize(name, tmp_path / name, blur="mild", size=32, frames=2, subframes=2, progress=False)
     scene = load_scene(out)
@@ -99,6 +99,29 @@ def test_fastpanel_moves_twice_as_far_as_panel(tmp_path):
         frames = [f for f in scene.train_frames if f.mask() is not None and f.mask().any()]
         speeds[name] = np.mean([np.linalg.norm(f.motion()[f.mask()], axis=-1).mean() for f in frames])
     assert 1.6 < speeds["fastpanel"] / speeds["panel"] < 2.4, speeds  # (1.88 measured)
+
+
+def test_spin_turns_three_times_about_its_own_axis_while_its_centre_drifts_straight():
+    """The stand-in for a toy spinning on a table: the rotation is about the toy's own vertical
+    axis through its centre (the centre moves on a line, at constant speed, whatever the spin),
+    three whole turns over the clip, and only the toy is dynamic."""
+    from kgs_core.data.synth.scenes import spin
+
+    table, toy = spin(0)
+    assert toy.dynamic and not table.dynamic
+    ts = np.linspace(0, 1, 61)
+    poses = np.stack([toy.pose(t) for t in ts])
+    centres = poses[:, :3, 3]
+    steps = np.diff(centres, axis=0)
+    np.testing.assert_allclose(steps, np.broadcast_to(steps[0], steps.shape), atol=1e-12)  # straight, uniform
+    assert np.linalg.norm(centres[-1] - centres[0]) > 0.5
+    axis = poses[:, :3, 2]  # the toy's own z axis stays vertical: it spins about it
+    np.testing.assert_allclose(axis, np.broadcast_to([0, 0, 1], axis.shape), atol=1e-12)
+    angle = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    assert abs(angle[-1] - angle[0] - 3 * 2 * np.pi) < 1e-9
+    assert np.all(np.diff(angle) > 0)  # one direction, no reversal
+    # It rests on the table top: its lowest point is the table's top face.
+    assert abs(centres[0, 2] - toy.shape.half[2] - 2 * table.shape.half[2]) < 1e-12
 
 
 def test_bounce_reverses_velocity_inside_a_frame():

@@ -352,7 +352,7 @@ def test_blur_opacity_scale_matches_the_determinant_ratio_with_its_gradients(bac
 def test_otsu_tau_cuts_between_the_still_mode_and_the_moving_tail():
     """τ picked from the distribution of K: between a still mode and a moving one (on log10 K),
     never below the floor, and the floor itself when there is one mode only."""
-    from kgs_core.model.dynamic import otsu_tau
+    from kgs_core.model.decomposition import otsu_tau
 
     g = torch.Generator().manual_seed(0)
     still = 10 ** (-4.5 + 0.2 * torch.randn(8000, generator=g))  # real footage: jitter well above a fixed τ

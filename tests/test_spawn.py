@@ -8,7 +8,8 @@ import pytest
 import torch
 from test_model import moving_model
 
-from kgs_core.model.dynamic import KinematicsGS, neighbour_mean_matrices
+from kgs_core.model.dynamic import KinematicsGS
+from kgs_core.model.neighbours import neighbour_mean_matrices
 from kgs_core.render import intrinsics, look_at
 from kgs_core.train.densify import DensifyStrategy
 from kgs_core.train.flow import project
@@ -328,6 +329,7 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     """Spawning's motion gate needs the flow to the next frame of the camera: a camera's last
     frame, however badly it fits, gets no Gaussians; the worst of the others does, with its
     next frame's flow."""
+    import kgs_core.train.events as events_module
     import kgs_core.train.trainer as trainer_module
     from kgs_core.data.formats import load_scene
     from kgs_core.data.synth.generate import synthesize
@@ -341,7 +343,7 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     tr.init_model()
     tr.model.decompose(tau=-1.0, recompute=False)
     calls = []
-    monkeypatch.setattr(trainer_module, "spawn_unexplained",
+    monkeypatch.setattr(events_module, "spawn_unexplained",
                         lambda *args: calls.append((args[3], args[-1])) or Spawned(7, 2))
     tr.frame_loss = torch.tensor([0.01, 0.01, 0.5, 0.01, 0.01, 1.0])  # the last frame fits worst
     tr.spawn(100)

@@ -688,7 +688,7 @@ def test_the_first_split_makes_dynamic_what_the_flow_reading_found(scene, tmp_pa
     (here: the first 12) are dynamic after the first split, and run.json says so; the flows are
     computed for it although the run has no flow term or spawning. With the reading off, it is
     not called and nothing is dynamic. (What the reading finds: tests/test_flow_split.py.)"""
-    import kgs_core.train.trainer as trainer_module
+    import kgs_core.train.events as events_module
 
     calls = []
 
@@ -698,7 +698,7 @@ def test_the_first_split_makes_dynamic_what_the_flow_reading_found(scene, tmp_pa
         found[:12] = True
         return found
 
-    monkeypatch.setattr(trainer_module, "flow_moving", first_twelve)
+    monkeypatch.setattr(events_module, "flow_moving", first_twelve)
     cfg = tiny_config(flow_split_share=share, **{"model.tau": 1.0})
     assert cfg.lambda_flow == 0 and cfg.spawn_frames == 0
     info = Trainer(scene, tmp_path / "r", cfg, progress=False).run()
@@ -715,14 +715,14 @@ def test_the_re_splits_read_the_flow_too(scene, tmp_path, monkeypatch):
     """With τ so high that K calls nothing dynamic, a re-split would turn everything static
     again; the reading at each re-split keeps what it finds (here: the first 12) dynamic, and
     run.json lists what each re-split's reading found."""
-    import kgs_core.train.trainer as trainer_module
+    import kgs_core.train.events as events_module
 
     def first_twelve(model, frames, flows, by_k, *args, **kwargs):
         found = torch.zeros(len(model), dtype=torch.bool)
         found[:12] = True
         return found
 
-    monkeypatch.setattr(trainer_module, "flow_moving", first_twelve)
+    monkeypatch.setattr(events_module, "flow_moving", first_twelve)
     cfg = tiny_config(decompose_every=30, **{"model.tau": 1.0})
     info = Trainer(scene, tmp_path / "r", cfg, progress=False).run()
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
@@ -735,6 +735,7 @@ def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch
     """With the flow term on (DIS flows for every frame), the splits' reading computes its own
     flows of its 16 frames when its method differs (DIS to full resolution, a video ingest's,
     or "fused") and reads the run's flows when it is the same (the default elsewhere)."""
+    import kgs_core.train.events as events_module
     import kgs_core.train.trainer as trainer_module
 
     calls = []
@@ -744,7 +745,8 @@ def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch
         calls.append((method, only is None))
         return real(frames, only=only, method=method)
 
-    monkeypatch.setattr(trainer_module, "frame_flows", recording)
+    monkeypatch.setattr(trainer_module, "frame_flows", recording)  # the run's own flows
+    monkeypatch.setattr(events_module, "frame_flows", recording)  # the splits' reading's
     cfg = tiny_config(lambda_flow=0.003, flow_split_method=split_method)
     assert cfg.flow_method == "dis"
     Trainer(scene, tmp_path / "r", cfg, progress=False).run()

@@ -12,18 +12,16 @@ size, 27k of 49k rows; docs/results.md, "Training speed").
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import asdict, dataclass, field
 from typing import Literal, NamedTuple
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
 from ..render import packed_covariance
 from ..render.covariance import normalize_quats, pack_covariance, quat_to_rotmat, unpack_covariance
 from ..schema import check_choices, from_fields, json_object
+from .decomposition import Decomposition
 from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
 from .gaussians import GaussianParams, append, select
 from .kinematics import (
@@ -34,6 +32,7 @@ from .kinematics import (
     rotvec_to_quat,
     safe_norm,
 )
+from .neighbours import NeighbourGraph, checked_knn
 
 Velocity = Literal["paper", "physical"]
 KRForm = Literal["convolve", "paper"]
@@ -146,7 +145,11 @@ class Deformed(NamedTuple):
     sweep: Tensor | None  # (D, 3) the convolve form's displacement over the exposure; None: no blur
 
 
-class KinematicsGS(nn.Module):
+class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
+    """Canonical Gaussians, the deformation field and the split, evaluated at any time (`at`).
+    C.F.'s neighbour graph is `NeighbourGraph`'s (model/neighbours.py), the split by K
+    `Decomposition`'s (model/decomposition.py)."""
+
     def __init__(self, params: GaussianParams, config: ModelConfig):
         super().__init__()
         self.config = config
@@ -241,198 +244,9 @@ class KinematicsGS(nn.Module):
         for k, v in (state or {}).items():
             state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
 
-    def _graph_after_keep(self, keep: Tensor, heirs: Tensor | None) -> Tensor | None:
-        if self._knn is None:
-            return None
-        # Each Gaussian's row in the new dynamic set (-1: not in it), then each removed one's heir's.
-        kept_dynamic = keep & self.dynamic
-        new_row = _row_numbers(kept_dynamic)
-        if heirs is not None:
-            inherit = ~keep & (heirs >= 0)
-            new_row[inherit] = new_row[heirs[inherit]]
-        return self._carried_rows(new_row, kept_dynamic)
-
-    def _carried_rows(self, new_row: Tensor, stays: Tensor) -> Tensor:
-        """The graph's rows of the dynamic Gaussians where `stays (N,)`, re-indexed by `new_row
-        (N,)` (each Gaussian's row in the new dynamic set, or the one that takes its place; -1:
-        none, and the row's own Gaussian takes it)."""
-        rows = new_row[self.dynamic][self._knn[stays[self.dynamic]]]
-        return torch.where(rows >= 0, rows, new_row[stays & self.dynamic][:, None])
-
-    def _graph_after_add(self, parents: Tensor) -> Tensor | None:
-        if self._knn is None:
-            return None
-        # New dynamic Gaussians follow every old one in the dynamic set, in their order: each
-        # takes its parent's row with itself in its parent's place.
-        parent_rows = (torch.cumsum(self.dynamic, 0) - 1)[parents[self.dynamic[parents]]]
-        own = len(self._knn) + torch.arange(len(parent_rows))
-        rows = self._knn[parent_rows]
-        return torch.cat([self._knn, torch.where(rows == parent_rows[:, None], own[:, None], rows)])
-
     def scales(self) -> Tensor:
         # Clamped so that exp cannot overflow float32 (e^88) or underflow to 0 at extreme logits.
         return torch.exp(self.params.log_scales.clamp(-30.0, 30.0)) + self.min_scale
-
-    # ------------------------------------------------------------ decomposition
-
-    @torch.no_grad()
-    def temporal_variance(self, chunk: int = 8192) -> Tensor:
-        """K_i = mean_t |dx_t - mean_t dx_t|^2 over `variance_times` evenly spaced times, from the
-        deformation field itself (no time noise, no coarse-to-fine averaging)."""
-        T = self.config.variance_times
-        times = torch.linspace(0, 1, T)
-        means = self.params.means.detach()
-        out = torch.empty(len(means))
-        for s in range(0, len(means), chunk):
-            x = means[s:s + chunk]
-            offs = self.deform.at_times(x, [torch.full((len(x),), float(t)) for t in times])
-            dx = torch.stack([o.dx for o in offs])  # (T, n, 3)
-            out[s:s + chunk] = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
-        return out
-
-    def dynamic_by_k(self, tau: float) -> Tensor:
-        """`(N,)` bool: the Gaussians the split calls dynamic by their stored K alone, K > `tau`,
-        and those present for part of the clip, which change over time whatever their motion."""
-        return (self.variance > tau) | self.lifespan[:, 1].isfinite()
-
-    @torch.no_grad()
-    def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
-                  keep_static: bool = False, also_dynamic: Tensor | None = None) -> Tensor:
-        """Splits into static (`K <= tau`) and dynamic (`K > tau`, or `also_dynamic (N,)`, what
-        training's splits read off the optical flow); returns the dynamic mask.
-
-        `keep_static`: a Gaussian already static stays static whatever its K (training's
-        re-splits on a video ingest, `TrainConfig.resplit_to_dynamic`): a static Gaussian's K
-        is the field's motion where it sits, which was never fitted to it, and turning such
-        Gaussians dynamic cost kitchen 1.5 dB at once (docs/method.md, "Splits in place").
-
-        `in_place`: each Gaussian whose rendered offsets the split changes (it changes sides,
-        or its kNN neighbours do) has its canonical mean, rotation and scale moved by the
-        difference of its time-averaged offsets, so that on average over the clip it renders
-        where it did. Without it a dynamic Gaussian that turns static jumps by its mean offset:
-        K measures how much the offset varies, not how large it is, and on real footage the
-        field's mean offsets (median 0.14 scene units on walk, about 90 px) are larger than
-        their variation (docs/method.md, "Splits in place")."""
-        if tau is not None:
-            self.config.tau = tau
-        if recompute:
-            self.variance = self.temporal_variance()
-        dynamic = self.dynamic_by_k(self.config.tau)
-        if also_dynamic is not None:
-            dynamic = dynamic | also_dynamic
-        if keep_static and self.decomposed:
-            dynamic &= self.dynamic
-        unchanged = self.decomposed and torch.equal(dynamic, self.dynamic)
-        before = self.mean_offsets() if in_place and not unchanged else None
-        if not unchanged:
-            # The graph is carried, as through densification (`set_params`): the Gaussians that
-            # stay dynamic keep their neighbours (those who turned static replaced by the row's
-            # own Gaussian), and only those that turn dynamic get the nearest ones. Rebuilt
-            # whole, a graph carried since the first split cost walk 1.4 dB at a re-split.
-            self._knn = self._graph_after_resplit(dynamic) if self.decomposed else None
-        self.dynamic = dynamic
-        self.decomposed = True
-        if before is not None:
-            # (The kNN graph built for `after` is kept, as training keeps it while means move.)
-            self.move_canonical(before - self.mean_offsets())
-        return self.dynamic
-
-    @torch.no_grad()
-    def mean_offsets(self) -> Tensor:
-        """`(N, 9)`: each Gaussian's rendered offsets (dx, dr, ds) averaged over
-        `variance_times` evenly spaced times; zeros for the static ones."""
-        n = len(self.params)
-        out = torch.zeros(n, 9)
-        idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
-        if len(idx):
-            T = self.config.variance_times
-            acc = torch.zeros(len(idx), 9)
-            for t in torch.linspace(0, 1, T).tolist():
-                acc += self.offsets_at(idx, [t])[0].cat()
-            out[idx] = acc / T
-        return out
-
-    @torch.no_grad()
-    def move_canonical(self, d: Tensor) -> None:
-        """Applies offsets `d (N, 9)` = (dx, dr, ds) to the canonical Gaussians as the field
-        applies them (`residual_covariance`): means + dx, rotation R(q) exp(dr), scales times
-        exp(lambda_s ds). Rows of zeros are left untouched, bit for bit."""
-        rows = torch.nonzero(d.abs().sum(-1) > 0).squeeze(1)
-        if not len(rows):
-            return
-        p, d = self.params, d[rows]
-        p.means[rows] += d[:, :3]
-        p.quats[rows] = quat_multiply(normalize_quats(p.quats[rows]), rotvec_to_quat(d[:, 3:6]))
-        scales = self.scales()[rows] * torch.exp(self.config.lambda_s * d[:, 6:9])
-        p.log_scales[rows] = torch.log((scales - self.min_scale).clamp_min(1e-8))
-
-    def static_field_dx(self, t: float, count: int) -> Tensor:
-        """`(S, 3)` the field's position offsets at `t` for `S <= count` static Gaussians drawn
-        at random: L_reg's static term. The static Gaussians render without the field, so
-        their rendered offsets are zero and a term over those says nothing; the paper's L_reg
-        holds the field's offsets over the static set down. A sample is an unbiased estimate of
-        the mean at a fraction of the cost of evaluating the field on every static Gaussian."""
-        idx = torch.nonzero(~self.dynamic).squeeze(1)
-        if len(idx) > count:
-            idx = idx[torch.randint(len(idx), (count,))]
-        x = self.params.means.detach()[idx]
-        return self.deform.at_times(x, [torch.full((len(x),), float(t))])[0].dx
-
-    def knn_index(self) -> Tensor:
-        """`(D, k)` indices into the dynamic subset: each dynamic Gaussian's nearest dynamic
-        neighbours (itself included), built at the first split and carried from then on."""
-        if self._knn is None:
-            self._knn = self._nearest_graph(self.dynamic)
-        return self._knn
-
-    def _nearest_graph(self, dynamic: Tensor) -> Tensor:
-        """`(D, k)`: the nearest members of `dynamic` to each, by canonical mean now."""
-        pts = self.params.means.detach()[dynamic].numpy()
-        k = min(self.config.knn, len(pts))
-        if k <= 1:
-            return torch.arange(len(pts))[:, None]
-        dist, idx = cKDTree(pts).query(pts, k=k)
-        if self.config.knn_radius > 0:
-            far = dist > self.config.knn_radius * np.median(dist[:, -1])
-            idx = np.where(far, np.arange(len(pts))[:, None], idx)  # itself in their place
-        return torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
-
-    def _graph_after_resplit(self, dynamic: Tensor) -> Tensor | None:
-        if self._knn is None:
-            return None
-        carried = self._carried_rows(_row_numbers(dynamic), dynamic & self.dynamic)
-        newcomers = (dynamic & ~self.dynamic)[dynamic]
-        if not newcomers.any():
-            return carried
-        rows = self._nearest_graph(dynamic)
-        if rows.shape[1] != carried.shape[1]:  # the set grew past k: nothing to carry
-            return rows
-        rows[~newcomers] = carried
-        return rows
-
-    def neighbour_mean(self, x: Tensor) -> Tensor:
-        """`(D, C)` rows of `x` (one per dynamic Gaussian) averaged over each one's kNN graph
-        row (the coarse deformation), as a sparse matrix product `W x`. Gathering `x[knn]`
-        instead is the same forward, but its backward (an accumulating index_put) is serial on
-        CPU: 10 ms of a 66 ms panel step against 1.4 ms for this.
-
-        Under `spawned_motion="own"` the spawned Gaussians (bounded lifespan) are left out of
-        every row (`_own_motion_rows`): the field is not evaluated for them, so their rows of
-        `x` carry nothing."""
-        knn = self.knn_index()
-        own = self._own_motion_rows()
-        if self._knn_mean is None or self._knn_mean[0] is not knn or not _same_mask(self._knn_mean[1], own):
-            self._knn_mean = (knn, own, *neighbour_mean_matrices(knn, own))
-        return _SparseRowMean.apply(x, self._knn_mean[2], self._knn_mean[3])
-
-    def _own_motion_rows(self) -> Tensor | None:
-        """`(D,) bool` over the dynamic set: the Gaussians that move on their own line
-        (`spawned_motion="own"`, bounded lifespan), whose field offsets nobody reads; None
-        when there are none."""
-        if self.config.spawned_motion != "own":
-            return None
-        own = self.lifespan[self.dynamic, 1].isfinite()
-        return own if own.any() else None
 
     # ------------------------------------------------------------ evaluation at time t
 
@@ -772,71 +586,10 @@ def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
             raise ValueError(f"model state field '{prefix}{name}': expected {n} rows (one per Gaussian), got {got}")
 
 
-def _row_numbers(members: Tensor) -> Tensor:
-    """`(N,)`: each Gaussian's row in the subset `members (N,) bool` indexes, -1 outside it."""
-    rows = torch.full((len(members),), -1, dtype=torch.long)
-    rows[members] = torch.arange(int(members.sum()))
-    return rows
-
-
-def checked_knn(knn, n_dynamic: int) -> Tensor | None:
-    """A stored kNN graph, checked against the dynamic set it indexes (a graph from another
-    state would index out of range deep inside rendering)."""
-    if knn is None:
-        return None
-    ok = (isinstance(knn, Tensor) and knn.dtype == torch.long and knn.dim() == 2 and len(knn) == n_dynamic
-          and (knn.numel() == 0 or (int(knn.min()) >= 0 and int(knn.max()) < n_dynamic)))
-    if not ok:
-        shape = tuple(knn.shape) if isinstance(knn, Tensor) else type(knn).__name__
-        raise ValueError(f"model state field 'knn': expected int64 indices of shape ({n_dynamic}, k) "
-                         f"into the {n_dynamic} dynamic Gaussians, got {shape}")
-    return knn.clone()
-
-
-def neighbour_mean_matrices(knn: Tensor, drop: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Sparse CSR `W (D, D)` with `W[i, j] = 1/k` for each of row `i`'s `k` neighbours `j`
-    (a repeated neighbour counts twice, as in `x[knn].mean(1)`), and its transpose.
-
-    `drop (D,) bool`: those Gaussians are nobody's neighbour; each row averages over the
-    neighbours it has left (its own Gaussian alone where none is left)."""
-    d, k = knn.shape
-    rows = torch.arange(d).repeat_interleave(k)
-    cols = knn.reshape(-1)
-    weights = torch.full((d * k,), 1.0 / k)
-    if drop is not None:
-        kept = ~drop[knn]  # (D, k)
-        left = kept.sum(1)
-        cols = torch.where(left[:, None] > 0, knn, torch.arange(d)[:, None]).reshape(-1)
-        weights = torch.where(left[:, None] > 0, kept / left.clamp_min(1)[:, None], 1.0 / k).reshape(-1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        w = torch.sparse_coo_tensor(torch.stack([rows, cols]), weights.float(), (d, d),
-                                    check_invariants=True).coalesce()
-        return w.to_sparse_csr(), w.t().coalesce().to_sparse_csr()
-
-
-def _same_mask(a: Tensor | None, b: Tensor | None) -> bool:
-    return (a is None and b is None) or (a is not None and b is not None and torch.equal(a, b))
-
-
 def _scatter_rows(x: Tensor, rows: Tensor | None, n: int) -> Tensor:
     """`x (M, C)` placed at `rows (M,)` of an `(n, C)` tensor of zeros (`x` itself when `rows`
     is None: every row)."""
     return x if rows is None else x.new_zeros(n, x.shape[1]).index_copy(0, rows, x)
-
-
-class _SparseRowMean(torch.autograd.Function):
-    """`W x` with the gradient `W^T g`, both CSR products (torch's own sparse autograd goes
-    through COO and is no faster than the gather)."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor, w: Tensor, wt: Tensor) -> Tensor:
-        ctx.wt = wt
-        return w @ x
-
-    @staticmethod
-    def backward(ctx, g: Tensor):
-        return ctx.wt @ g.contiguous(), None, None
 
 
 def velocity_from_offsets(offs: list[Offsets], h: float, dt: float) -> Tensor:
@@ -870,41 +623,3 @@ def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: f
     of a real training step; docs/results.md, "Training speed")."""
     rotation = quat_multiply(normalize_quats(quats), rotvec_to_quat(off.dr))
     return packed_covariance(rotation, scales * torch.exp(lambda_s * off.ds))
-
-
-def otsu_tau(variance: Tensor, floor: float, bins: int = 128) -> float:
-    """A split threshold picked from the distribution of K: Otsu's threshold on log10 K (the
-    cut that best separates the still mode from the moving tail), never below `floor` (the
-    fixed τ, which says what "still" means for a clean scene). On real footage the field also
-    absorbs residual pose error and noise, so every Gaussian's K sits well above a fixed τ
-    (walk: a mode at an RMS image motion of 2.6 px) and a fixed τ calls 93-99 % of them
-    dynamic; the moving objects are the tail above that mode."""
-    lk = torch.log10(variance.double().clamp_min(1e-12))
-    if len(lk) < 2 or float(lk.max() - lk.min()) < 1e-9:
-        return floor
-    hist = torch.histc(lk, bins=bins, min=float(lk.min()), max=float(lk.max()))
-    centers = torch.linspace(float(lk.min()), float(lk.max()), bins + 1, dtype=torch.float64)
-    centers = 0.5 * (centers[1:] + centers[:-1])
-    w0 = torch.cumsum(hist, 0)
-    m0 = torch.cumsum(hist * centers, 0)
-    w1, m1 = w0[-1] - w0, m0[-1] - m0
-    between = w0 * w1 * (m0 / w0.clamp_min(1e-12) - m1 / w1.clamp_min(1e-12)) ** 2
-    k = int(torch.argmax(between[:-1]))
-    return max(floor, float(10 ** (0.5 * (centers[k] + centers[k + 1]))))
-
-
-def split_counts(model: KinematicsGS, static_only: bool = False) -> dict:
-    """Gaussian counts; before the first split every Gaussian deforms (all dynamic), and in a
-    static run (`--ablate deform`) none does. "spawned": those present for part of the clip
-    (train/spawn.py, and their clones)."""
-    n = len(model)
-    d = 0 if static_only else int(model.dynamic.sum()) if model.decomposed else n
-    return {"gaussians": n, "dynamic": d, "static": n - d, "dynamic_share": d / max(n, 1),
-            "spawned": int(model.lifespan[:, 1].isfinite().sum())}  # present for part of the clip
-
-
-def variance_histogram(variance: np.ndarray, bins: int = 64) -> dict:
-    """Histogram of log10 K (what the tau slider of the viewers shows)."""
-    lv = np.log10(np.clip(variance, 1e-12, None))
-    counts, edges = np.histogram(lv, bins=bins, range=(-12, 0))
-    return {"log10_edges": edges.tolist(), "counts": counts.tolist()}

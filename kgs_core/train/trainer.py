@@ -12,76 +12,31 @@ import traceback
 from pathlib import Path
 from typing import Callable, Iterator
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
 from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
-from ..losses import coarse_l1, photometric_loss, psnr
+from ..losses import coarse_l1, photometric_loss
+from ..model.decomposition import split_counts
 from ..model.deformation import TimeNoise
-from ..model.dynamic import KinematicsGS, otsu_tau, split_counts
+from ..model.dynamic import KinematicsGS
 from ..model.gaussians import init_from_points, make_optimizer, random_points
 from ..model.render import camera_tensors, render_model
 from ..render.types import Rendered
-from ..run import load_torch, save_decomposition, save_torch, write_run_json
+from ..run import write_run_json
 from .camera_motion import CameraMotion
 from .config import TrainConfig
 from .densify import DensifyStrategy
+from .events import ScheduleEvents
 from .exposure import FittedExposure
 from .flow import charbonnier, flow_residual, frame_flows
-from .flow_split import flow_moving, read_frames
 from .pose_refine import PoseCorrection
-from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
+from .run_record import ImageCache, RunRecord, evaluation_frames, heldout_psnr, kr_note
 
 
 class NonFiniteError(FloatingPointError):
     """A loss or gradient became NaN/Inf; the message names the tensor and the iteration."""
-
-
-class ImageCache:
-    """Decoded frames as tensors, loaded once."""
-
-    def __init__(self):
-        self._imgs: dict[tuple[str, str], torch.Tensor] = {}
-
-    def get(self, frame: Frame, kind: str = "image") -> torch.Tensor | None:
-        """`kind`: "image" (what the camera recorded), "sharp" (its ground truth) or "mask" (the
-        ground-truth dynamic pixels; None when the frame has none)."""
-        key = (frame.id, kind)
-        if key not in self._imgs:
-            arr = {"image": frame.image, "sharp": frame.sharp, "mask": frame.mask}[kind]()
-            self._imgs[key] = None if arr is None else torch.from_numpy(arr)
-        return self._imgs[key]
-
-
-def evaluation_frames(scene: Scene, count: int) -> list[tuple[Frame, str]]:
-    """Held-out views (sharp) if any; else the training views' sharp ground truth; else the
-    training images themselves."""
-    if scene.test_frames:
-        pool, kind = scene.test_frames, "image"
-    elif any(f.sharp_path for f in scene.train_frames):
-        pool, kind = [f for f in scene.train_frames if f.sharp_path], "sharp"
-    else:
-        pool, kind = scene.train_frames, "image"
-    idx = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
-    return [(pool[i], kind) for i in sorted(set(idx.tolist()))]
-
-
-@torch.no_grad()
-def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background,
-                 static: bool = False) -> tuple[float, float]:
-    """Mean PSNR over the evaluation views, and inside their ground-truth dynamic masks (NaN
-    when none of them has a non-empty mask): the quality target's metric, logged over time."""
-    vals, dyn = [], []
-    for frame, kind in frames:
-        out, _ = render_model(model, frame.camera, frame.time, 0.0, scene.dt, background, static=static, velocity=False)
-        gt = cache.get(frame, kind)
-        vals.append(psnr(out.image, gt))
-        mask = cache.get(frame, "mask")
-        if mask is not None and mask.any():
-            dyn.append(psnr(out.image, gt, mask))
-    return float(np.mean(vals)), float(np.mean(dyn)) if dyn else float("nan")
 
 
 def lr_exp(k: int, total: int, lr0: float, lr1: float) -> float:
@@ -102,17 +57,11 @@ def check_finite(it: int, **tensors) -> None:
 WINDOW_FULL_AT = 0.75
 
 
-def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
-    """Why the kinematic blur (K.R.) does nothing in this run, or None when it acts."""
-    if not cfg.model.kinematic or "deform" in cfg.ablate:
-        return None
-    if exposure <= 0:
-        return ("exposure 0: K.R. has no blur to model and only adds cost (the scene's frames say exposure 0; "
-                "give the video's with --exposure, e.g. 0.5)")
-    return None
+class Trainer(ScheduleEvents, RunRecord):
+    """One training run of a scene: `run()` (or `iterate()`, a step at a time). The schedule's
+    events are `ScheduleEvents`' (train/events.py); checkpoints and the final save `RunRecord`'s
+    (train/run_record.py)."""
 
-
-class Trainer:
     def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
                  on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                  on_step: Callable[[int, float], None] | None = None, threads=None):
@@ -406,174 +355,6 @@ class Trainer:
             self.check_kr(nxt)
         self.strategy.reset_opacities(model, self.opt, nxt)
 
-    def kr_acts(self) -> bool:
-        """Whether K.R. shapes the renders now: on, after a split with dynamic Gaussians, and
-        the training exposure above 0."""
-        m = self.model
-        return (m.config.kinematic and m.decomposed and not self.static_only and not self.no_split
-                and self.exposure > 0 and bool(m.dynamic.any()))
-
-    def check_kr(self, it: int) -> None:
-        """Measures what K.R.'s blur does to the training renders now and, when it does next to
-        nothing (`evaluate.kr_effect_note`), turns K.R. off for the rest of the run. Left alone:
-        runs without a split yet, the paper's K.R. form (whose basis would have to be
-        re-interpreted), a fitted exposure or camera blur (both ride on K.R.'s blur)."""
-        from ..evaluate import kr_effect, kr_effect_note
-
-        m = self.model
-        if (not self.kr_acts() or m.config.kr_form != "convolve" or self.fitted_exposure is not None
-                or self.camera_motion is not None):
-            return
-        effect = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
-        note = kr_effect_note(effect)
-        self.kr_check = {"iteration": it, "kept": note is None, **effect}
-        if note is not None:
-            # At exposure 0 the convolve form is the plain deformed covariance: the model renders
-            # sharp exactly as before, and the training renders lose a blur they hardly had.
-            m.config.kinematic = False
-            self.kr_check["note"] = f"K.R. turned off at iteration {it} of {self.cfg.iterations}: {note}"
-            if self.progress:
-                tqdm.write(f"note: {self.kr_check['note']}")
-
-    def spawn(self, it: int) -> None:
-        """New dynamic Gaussians where the worst-fitted training frames stay unexplained and
-        something moves on its own (train/spawn.py). The pixels drawn depend on the seed and the
-        iteration only, so that a resumed run spawns as the uninterrupted one would."""
-        c, model = self.cfg, self.model
-        loss = torch.nan_to_num(self.frame_loss, nan=-1.0)
-        seen = loss[loss >= 0]
-        if len(seen) == 0:
-            return
-        # Only frames with a flow to the next one of their camera: without it nothing says what
-        # moves on its own, and ungated spawning filled kitchen's not-yet-fitted background
-        # (docs/real-footage.md, "Spawned Gaussians"). So each camera's last frame gets none.
-        has_next = torch.tensor([f.id in self.flows for f in self.scene.train_frames])
-        loss = torch.where(has_next, loss, torch.full_like(loss, -1.0))
-        # Only frames that fit far worse than the clip's typical one: a scene whose frames all
-        # fit about alike gets nothing.
-        worst = [i for i in torch.argsort(loss, descending=True)[: c.spawn_frames].tolist()
-                 if loss[i] > SPAWN_LOSS_RATIO * float(seen.median())]
-        for i in worst:
-            frame = self.scene.train_frames[i]
-            with torch.no_grad():
-                out, g = render_model(model, frame.camera, frame.time, self.exposure, self.scene.dt, self.background,
-                                      velocity=False, world_transform=self.world_transform(frame))
-            viewmat, K = camera_tensors(frame.camera)
-            added = spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image,
-                                      out.depth, self.cache.get(frame), g.means, c.spawn_max,
-                                      c.spawn_life * self.scene.dt, np.random.default_rng([c.seed, it, i]),
-                                      self.next_frame(frame, g.means))
-            rec = self.spawn_record
-            rec["attempts"] += 1
-            rec["without_parent"] += added.without_parent
-            if added.gaussians:
-                rec["added"][frame.id] = rec["added"].get(frame.id, 0) + added.gaussians
-
-    def spawn_summary(self) -> dict:
-        """What spawning did, for run.json: `attempts` (frames it looked at), `gaussians` (added
-        in all; pruning may have removed some since), `frames` (how many training frames got
-        any), `by_time` (normalised time of each such frame -> Gaussians added there, in
-        time order: a clip whose late frames never got a turn shows here) and `without_parent`
-        (how many of them sit at the rendered depth, no dynamic Gaussian moving like their pixel)."""
-        added = self.spawn_record["added"]
-        times = {f.id: f.time for f in self.scene.train_frames}
-        by_time = {f"{times[k]:.4f}": n for k, n in sorted(added.items(), key=lambda kv: times[kv[0]])}
-        return {"attempts": self.spawn_record["attempts"], "gaussians": sum(added.values()), "frames": len(added),
-                "by_time": by_time, "without_parent": self.spawn_record["without_parent"]}
-
-    @torch.no_grad()
-    def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame:
-        """The next frame of `frame`'s camera as spawning reads it (train/spawn.py): its camera,
-        the flow to it, and `means` (every Gaussian at `frame`'s time) with the dynamic ones
-        moved to its time. `frame` is not its camera's last."""
-        j, flow = self.flows[frame.id]
-        nxt = self.scene.train_frames[j]
-        idx = torch.nonzero(self.model.dynamic).squeeze(1)
-        at_next = means.clone()
-        at_next[idx] = self.posed(self.model.positions(idx, nxt.time)[0], nxt)
-        return NextFrame(*camera_tensors(nxt.camera), flow, at_next, nxt.time)
-
-    def split(self) -> None:
-        """A static/dynamic split in training: K recomputed, then τ the configured one or
-        (tau_auto) the one picked from the distribution of K, never below the configured one.
-        Every split also calls dynamic what the optical flow shows moving where K sees no
-        motion (train/flow_split.py; `flow_split_share` 0 turns that off)."""
-        model = self.model
-        model.variance = model.temporal_variance()
-        tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
-        moving = None
-        if self.cfg.flow_split_share > 0:
-            start = time.perf_counter()
-            by_k = model.dynamic_by_k(tau)
-            moving = flow_moving(model, self.scene.train_frames, self.split_flows(), by_k, self.cfg.flow_split_share,
-                                 self.exposure, self.scene.dt, self.world_transform)
-            seconds = time.perf_counter() - start
-            if self.flow_split is None:
-                self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
-                                   "dynamic_by_k": int(by_k.sum()), "later": [], "seconds": 0.0}
-            else:
-                self.flow_split["later"].append(int(moving.sum()))
-            self.flow_split["seconds"] = round(self.flow_split["seconds"] + seconds, 2)
-        model.decompose(tau, recompute=False, in_place=self.cfg.split_in_place,
-                        keep_static=not self.cfg.resplit_to_dynamic, also_dynamic=moving)
-
-    def split_flows(self) -> dict:
-        """The flows the splits' reading reads: the run's own (flow term or spawning) where they
-        are of its method (`flow_split_method`), else the 16 it reads computed once (whatever
-        the clip's length) and kept for the re-splits."""
-        if self.flows and self.cfg.flow_split_method == self.cfg.flow_method:
-            return self.flows
-        if self._split_flows is None:
-            frames = self.scene.train_frames
-            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)},
-                                            method=self.cfg.flow_split_method)
-        return self._split_flows
-
-    @torch.no_grad()
-    def importance(self) -> torch.Tensor:
-        """Sum over training views of each Gaussian's blending weights (FLoD's importance),
-        read off as the gradient of the rendered sum of a constant colour.
-
-        `autograd.grad` with respect to that colour alone: a `.backward()` here left the
-        gradient of the rendered sum in the deformation field's `.grad` (and in kappa's), which
-        the next optimiser step applied, and which inflated the field's Adam second moments
-        by ~1e7 at every level change, all but freezing the field for the rest of the run."""
-        model = self.model
-        total = torch.zeros(len(model))
-        frames = self.scene.train_frames
-        pick = np.linspace(0, len(frames) - 1, min(self.cfg.lod_importance_views, len(frames))).round().astype(int)
-        for i in sorted(set(pick.tolist())):
-            with torch.enable_grad():
-                ones = torch.ones(len(model), 1, requires_grad=True)
-                out, _ = render_model(model, frames[i].camera, frames[i].time, self.exposure, self.scene.dt,
-                                      colors=ones, static=self.static_only, velocity=False,
-                                      world_transform=self.world_transform(frames[i]))
-                (grad,) = torch.autograd.grad(out.image.sum(), ones)
-            total += grad[:, 0]
-        return total
-
-    def next_level(self, level_idx: int) -> None:
-        """Ends a FLoD level: prune by importance, keep a snapshot for rendering at that level,
-        and clone into the next level with scales re-parameterised so that exp(s) + s_min is
-        unchanged."""
-        model = self.model
-        imp = self.importance()
-        keep = imp >= self.cfg.lod_prune_importance
-        if keep.sum() >= 4:
-            model.keep_gaussians(keep, self.opt, self.strategy.state)
-        snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
-                "variance": model.variance.clone(), "lifespan": model.lifespan.clone(),
-                "own_velocity": model.own_velocity.clone(), "min_scale": model.min_scale,
-                "knn": None if model._knn is None else model._knn.clone(), "iteration": self.iteration}
-        self.levels.append(snap)
-        old, new = model.min_scale, self.level_min_scale(level_idx)
-        with torch.no_grad():
-            s = torch.exp(model.params.log_scales.detach()) + old - new
-            from ..model.gaussians import set_param
-
-            model.params = set_param(model.params, self.opt, "log_scales", torch.log(s.clamp_min(1e-8)))
-        model.min_scale = new
-
     # ------------------------------------------------------------ logging and checkpoints
 
     def wall_seconds(self) -> float:
@@ -634,55 +415,6 @@ class Trainer:
                             "lr_scale": self.lr_scale})
         if self.progress:
             print(f"{exc}: restored {ckpts[-1].name}, learning rates x{self.lr_scale:g}")
-
-    def checkpoint(self) -> Path:
-        path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"
-        save_torch(path, {
-            "iteration": self.iteration, "train_seconds": self.train_seconds, "wall_seconds": self.wall_seconds(),
-            "model": self.model.state(),
-            "opt": self.opt.state_dict(), "net_opt": self.net_opt.state_dict(), "levels": self.levels,
-            "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
-            "strategy": dict(self.strategy.state),
-            "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
-            "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
-            "frame_loss": self.frame_loss.clone(),
-            "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
-            "kr_check": self.kr_check,
-            "flow_split": self.flow_split,
-            "spawn_record": self.spawn_record,
-        })
-        return path
-
-    def restore(self, path: Path) -> None:
-        state = load_torch(path)
-        self.model = KinematicsGS.from_state(state["model"])
-        if self.camera_motion is not None and state.get("camera_motion") is not None:
-            self.camera_motion.load_state_dict(state["camera_motion"])
-        if self.pose_correction is not None and state.get("pose_correction") is not None:
-            self.pose_correction.load_state_dict(state["pose_correction"])
-        if self.fitted_exposure is not None and state.get("fitted_exposure") is not None:
-            self.fitted_exposure.load_state_dict(state["fitted_exposure"])
-            self.exposure = float(self.fitted_exposure)
-        self.make_optimizers()
-        self.opt.load_state_dict(state["opt"])
-        self.net_opt.load_state_dict(state["net_opt"])
-        self.strategy = self.make_strategy()
-        self.strategy.state.update(grad_sum=state["strategy"]["grad_sum"], count=state["strategy"]["count"])
-        self.iteration = state["iteration"]
-        self.train_seconds = state["train_seconds"]
-        self.levels = state["levels"]
-        self.log_rows = state["log"]
-        # The wall time a resume continues from: the checkpoint's own (checkpoints of older
-        # runs kept only their last log row's, which lost the time from that row to the save).
-        self.resumed_wall_seconds = state.get("wall_seconds", self.log_rows[-1]["wall_seconds"] if self.log_rows else 0.0)
-        if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
-            self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
-        self.kr_check = state.get("kr_check")
-        self.flow_split = state.get("flow_split")  # (absent from older checkpoints)
-        self.spawn_record = {"attempts": 0, "added": {}, "without_parent": 0,  # (older checkpoints lack some)
-                             **(state.get("spawn_record") or {})}
-        torch.set_rng_state(state["rng"]["torch"])
-        random.setstate(state["rng"]["python"])
 
     # ------------------------------------------------------------ the loop
 
@@ -774,119 +506,6 @@ class Trainer:
         self.checkpoint()
         self.save_final(info)
         self.info = info
-
-    def save_final(self, info: dict) -> None:
-        dropped_kr = self.kr_check is not None and not self.kr_check["kept"]
-        if dropped_kr:
-            # Trained without K.R. since the check, saved with it: at exposure 0 it renders the
-            # same, and the viewers read its velocities (ellipsoids, the exposure slider).
-            self.model.config.kinematic = True
-        counts = split_counts(self.model, self.static_only)
-        save_torch(self.run_dir / "model.pt", {"model": self.model.state(), "levels": self.levels})
-        save_decomposition(self.run_dir, self.model.variance)
-        plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)
-        if info["status"] == "training":
-            info["status"] = "done"
-        info.update(iteration=self.iteration, train_seconds=round(self.train_seconds, 2), lod_levels=len(self.levels) + 1,
-                    final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None, **counts)
-        if self.model.decomposed and not self.static_only and not self.no_split:
-            tau = self.model.config.tau
-            info["tau"] = tau
-            info["tau_choice"] = (f"picked from the distribution of K (Otsu on log10 K), not below {self.tau_floor:.3g}"
-                                  if self.cfg.tau_auto and tau > self.tau_floor else f"the configured {tau:.3g}")
-            note = split_note(counts["dynamic_share"], tau, self.cfg.decompose_at)
-            if note:
-                info["split_note"] = note
-                if self.progress:
-                    print(f"note: {note}")
-        if self.pose_correction is not None:
-            info["pose_refine"] = self.pose_correction.summary()
-        if self.fitted_exposure is not None:
-            info["exposure"] = self.exposure
-            info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
-        if self.events:
-            info["guard_events"] = self.events
-        if self.cfg.spawn_frames > 0 and not self.static_only:
-            info["spawn"] = self.spawn_summary()
-        if self.flow_split is not None:
-            info["flow_split"] = self.flow_split
-        self.measure_kr(info, dropped_kr)
-        write_run_json(self.run_dir, info)
-
-    def measure_kr(self, info: dict, dropped: bool) -> None:
-        """What K.R. did: the mid-run check's record (`kr_check`; its note when it turned K.R.
-        off), and at the end of a run that trained with K.R. throughout, its effect on the
-        training renders (`evaluate.kr_effect`), with a note when it does next to nothing, so
-        that a clip whose blur the method cannot use shows in the run instead of costing time
-        silently."""
-        from ..evaluate import kr_effect, kr_effect_note
-
-        if self.kr_check is not None:
-            info["kr_check"] = {k: v for k, v in self.kr_check.items() if k != "note"}
-            if dropped:
-                info["kr_note"] = self.kr_check["note"]
-                return
-        if not self.kr_acts():
-            return
-        motion = None if self.camera_motion is None else (lambda f: self.camera_motion.get(f.id))
-        info["kr_effect"] = kr_effect(self.model, self.scene.train_frames, self.exposure, self.scene.dt,
-                                      camera_motion=motion)
-        note = kr_effect_note(info["kr_effect"])
-        if note:
-            info["kr_note"] = note
-            if self.progress:
-                print(f"note: {note}")
-
-
-# Below this share of dynamic Gaussians the run says that its moving objects, if any, render
-# static. With the flow's reading off (`flow_split_share=0`) the synthetic `top`, `die`, `swing`
-# and `cross` ended at 0-0.02 % dynamic and their moving objects were lost; with it they end at
-# 2-15 %, the scenes where the method works at 15-20 %, the real clips at 38-57 %
-# (docs/results.md, "Scenes where the moving object is lost").
-SPLIT_NOTE_SHARE = 0.01
-
-
-def split_note(dynamic_share: float, tau: float, decompose_at: int) -> str | None:
-    """What to tell the user when the split called (almost) nothing dynamic: right for a static
-    scene, and the way a moving object whose motion neither the field (by the first split) nor
-    the flow's reading showed gets lost (it then renders static, a ghost or nothing)."""
-    if dynamic_share >= SPLIT_NOTE_SHARE:
-        return None
-    return (f"the split called {dynamic_share:.2%} of the Gaussians dynamic (K under tau {tau:.3g} almost everywhere). "
-            f"In a static scene that is right; if something moves, the field had not learned its motion by the "
-            f"first split (iteration {decompose_at}), the optical flow did not show it either, and it renders "
-            f"static: retrain with a later split "
-            f"(--set decompose_at=N) or --ablate split")
-
-
-def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str = "held-out PSNR") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..io import atomic_write_bytes
-
-    rows = [r for r in rows if not math.isnan(r["psnr_heldout"])]
-    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=110)
-    ax.plot([r["train_seconds"] for r in rows], [r["psnr_heldout"] for r in rows], marker="o", ms=3, label=label)
-    dyn = [r for r in rows if not math.isnan(r.get("psnr_heldout_dynamic", float("nan")))]
-    if dyn:
-        ax.plot([r["train_seconds"] for r in dyn], [r["psnr_heldout_dynamic"] for r in dyn], marker="o", ms=3,
-                label="inside the dynamic mask")
-        ax.legend(fontsize=7)
-    ax.set_xlabel("training time (s)")
-    ax.set_ylabel("PSNR (dB)")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    import io
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
-
 
 def train(scene: Scene, run_dir: str | Path, cfg: TrainConfig, resume: bool = False, progress: bool = True, **kw) -> dict:
     return Trainer(scene, run_dir, cfg, progress=progress, **kw).run(resume=resume)

@@ -8,6 +8,7 @@
 | `sheet` | a hanging sheet with a travelling wave | non-rigid deformation |
 | `cross` | a ball and a box crossing at different depths | occlusion, large displacement |
 | `swing` | a pendulum ball swinging across the view, two periods | fast motion of a small object |
+| `spin` | a toy spinning three turns about its own axis while it drifts across a table | an object that turns fast while it moves |
 | `panel` | a large textured panel swinging in the image plane about its top edge | object motion blur that a field can follow |
 | `fastpanel`, `smallpanel` | the panel swinging twice as far; then a third its size | twice the blur; a small object's blur |
 | `room` | nothing | static control |
@@ -161,6 +162,22 @@ def swing(seed: int) -> list[Object]:
     return [Object("ball", Ellipsoid(lambda _t: np.array([0.2, 0.2, 0.2])), tex, pose, dynamic=True)]
 
 
+def spin(seed: int) -> list[Object]:
+    """A textured toy (a flat box, a different look on each face) spinning three turns about
+    its own vertical axis while it drifts across a textured table: neighbouring points move in
+    different directions and each one's path curves within a few frames, as a spinning toy
+    filmed on a table does. The table is static; only the toy is dynamic."""
+    table_top, half = 0.4, np.array([0.3, 0.17, 0.1])
+
+    def pose(t: float) -> np.ndarray:
+        return rigid(rot_z(2 * math.pi * 3.0 * t), (-0.45 + 0.9 * t, -0.2, table_top + half[2]))
+
+    table = Object("table", Box((0.95, 0.55, table_top / 2)), Texture(seed + 140, (0.55, 0.4, 0.3), checker=2, contrast=0.35),
+                   static(np.eye(3), (0.0, -0.1, table_top / 2)))
+    toy = Object("toy", Box(tuple(half)), Texture(seed + 150, (0.95, 0.8, 0.1), checker=3, contrast=0.7), pose, dynamic=True)
+    return [table, toy]
+
+
 def panel(seed: int, amplitude_deg: float = 20.0, size: float = 1.0) -> list[Object]:
     """A large textured panel hanging from a pivot above it and swinging in the image plane of
     the training camera (±20°, 1.5 periods): motion blur of several pixels along a direction
@@ -192,6 +209,7 @@ SCENES: dict[str, Callable[[int], list[Object]]] = {
     "sheet": sheet,
     "cross": cross,
     "swing": swing,
+    "spin": spin,
     "panel": panel,
     # The same panel swinging ±40°: twice the speed, so twice the motion blur (at 128^2 and 30
     # frames, 4.9 px per frame interval on average inside the panel, 9.8 at the 95th percentile).

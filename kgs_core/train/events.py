@@ -1,0 +1,190 @@
+"""The training schedule's events, as methods of `Trainer` (a mixin): the static/dynamic splits
+and their reading of the optical flow, spawning where the render misses something that moves,
+K.R.'s mid-run check, and the end of a FLoD level (importance prune, snapshot, next level)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..data.scene import Frame
+from ..model.decomposition import otsu_tau
+from ..model.gaussians import set_param
+from ..model.render import camera_tensors, render_model
+from .flow import frame_flows
+from .flow_split import flow_moving, read_frames
+from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
+
+
+class ScheduleEvents:
+    """What `Trainer.after_step` calls at its scheduled iterations; reads the trainer's state
+    (`model`, `opt`, `strategy`, `scene`, `cfg`, `flows`, ...) and changes the model in place."""
+
+    def kr_acts(self) -> bool:
+        """Whether K.R. shapes the renders now: on, after a split with dynamic Gaussians, and
+        the training exposure above 0."""
+        m = self.model
+        return (m.config.kinematic and m.decomposed and not self.static_only and not self.no_split
+                and self.exposure > 0 and bool(m.dynamic.any()))
+
+    def check_kr(self, it: int) -> None:
+        """Measures what K.R.'s blur does to the training renders now and, when it does next to
+        nothing (`evaluate.kr_effect_note`), turns K.R. off for the rest of the run. Left alone:
+        runs without a split yet, the paper's K.R. form (whose basis would have to be
+        re-interpreted), a fitted exposure or camera blur (both ride on K.R.'s blur)."""
+        from ..evaluate import kr_effect, kr_effect_note
+
+        m = self.model
+        if (not self.kr_acts() or m.config.kr_form != "convolve" or self.fitted_exposure is not None
+                or self.camera_motion is not None):
+            return
+        effect = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
+        note = kr_effect_note(effect)
+        self.kr_check = {"iteration": it, "kept": note is None, **effect}
+        if note is not None:
+            # At exposure 0 the convolve form is the plain deformed covariance: the model renders
+            # sharp exactly as before, and the training renders lose a blur they hardly had.
+            m.config.kinematic = False
+            self.kr_check["note"] = f"K.R. turned off at iteration {it} of {self.cfg.iterations}: {note}"
+            if self.progress:
+                tqdm.write(f"note: {self.kr_check['note']}")
+
+    def spawn(self, it: int) -> None:
+        """New dynamic Gaussians where the worst-fitted training frames stay unexplained and
+        something moves on its own (train/spawn.py). The pixels drawn depend on the seed and the
+        iteration only, so that a resumed run spawns as the uninterrupted one would."""
+        c, model = self.cfg, self.model
+        loss = torch.nan_to_num(self.frame_loss, nan=-1.0)
+        seen = loss[loss >= 0]
+        if len(seen) == 0:
+            return
+        # Only frames with a flow to the next one of their camera: without it nothing says what
+        # moves on its own, and ungated spawning filled kitchen's not-yet-fitted background
+        # (docs/real-footage.md, "Spawned Gaussians"). So each camera's last frame gets none.
+        has_next = torch.tensor([f.id in self.flows for f in self.scene.train_frames])
+        loss = torch.where(has_next, loss, torch.full_like(loss, -1.0))
+        # Only frames that fit far worse than the clip's typical one: a scene whose frames all
+        # fit about alike gets nothing.
+        worst = [i for i in torch.argsort(loss, descending=True)[: c.spawn_frames].tolist()
+                 if loss[i] > SPAWN_LOSS_RATIO * float(seen.median())]
+        for i in worst:
+            frame = self.scene.train_frames[i]
+            with torch.no_grad():
+                out, g = render_model(model, frame.camera, frame.time, self.exposure, self.scene.dt, self.background,
+                                      velocity=False, world_transform=self.world_transform(frame))
+            viewmat, K = camera_tensors(frame.camera)
+            added = spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image,
+                                      out.depth, self.cache.get(frame), g.means, c.spawn_max,
+                                      c.spawn_life * self.scene.dt, np.random.default_rng([c.seed, it, i]),
+                                      self.next_frame(frame, g.means))
+            rec = self.spawn_record
+            rec["attempts"] += 1
+            rec["without_parent"] += added.without_parent
+            if added.gaussians:
+                rec["added"][frame.id] = rec["added"].get(frame.id, 0) + added.gaussians
+
+    def spawn_summary(self) -> dict:
+        """What spawning did, for run.json: `attempts` (frames it looked at), `gaussians` (added
+        in all; pruning may have removed some since), `frames` (how many training frames got
+        any), `by_time` (normalised time of each such frame -> Gaussians added there, in
+        time order: a clip whose late frames never got a turn shows here) and `without_parent`
+        (how many of them sit at the rendered depth, no dynamic Gaussian moving like their pixel)."""
+        added = self.spawn_record["added"]
+        times = {f.id: f.time for f in self.scene.train_frames}
+        by_time = {f"{times[k]:.4f}": n for k, n in sorted(added.items(), key=lambda kv: times[kv[0]])}
+        return {"attempts": self.spawn_record["attempts"], "gaussians": sum(added.values()), "frames": len(added),
+                "by_time": by_time, "without_parent": self.spawn_record["without_parent"]}
+
+    @torch.no_grad()
+    def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame:
+        """The next frame of `frame`'s camera as spawning reads it (train/spawn.py): its camera,
+        the flow to it, and `means` (every Gaussian at `frame`'s time) with the dynamic ones
+        moved to its time. `frame` is not its camera's last."""
+        j, flow = self.flows[frame.id]
+        nxt = self.scene.train_frames[j]
+        idx = torch.nonzero(self.model.dynamic).squeeze(1)
+        at_next = means.clone()
+        at_next[idx] = self.posed(self.model.positions(idx, nxt.time)[0], nxt)
+        return NextFrame(*camera_tensors(nxt.camera), flow, at_next, nxt.time)
+
+    def split(self) -> None:
+        """A static/dynamic split in training: K recomputed, then τ the configured one or
+        (tau_auto) the one picked from the distribution of K, never below the configured one.
+        Every split also calls dynamic what the optical flow shows moving where K sees no
+        motion (train/flow_split.py; `flow_split_share` 0 turns that off)."""
+        model = self.model
+        model.variance = model.temporal_variance()
+        tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
+        moving = None
+        if self.cfg.flow_split_share > 0:
+            start = time.perf_counter()
+            by_k = model.dynamic_by_k(tau)
+            moving = flow_moving(model, self.scene.train_frames, self.split_flows(), by_k, self.cfg.flow_split_share,
+                                 self.exposure, self.scene.dt, self.world_transform)
+            seconds = time.perf_counter() - start
+            if self.flow_split is None:
+                self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
+                                   "dynamic_by_k": int(by_k.sum()), "later": [], "seconds": 0.0}
+            else:
+                self.flow_split["later"].append(int(moving.sum()))
+            self.flow_split["seconds"] = round(self.flow_split["seconds"] + seconds, 2)
+        model.decompose(tau, recompute=False, in_place=self.cfg.split_in_place,
+                        keep_static=not self.cfg.resplit_to_dynamic, also_dynamic=moving)
+
+    def split_flows(self) -> dict:
+        """The flows the splits' reading reads: the run's own (flow term or spawning) where they
+        are of its method (`flow_split_method`), else the 16 it reads computed once (whatever
+        the clip's length) and kept for the re-splits."""
+        if self.flows and self.cfg.flow_split_method == self.cfg.flow_method:
+            return self.flows
+        if self._split_flows is None:
+            frames = self.scene.train_frames
+            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)},
+                                            method=self.cfg.flow_split_method)
+        return self._split_flows
+
+    @torch.no_grad()
+    def importance(self) -> torch.Tensor:
+        """Sum over training views of each Gaussian's blending weights (FLoD's importance),
+        read off as the gradient of the rendered sum of a constant colour.
+
+        `autograd.grad` with respect to that colour alone: a `.backward()` here left the
+        gradient of the rendered sum in the deformation field's `.grad` (and in kappa's), which
+        the next optimiser step applied, and which inflated the field's Adam second moments
+        by ~1e7 at every level change, all but freezing the field for the rest of the run."""
+        model = self.model
+        total = torch.zeros(len(model))
+        frames = self.scene.train_frames
+        pick = np.linspace(0, len(frames) - 1, min(self.cfg.lod_importance_views, len(frames))).round().astype(int)
+        for i in sorted(set(pick.tolist())):
+            with torch.enable_grad():
+                ones = torch.ones(len(model), 1, requires_grad=True)
+                out, _ = render_model(model, frames[i].camera, frames[i].time, self.exposure, self.scene.dt,
+                                      colors=ones, static=self.static_only, velocity=False,
+                                      world_transform=self.world_transform(frames[i]))
+                (grad,) = torch.autograd.grad(out.image.sum(), ones)
+            total += grad[:, 0]
+        return total
+
+    def next_level(self, level_idx: int) -> None:
+        """Ends a FLoD level: prune by importance, keep a snapshot for rendering at that level,
+        and clone into the next level with scales re-parameterised so that exp(s) + s_min is
+        unchanged."""
+        model = self.model
+        imp = self.importance()
+        keep = imp >= self.cfg.lod_prune_importance
+        if keep.sum() >= 4:
+            model.keep_gaussians(keep, self.opt, self.strategy.state)
+        snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
+                "variance": model.variance.clone(), "lifespan": model.lifespan.clone(),
+                "own_velocity": model.own_velocity.clone(), "min_scale": model.min_scale,
+                "knn": None if model._knn is None else model._knn.clone(), "iteration": self.iteration}
+        self.levels.append(snap)
+        old, new = model.min_scale, self.level_min_scale(level_idx)
+        with torch.no_grad():
+            s = torch.exp(model.params.log_scales.detach()) + old - new
+            model.params = set_param(model.params, self.opt, "log_scales", torch.log(s.clamp_min(1e-8)))
+        model.min_scale = new
