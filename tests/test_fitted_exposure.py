@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from kgs_core.data.scene import Camera
-from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+from kgs_core.model.config import ModelConfig
+from kgs_core.model.dynamic import KinematicsGS
 from kgs_core.model.gaussians import init_from_points
 from kgs_core.model.render import render_model
 from kgs_core.train.exposure import FittedExposure

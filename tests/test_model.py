@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from kgs_core.model.config import ModelConfig
 from kgs_core.model.deformation import Offsets
-from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+from kgs_core.model.dynamic import KinematicsGS
 from kgs_core.model.gaussians import init_from_points
 from kgs_core.render import intrinsics, look_at, packed_covariance, rasterize
 from kgs_core.render.covariance import covariance_from_quat_scale, pack_covariance, unpack_covariance

@@ -155,7 +155,8 @@ def test_sh_basis_float32_matches_float64(seed, degree, axis):
 
 
 def test_activations_at_extreme_logits():
-    from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+    from kgs_core.model.config import ModelConfig
+    from kgs_core.model.dynamic import KinematicsGS
     from kgs_core.model.gaussians import init_from_points
 
     p = init_from_points(np.zeros((4, 3)), np.full((4, 3), 0.5), 1, 4)
@@ -344,7 +345,8 @@ def test_convolve_form_is_sharp_at_zero_exposure_and_elongates_along_the_motion(
     `(|v| dt e)^2 / 12` along its velocity and nothing across it."""
     from dataclasses import replace
 
-    from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+    from kgs_core.model.config import ModelConfig
+    from kgs_core.model.dynamic import KinematicsGS
     from kgs_core.model.gaussians import init_from_points
 
     g = torch.Generator().manual_seed(0)
@@ -400,7 +402,8 @@ def test_camera_motion_from_poses_matches_the_projected_motion_of_still_points()
 
 
 def test_camera_blur_elongates_still_gaussians_along_the_camera_motion():
-    from kgs_core.model.dynamic import KinematicsGS, ModelConfig
+    from kgs_core.model.config import ModelConfig
+    from kgs_core.model.dynamic import KinematicsGS
     from kgs_core.model.gaussians import init_from_points
 
     g = torch.Generator().manual_seed(1)

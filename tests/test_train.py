@@ -390,7 +390,7 @@ def test_runs_saved_before_kr_form_load_with_the_paper_form():
     """`kr_form` joined the model config after runs were already on disk (all trained with the
     paper's form): such a config loads as `paper`, a new one defaults to `convolve`, and an
     unknown form is a clear error naming the field."""
-    from kgs_core.model.dynamic import ModelConfig
+    from kgs_core.model.config import ModelConfig
 
     old = ModelConfig().to_dict()
     del old["kr_form"]

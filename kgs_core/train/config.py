@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Literal
 
-from ..model.dynamic import ModelConfig
+from ..model.config import ModelConfig
 from ..schema import check_choices, from_fields, json_object
 from .densify import DensifyStrategy
 from .flow import FlowMethod
