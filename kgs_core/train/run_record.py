@@ -76,10 +76,9 @@ def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
 
 
 # Below this share of dynamic Gaussians the run says that its moving objects, if any, render
-# static. With the flow's reading off (`flow_split_share=0`) the synthetic `top`, `die`, `swing`
-# and `cross` ended at 0-0.02 % dynamic and their moving objects were lost; with it they end at
-# 2-15 %, the scenes where the method works at 15-20 %, the real clips at 38-57 %
-# (docs/results.md, "Scenes where the moving object is lost").
+# static: a scene whose moving object neither K nor the flow's reading found ends with almost
+# nothing dynamic, far under what scenes with a followed object end with (docs/results.md,
+# "Objects that turn").
 SPLIT_NOTE_SHARE = 0.01
 
 
