@@ -48,10 +48,8 @@ def render_at(model: KinematicsGS, frame: Frame, exposure: float = 0.0, dt: floa
 # One 8-bit level: a render difference below it does not show in a frame the model was trained on.
 KR_VISIBLE = 1 / 255
 # K.R. counts as acting on a clip when rendering the blur fits the blurry training frames at
-# least this much better than rendering sharp. Measured at the end of training (fast preset):
-# the synthetic panel with severe blur +0.25 dB (5 % of the pixels changed visibly); the demo's
-# sheet with mild blur -0.001 dB (0 %); the real walk -0.001 dB (0.8 %) and kitchen +0.005 dB
-# (0.1 %) (docs/real-footage.md, "What K.R.'s blur does on real footage").
+# least this much better than rendering sharp: above what rounding moves, under what a scene
+# with visible object blur gains (docs/real-footage.md, "What K.R.'s blur does on real footage").
 KR_MIN_GAIN_DB = 0.05
 
 

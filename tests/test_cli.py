@@ -168,8 +168,8 @@ def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averag
     way: the baseline's measured time is made 1.5x here, so that the test does not depend on
     the machine."""
     import kgs_app.bench.equal_time as equal_time_module
+    from app.bench.equal_time import interleave
     from kgs_app.bench.quality import main
-    from kgs_core.train.trainer import interleave
 
     def slower_baseline(trainers):
         interleave(trainers)

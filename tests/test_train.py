@@ -309,7 +309,7 @@ def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
     """`interleave` (one step of each trainer in turn, for equal-time benchmarks) trains
     exactly the runs that train alone would: the global RNG the trainer draws from is swapped
     per step, and each trainer's time counts its own steps only."""
-    from kgs_core.train.trainer import interleave
+    from app.bench.equal_time import interleave
 
     cfgs = {"full": tiny_config(iterations=22, checkpoint_every=1000, **{"densify.start": 1000}),
             "split": tiny_config(iterations=14, checkpoint_every=1000, **{"densify.start": 1000}, ablate=("split",))}

@@ -10,16 +10,43 @@ more than `RETIME_TOLERANCE` is trained again with its iteration count scaled by
 
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass
 from typing import Callable
 
-from kgs_core.train.trainer import Trainer, interleave
+import torch
+
+from kgs_core.train.trainer import Trainer
 
 # A configuration whose first-round time is within this fraction of the first one's keeps that
-# round's result. 10 % let a baseline keep 7 % less time than the full method and another one be
-# re-timed at 10.5 %, which moved it by 0.4 dB in walk's mask (docs/results.md): the tolerance
-# was deciding results, so it only covers timing noise now.
+# round's result: the tolerance covers timing noise only, since a looser one let the choice of
+# whom to re-time decide results (docs/metrics.md, "equal time").
 RETIME_TOLERANCE = 0.03
+
+
+def interleave(trainers: list[Trainer]) -> list[dict]:
+    """Trains several runs one step each in turn and returns their infos.
+
+    Each trainer's `train_seconds` times only its own steps, so runs stepped together are
+    timed under the same machine conditions: on a shared VM whose speed drifts by up to 2x
+    over minutes, that is what makes their times comparable (sequential runs are not). The
+    global RNG state (torch and Python's `random`, which the trainer seeds and draws from) is
+    swapped with each step, so every run is the one it would be on its own."""
+    gens = [t.iterate() for t in trainers]
+    rng: list = [None] * len(gens)
+    live = list(range(len(gens)))
+    while live:
+        for i in list(live):
+            if rng[i] is not None:
+                torch.set_rng_state(rng[i][0])
+                random.setstate(rng[i][1])
+            try:
+                next(gens[i])
+            except StopIteration:
+                live.remove(i)
+                continue
+            rng[i] = (torch.get_rng_state(), random.getstate())
+    return [t.info for t in trainers]
 
 
 @dataclass

@@ -118,10 +118,9 @@ def best_time_offset(model, scene, masks: list[np.ndarray], at_zero: float, offs
     rendered at its time + each of `offsets` frame intervals (clamped to the clip), scored
     inside `masks`. Returns the offset (0 included, whose mask PSNR is `at_zero`) with the
     highest mean mask PSNR, and that PSNR. A diagnostic beside the scored numbers, which stay at
-    each frame's own time. On walk the full method's person meets the sharp camera's best about
-    a frame later (2.6-3.2 dB in the mask), and a model trained on the sharp camera meets the
-    blurry one's 0.75 frame earlier: the two videos' moving content is that far apart
-    (docs/real-footage.md, "What limits the moving person")."""
+    each frame's own time: the two cameras' videos are synchronised only to about a frame, so
+    their moving content can be that far apart (docs/real-footage.md, "What limits the moving
+    person")."""
     from kgs_core.evaluate import render_at
     from kgs_core.losses import psnr
 
@@ -258,8 +257,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--seeds", default="0",
                     help="comma-separated training seeds. With more than one, every configuration is trained with "
                          "each (runs under OUT/runs/CLIP/sSEED), the mask comes from the first seed's static 3DGS, "
-                         "and the table gives each seed's row and their mean (on walk the mask PSNR of one "
-                         "configuration spreads by 2.4 dB over two seeds: docs/results.md)")
+                         "and the table gives each seed's row and their mean (one seed's mask PSNR is noisy: "
+                         "docs/results.md)")
     ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s; "
                     "with --ray on a cluster, a folder every node mounts)")
     add_ray_options(ap)

@@ -262,10 +262,8 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     (out / "all").mkdir(parents=True, exist_ok=True)
     triangulation = _pipeline_options(pycolmap.IncrementalPipelineOptions)
     # One round of its point refinement, not COLMAP's five: the adjustment below refines points,
-    # poses and lens together anyway. On a 672-frame clip 15-16 s against 20-21 s, and the same
-    # error after the adjustment (1.0975 against 1.0982 px; docs/data.md). Its track merging is
-    # most of what is left (11-17 s there), and worth keeping: triangulated without it, walk
-    # trained 2.0-3.5 dB lower on the sharp camera (docs/data.md, "Ingest speed").
+    # poses and lens together anyway, to the same error, faster. Its track merging stays: without
+    # it the real clips trained worse at the sharp camera (docs/data.md, "Ingest speed").
     triangulation.ba_global_max_refinements = 1
     rec = pycolmap.triangulate_points(rec, db, images, out / "all", options=triangulation)
     drop_outlier_points(rec)  # before the adjustment too: a few wild points would drag it

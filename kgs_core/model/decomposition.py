@@ -49,7 +49,7 @@ class Decomposition:
         `keep_static`: a Gaussian already static stays static whatever its K (training's
         re-splits on a video ingest, `TrainConfig.resplit_to_dynamic`): a static Gaussian's K
         is the field's motion where it sits, which was never fitted to it, and turning such
-        Gaussians dynamic cost kitchen 1.5 dB at once (docs/method.md, "Splits in place").
+        Gaussians dynamic loses at once what they rendered (docs/method.md, "Splits in place").
 
         `in_place`: each Gaussian whose rendered offsets the split changes (it changes sides,
         or its kNN neighbours do) has its canonical mean, rotation and scale moved by the
@@ -72,8 +72,8 @@ class Decomposition:
         if not unchanged:
             # The graph is carried, as through densification (`set_params`): the Gaussians that
             # stay dynamic keep their neighbours (those who turned static replaced by the row's
-            # own Gaussian), and only those that turn dynamic get the nearest ones. Rebuilt
-            # whole, a graph carried since the first split cost walk 1.4 dB at a re-split.
+            # own Gaussian), and only those that turn dynamic get the nearest ones: a graph
+            # rebuilt whole gives fitted Gaussians new neighbours (docs/method.md, "Resume").
             self._knn = self._graph_after_resplit(dynamic) if self.decomposed else None
         self.dynamic = dynamic
         self.decomposed = True

@@ -120,9 +120,8 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
     #
     # The graph is carried through, not rebuilt: a dynamic Gaussian's fine residual is fitted to
     # the coarse offset its neighbours give it, and a graph rebuilt from the canonical means as
-    # they have moved since gives many of them other neighbours. On the paper preset's walk run
-    # that alone cost 3.0 dB at each densification (docs/real-footage.md, "The paper preset on
-    # walk").
+    # they have moved since gives many of them other neighbours, which undoes that fit
+    # (docs/real-footage.md, "The paper preset on walk").
     def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor,
                    own_velocity: Tensor, knn: Tensor | None = None) -> None:
         """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
@@ -218,9 +217,8 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         Gaussians present for part of the clip (bounded `lifespan`: spawned ones,
         train/spawn.py) replaced as `spawned_motion` says. Either way their loss does not train
         the field: a Gaussian made to fill one frame pulls the field cells it shares with the
-        background towards that frame's motion; on walk that bent the sign behind the person at
-        every time (-0.7 dB on the frame in one seed of five, docs/real-footage.md, "Spawned
-        Gaussians").
+        background towards that frame's motion, bending the background at every time
+        (docs/real-footage.md, "Spawned Gaussians").
 
         "own": the straight line `own_velocity (t - centre)`, no rotation or scale change, so
         that it stays on the pixels it was made for at its frame whatever the field learns

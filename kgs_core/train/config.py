@@ -75,8 +75,7 @@ class TrainConfig:
     lambda_reg: float = 1e-3
     # Static Gaussians drawn per step for L_reg's static term (the field's offsets under them,
     # `KinematicsGS.static_field_dx`, as the paper sums L_reg over the static set); 0 leaves it
-    # out. Off by default: measured within the seed spread on walk and the sheet, and with a
-    # scene-scaled lambda_reg 0.9 dB worse and 33 % slower on kitchen (docs/real-footage.md).
+    # out. Off by default: no gain measured, and slower (docs/real-footage.md).
     reg_static_samples: int = 0
     # A coarse photometric term: L1 between render and frame average-pooled by `coarse_factor`,
     # weighted `lambda_coarse` (0: off). It keeps a gradient on a moving object the field has
@@ -91,9 +90,8 @@ class TrainConfig:
     # (its medium preset, which stops at half resolution); "dis_full", the same down to full
     # resolution; "fused", per pixel DIS or Farneback, whichever warps the next frame closer.
     # DIS gives a small object (a few of its 8 px patches) the motion around it; the other two
-    # see it, but given to every reader "dis_full" loses kitchen 0.41 dB in the mask over five
-    # seeds (walk level), so DIS stays here; the splits' reading has its own setting below
-    # (docs/real-footage.md, "A flow that sees small objects").
+    # see it, but measured worse for the flow term and spawning, so DIS stays here; the splits'
+    # reading has its own setting below (docs/real-footage.md, "A flow that sees small objects").
     flow_method: FlowMethod = "dis"
     # At each densification after the split, the `spawn_frames` training frames with the highest
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
@@ -151,8 +149,8 @@ class TrainConfig:
     camera_blur: CameraBlur = "off"
     lr_camera_motion: float = 3e-3
     # Fit a rigid correction of each training camera's pose (train/pose_refine.py). Off by
-    # default: on `walk` it fitted the training views 2 dB better and the sharp camera 0.3 dB
-    # worse, in twice the time (docs/real-footage.md).
+    # default: it fits the training views better and a second camera worse, in twice the time
+    # (docs/real-footage.md).
     pose_refine: bool = False
     lr_pose: float = 1e-3
     lr_pose_final: float = 1e-5
@@ -179,8 +177,8 @@ class TrainConfig:
     flow_split_share: float = 0.1
     # The flow the splits' reading reads (the choices of `flow_method`). "dis_full" (DIS down
     # to full resolution, fitted on a video ingest) finds a small, fast object that DIS's
-    # half-resolution search gives the motion around it (the synthetic `smallpanel`: +3.1 dB in
-    # its mask); it cost the synthetic demo 0.4 dB, so DIS stays for the rest. It computes 16
+    # half-resolution search gives the motion around it (the synthetic `smallpanel`); it cost
+    # the synthetic demo, so DIS stays for the rest. It computes 16
     # flows of its own when the run's differ (docs/real-footage.md, "A flow that sees small objects").
     flow_split_method: FlowMethod = "dis"
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
@@ -264,8 +262,8 @@ FAST_ITERATIONS = 1500  # the fast preset's count on the demo scene (fitted_iter
 def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
     """Tuned to converge in minutes on two CPU cores at ~128 px: fewer iterations and
     Gaussians, SH degree 1, one LoD level (FLoD stays in the paper preset), everything else
-    scaled to the shorter schedule (and to `iterations` when it is not the default 1,500:
-    the sheet demo gives 35.0 dB held-out at 1,500 vs 35.6 at 3,000, docs/method.md)."""
+    scaled to the shorter schedule (and to `iterations` when it is not the default 1,500;
+    what doubling it buys: docs/method.md)."""
     it = iterations
     return TrainConfig(
         iterations=it, batch_size=1, init_points=8_000,
@@ -274,7 +272,7 @@ def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
                                 opacity_reset_at=(int(0.3 * it),), max_gaussians=MAX_GAUSSIANS),
         decompose_at=max(1, int(0.2 * it)), decompose_every=max(1, int(0.2 * it)),
         eval_every=max(1, it // 5), checkpoint_every=max(1, 2 * it // 3), lambda_tv=0.0, lambda_reg=1e-2,
-        lod_levels=1, lod_fractions=(1.0,),  # docs/method.md: five levels cost 3 dB at this budget
+        lod_levels=1, lod_fractions=(1.0,),  # five levels cost quality at this budget (docs/method.md)
         lr_deform=5e-3, lr_deform_final=5e-5, lr_grid=1e-2, lr_grid_final=1e-4,
         model=ModelConfig(sh_degree=1, deform_spatial=32, deform_temporal=16, deform_features=16, deform_multires=(1,)),
     )
@@ -310,18 +308,14 @@ TAU_RMS_PX = 0.62
 # preset on walk").
 LOD_LAMBDA_WIDTH = 0.0217
 MAX_ITERATION_SCALE = 4.0
-# The flow term's weight on real footage (a video ingest): 0.003 raised walk's sharp-camera
-# PSNR by 1.0 dB in the dynamic-region mask and 0.3 dB on the frame (three seeds, no extra
-# time), kitchen's by 0.5 / 0.3 (one seed); 0.01 lost 1-2 dB on walk (docs/real-footage.md,
+# The flow term's weight on real footage (a video ingest): the best of the weights measured,
+# at no extra time; a larger one pulls the person off the photometric fit (docs/real-footage.md,
 # "An optical-flow term").
 VIDEO_FLOW_WEIGHT = 0.003
 # Frames that get spawned Gaussians at each densification on real footage (a video ingest).
-# Spawning at all: walk's worst tenth of training views +1.5 dB on five seeds (the person back
-# where the field lost him). Six frames rather than two: with two, the few worst frames took
-# every turn and walk's last frames, almost as badly fitted, never got one; six raised walk's
-# worst tenth from 20.3 to 24.3 dB (seed 0) and the sharp camera by +0.21 dB on the frame and
-# +0.33 in the mask (seeds 0 and 1), kitchen level (+0.03 / +0.10), for 7-19 % more training
-# time on walk (docs/real-footage.md, "Spawned Gaussians", "Six frames a densification").
+# Spawning puts the person back where the field lost him. Six frames rather than two: with two,
+# the few worst frames took every turn and the clip's last frames, almost as badly fitted, never
+# got one (docs/real-footage.md, "Spawned Gaussians", "Six frames a densification").
 VIDEO_SPAWN_FRAMES = 6
 # The camera's own blur (`camera_blur_px`) from which a video ingest models it (`camera_blur` =
 # "learned"): below it the streak is too short for the blur to change what the model learns
@@ -387,9 +381,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     video = "ingest" in scene.extras and n_frames > 1
     if not {"lod_levels", "lod_fractions"} & explicit and cfg.lod_levels > 1 and video:
         cfg.lod_levels, cfg.lod_fractions = 1, (1.0,)
-        fitted["lod_levels"] = ("1: a video ingest; FLoD's coarse levels misplaced kitchen's moving person at the "
-                                "second camera and the finer levels kept it there (-2.2 dB on the frame, -4.0 where "
-                                "things move; --set lod_levels=5 keeps the paper's five)")
+        fitted["lod_levels"] = ("1: a video ingest; FLoD's coarse levels misplaced a real clip's moving person at the "
+                                "second camera and the finer levels kept it there (docs/real-footage.md; "
+                                "--set lod_levels=5 keeps the paper's five)")
     if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
         px = LOD_LAMBDA_WIDTH * cam.width
         cfg.lod_lambda = float(f"{px / ppu:.3g}")

@@ -427,7 +427,7 @@ class Trainer(ScheduleEvents, RunRecord):
 
     def iterate(self, resume: bool = False) -> Iterator[int]:
         """`run` one iteration at a time: yields the iteration count after each step, so that
-        a caller can step several trainers in turn (`interleave`). `self.info` holds the
+        a caller can step several trainers in turn (the benchmarks' `interleave`). `self.info` holds the
         run's info when the generator is exhausted."""
         cfg = self.cfg
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -480,7 +480,7 @@ class Trainer(ScheduleEvents, RunRecord):
                 # Logged before the events scheduled at this count (densification, an opacity
                 # reset, a split, a FLoD level change), so that the row scores what the
                 # iterations trained: after them, the paper preset's opacity reset at 3,000
-                # (every opacity capped at 0.01) logged a near-empty render, a 10 dB fall. The
+                # (every opacity capped at 0.01) logged a near-empty render. The
                 # last row comes after them: it scores the model that is saved.
                 last = self.iteration == cfg.iterations
                 if self.iteration % cfg.eval_every == 0 and not last:
@@ -509,28 +509,3 @@ class Trainer(ScheduleEvents, RunRecord):
 
 def train(scene: Scene, run_dir: str | Path, cfg: TrainConfig, resume: bool = False, progress: bool = True, **kw) -> dict:
     return Trainer(scene, run_dir, cfg, progress=progress, **kw).run(resume=resume)
-
-
-def interleave(trainers: list[Trainer]) -> list[dict]:
-    """Trains several runs one step each in turn and returns their infos.
-
-    Each trainer's `train_seconds` times only its own steps, so runs stepped together are
-    timed under the same machine conditions: on a shared VM whose speed drifts by up to 2x
-    over minutes, that is what makes their times comparable (sequential runs are not). The
-    global RNG state (torch and Python's `random`, which the trainer seeds and draws from) is
-    swapped with each step, so every run is the one it would be on its own."""
-    gens = [t.iterate() for t in trainers]
-    rng: list = [None] * len(gens)
-    live = list(range(len(gens)))
-    while live:
-        for i in list(live):
-            if rng[i] is not None:
-                torch.set_rng_state(rng[i][0])
-                random.setstate(rng[i][1])
-            try:
-                next(gens[i])
-            except StopIteration:
-                live.remove(i)
-                continue
-            rng[i] = (torch.get_rng_state(), random.getstate())
-    return [t.info for t in trainers]
