@@ -141,8 +141,8 @@ class LoadedRun:
 
 def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     """A model sharing the networks of `model` with a level snapshot's Gaussians."""
-    from .model.dynamic import checked_knn, unbounded_lifespan
-    from .model.gaussians import GaussianParams
+    from .model.gaussians import GaussianParams, unbounded_lifespan
+    from .model.neighbours import checked_knn
 
     # Everything of the model's (its config and every network, whichever it has) is shared; the
     # per-Gaussian state below is the snapshot's. The view is a fresh Module (its own hook and

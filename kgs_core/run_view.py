@@ -18,7 +18,7 @@ import torch
 from .edits import EditLayer, load_edits, save_edits
 from .export.bake import Baked, baked_from
 from .model.decomposition import split_counts, variance_histogram
-from .model.dynamic import presence
+from .model.gaussians import presence
 from .run import LoadedRun, load_run
 from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, rgba_of
 

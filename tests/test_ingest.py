@@ -381,7 +381,7 @@ def test_lens_refit_recovers_non_square_pixels():
     """A camera with non-square pixels and a decentred lens (OPENCV fx/fy = 1.04, p1 = 0.004),
     as the BARD-GS pairs have, mapped as SIMPLE_RADIAL: the refit finds its aspect and lowers the
     reprojection error to the keypoint noise; the mapped model is left unchanged."""
-    from kgs_core.data.sfm import LENS_ITERATIONS, refine_lens
+    from kgs_core.data.lens import LENS_ITERATIONS, refine_lens
 
     rec = synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0])
     rec.update_point_3d_errors()
@@ -397,7 +397,7 @@ def test_lens_refit_recovers_non_square_pixels():
 
 def test_lens_refit_keeps_a_lens_the_mapper_fits():
     """A lens SIMPLE_RADIAL already describes: the larger model gains nothing worth keeping."""
-    from kgs_core.data.sfm import LENS_PROBE_ITERATIONS, refine_lens
+    from kgs_core.data.lens import LENS_PROBE_ITERATIONS, refine_lens
 
     rec = synthetic_reconstruction("SIMPLE_RADIAL", [200.0, 160.0, 90.0, 0.05])
     refit, report = refine_lens(rec)
@@ -410,7 +410,7 @@ def test_lens_refit_follows_the_keyframe_probe():
     """The keyframe model's probe decides whether the whole model is refitted: a probe that
     gained nothing skips the refit (the model returned as it is, the probe in the report), one
     that gained goes on to the whole model's refit."""
-    from kgs_core.data.sfm import LENS_PROBE_ITERATIONS, lens_gain, refine_lens
+    from kgs_core.data.lens import LENS_PROBE_ITERATIONS, lens_gain, refine_lens
 
     whole = synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0])
     # Keyframe models: other draws of the views, through a lens SIMPLE_RADIAL describes / the same lens.

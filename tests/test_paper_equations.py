@@ -95,7 +95,7 @@ def test_the_paper_velocity_is_the_offset_over_the_frame_interval():
     """Eq. (9)'s v = dx_t / dt (`velocity="paper"`, one sample); the physical velocity is the
     central difference of the offsets over +-h."""
     from kgs_core.model.deformation import Offsets
-    from kgs_core.model.dynamic import velocity_from_offsets
+    from kgs_core.model.kinematics import velocity_from_offsets
 
     g = torch.Generator().manual_seed(3)
     offs = [Offsets.split(torch.randn(20, 9, generator=g, dtype=torch.float64)) for _ in range(3)]

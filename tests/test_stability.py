@@ -387,7 +387,7 @@ def test_camera_motion_from_poses_matches_the_projected_motion_of_still_points()
     """`(A, b)` from three poses: a still point's motion relative to the camera, expressed in
     the world frame, is `A x + b` (finite difference of its camera coordinates)."""
     from kgs_core.data.synth.scenes import shaky_training_camera
-    from kgs_core.model.dynamic import camera_motion_from_poses
+    from kgs_core.train.camera_motion import camera_motion_from_poses
 
     cam = shaky_training_camera(0)
     t, h = 0.4, 1e-5

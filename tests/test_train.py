@@ -326,10 +326,11 @@ def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
 
 
 def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch):
+    import kgs_core.train.objective as objective_mod
     import kgs_core.train.trainer as trainer_mod
 
-    real = trainer_mod.photometric_loss
-    monkeypatch.setattr(trainer_mod, "photometric_loss", lambda *a, **k: real(*a, **k) * float("nan"))
+    real = objective_mod.photometric_loss
+    monkeypatch.setattr(objective_mod, "photometric_loss", lambda *a, **k: real(*a, **k) * float("nan"))
     with pytest.raises(trainer_mod.NonFiniteError, match="loss at iteration 0"):
         train(scene, tmp_path / "nan", tiny_config(iterations=5), progress=False)
     info = json.loads((tmp_path / "nan" / "run.json").read_text())
@@ -591,7 +592,7 @@ def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(
     """What `loss_for` adds to the photometric loss: lambda_reg times L_reg, the *mean* offset
     norm over the dynamic set (every Gaussian before the split), and lambda_ani times L_ani, the
     mean max/min scale ratio; `--ablate reg` and `--ablate ani` leave exactly their term out."""
-    import kgs_core.train.trainer as trainer_module
+    import kgs_core.train.objective as objective_module
 
     cfg = tiny_config(iterations=1, lod_levels=1, lod_fractions=(1.0,), noise_init_frames=0.0,
                       ablate=(ablate,) if ablate else ())
@@ -602,8 +603,8 @@ def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(
     with torch.no_grad():  # a field that moves things, so that L_reg is not zero
         model.deform.mlp[-1].weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(0))
     seen = {}
-    photometric = trainer_module.photometric_loss
-    monkeypatch.setattr(trainer_module, "photometric_loss", lambda *a: seen.setdefault("photo", photometric(*a)))
+    photometric = objective_module.photometric_loss
+    monkeypatch.setattr(objective_module, "photometric_loss", lambda *a: seen.setdefault("photo", photometric(*a)))
     frame = scene.train_frames[3]
     loss, _ = tr.loss_for(frame, 0)
     rest = float(loss.detach() - seen["photo"].detach())

@@ -20,7 +20,7 @@ from kgs_core.train.trainer import Trainer
 
 # A configuration whose first-round time is within this fraction of the first one's keeps that
 # round's result: the tolerance covers timing noise only, since a looser one let the choice of
-# whom to re-time decide results (docs/metrics.md, "equal time").
+# whom to re-time decide results (docs/metrics.md, "equal (wall) time").
 RETIME_TOLERANCE = 0.03
 
 

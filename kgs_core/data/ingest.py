@@ -35,8 +35,9 @@ from ..progress import announce
 from ..threads import parallel_map
 from .formats import write_nerfies
 from .formats.colmap import camera_from_colmap
+from .lens import LENSES, refine_lens
 from .scene import Camera, Frame, Scene, SceneError
-from .sfm import LENSES, MAPPERS, extract_and_match, refine_lens, run_sfm
+from .sfm import MAPPERS, extract_and_match, run_sfm
 from .video import count_frames, decode_video
 
 AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
@@ -67,7 +68,7 @@ class IngestReport:
     stride_reason: str = ""
     holdout: str = ""
     cached: bool = False
-    # The lens refit after mapping (`sfm.refine_lens`): kept or not, the reprojection error before
+    # The lens refit after mapping (`lens.refine_lens`): kept or not, the reprojection error before
     # and after; empty when none was tried (`--lens simple`, a fixed camera).
     lens: dict = field(default_factory=dict)
 
@@ -307,7 +308,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
     resampled to a pinhole camera by pycolmap's undistorter (cropped to valid pixels), since the
     rasteriser is pinhole; the distorted model stays under `colmap/sparse/0`.
     `lens`: "opencv" refits each camera as COLMAP's OPENCV lens after mapping, kept where it
-    lowers the reprojection error (`sfm.refine_lens`); "simple" keeps the mappers' SIMPLE_RADIAL."""
+    lowers the reprojection error (`lens.refine_lens`); "simple" keeps the mappers' SIMPLE_RADIAL."""
     video = Path(video)
     eval_video = Path(eval_video) if eval_video is not None else None
     if not 0 <= exposure <= 1:

@@ -2,12 +2,9 @@
 coarse-to-fine offsets + kinematic covariance, evaluated at any time `t`.
 
 `KinematicsGS.at(t, ...)` returns the Gaussians to rasterize; it is what training, the server,
-the viewers and the exporters all call.
-
-The training path gathers the dynamic rows with `index_select` and writes them back with
-`index_copy`, never `x[idx]` / `index_put`: the same values, but the backward of `x[idx]` is an
-accumulating `index_put`, serial on CPU, 2-4x slower than `index_select`'s (measured at walk's
-size, 27k of 49k rows; docs/results.md, "Training speed").
+the viewers and the exporters all call. The training path gathers the dynamic rows with
+`index_select` and writes them back with `index_copy`, never `x[idx]` / `index_put`, whose
+backward is serial on CPU (docs/results.md, "Training speed").
 """
 
 from __future__ import annotations
@@ -23,13 +20,14 @@ from ..render.covariance import normalize_quats, pack_covariance, quat_to_rotmat
 from .config import ModelConfig
 from .decomposition import Decomposition
 from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
-from .gaussians import GaussianParams, append, select
+from .gaussians import GaussianParams, append, presence, select, unbounded_lifespan
 from .kinematics import (
     motion_blur_covariance,
     quat_multiply,
     refine_covariance,
     rotvec_to_quat,
     safe_norm,
+    velocity_from_offsets,
 )
 from .neighbours import NeighbourGraph, checked_knn
 
@@ -111,17 +109,10 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
                                                             list(self.time_opacity.parameters())),
                 "kappa": [self.kappa]}
 
-    # Per-Gaussian state is the parameters (with their Adam moments in the optimiser), the
-    # dynamic flags, K, lifespans and own velocities, and a strategy's statistics held by the
-    # caller: `keep_gaussians` and
-    # `add_gaussians` resize all of it in lock-step, the kNN graph of the coarse-to-fine step
-    # included. Nothing else should assign `params`, `dynamic`, `variance`, `lifespan` or
-    # `own_velocity` with a new length.
-    #
-    # The graph is carried through, not rebuilt: a dynamic Gaussian's fine residual is fitted to
-    # the coarse offset its neighbours give it, and a graph rebuilt from the canonical means as
-    # they have moved since gives many of them other neighbours, which undoes that fit
-    # (docs/real-footage.md, "The paper preset on walk").
+    # Per-Gaussian state (parameters with their Adam moments, dynamic flags, K, lifespans, own
+    # velocities, a strategy's statistics) is resized in lock-step by `keep_gaussians` and
+    # `add_gaussians` only, C.F.'s graph included: carried, not rebuilt, since each fine residual
+    # is fitted to its neighbours' offsets (docs/real-footage.md, "The paper preset on walk").
     def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor,
                    own_velocity: Tensor, knn: Tensor | None = None) -> None:
         """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
@@ -485,20 +476,6 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         return model
 
 
-def presence(lifespan: Tensor, t: float) -> Tensor:
-    """`(N,)` factor on each Gaussian's opacity at time `t` from its `lifespan (N, 2)` (centre,
-    width): exp(-((t - centre) / width)^2 / 2), 1 where the width is inf."""
-    width = lifespan[:, 1]
-    bounded = width.isfinite()
-    z = torch.where(bounded, (t - lifespan[:, 0]) / width, torch.zeros_like(width))
-    return torch.exp(-0.5 * z * z)
-
-
-def unbounded_lifespan(n: int) -> Tensor:
-    """`(n, 2)` lifespans of Gaussians present at every time (centre 0, width inf)."""
-    return torch.tensor([0.0, float("inf")]).repeat(n, 1)
-
-
 def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
     """Every per-Gaussian field of a state has the same leading length (a mismatch would fail
     far away, inside an index or the rasteriser)."""
@@ -514,34 +491,10 @@ def _scatter_rows(x: Tensor, rows: Tensor | None, n: int) -> Tensor:
     return x if rows is None else x.new_zeros(n, x.shape[1]).index_copy(0, rows, x)
 
 
-def velocity_from_offsets(offs: list[Offsets], h: float, dt: float) -> Tensor:
-    """The velocities K.R. builds on. One sample (`paper`): v = dx_t / dt, the offset from the
-    canonical position over one frame. Three samples at t, t + h, t - h (`physical`): the
-    central difference of the deformed position over the exposure (`h` at least half a frame,
-    so that short exposures do not amplify noise); the canonical position cancels."""
-    if len(offs) == 1:
-        return offs[0].dx / dt
-    return (offs[1].dx - offs[2].dx) / (2 * h)
-
-
-def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float, t_next: float
-                             ) -> tuple[Tensor, Tensor]:
-    """The camera's motion at a frame, from the poses of its neighbours (central difference of
-    the world-to-camera matrices `(4, 4)`), as `(A, b)`: a still world point `x` moves relative
-    to the camera like a point with world velocity `A x + b` seen by a still camera
-    (`A = R^T dR/dt`, `b = R^T dT/dt`, per unit of normalised time)."""
-    W = torch.as_tensor(viewmat, dtype=torch.float64)
-    dW = (torch.as_tensor(next_viewmat, dtype=torch.float64) - torch.as_tensor(prev_viewmat, dtype=torch.float64))
-    dW = dW / max(t_next - t_prev, 1e-12)
-    R = W[:3, :3]
-    return (R.T @ dW[:3, :3]).float(), (R.T @ dW[:3, 3]).float()
-
-
 def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: float) -> Tensor:
     """D3DGS-style deformed covariance, packed `(N, 6)`: canonical rotation times `exp(dr)`,
     scales times `exp(lambda_s ds)`. The rotations compose as quaternions and the covariance is
-    `packed_covariance`'s (C++ when built): the same values as `R(q) so3_exp(dr)` and `M Mᵀ` in
-    torch to float rounding, without the batched 3x3 products, which are slow on a CPU (a sixth
-    of a real training step; docs/results.md, "Training speed")."""
+    `packed_covariance`'s (C++ when built): `R(q) so3_exp(dr)` and `M Mᵀ` to float rounding,
+    without batched 3x3 products, slow on a CPU (docs/results.md, "Training speed")."""
     rotation = quat_multiply(normalize_quats(quats), rotvec_to_quat(off.dr))
     return packed_covariance(rotation, scales * torch.exp(lambda_s * off.ds))

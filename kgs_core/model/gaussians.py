@@ -136,3 +136,17 @@ def set_param(params: GaussianParams, optimizer: torch.optim.Adam | None, name: 
     d = dict(params.items())
     d[name] = new
     return GaussianParams(**d)
+
+
+def presence(lifespan: Tensor, t: float) -> Tensor:
+    """`(N,)` factor on each Gaussian's opacity at time `t` from its `lifespan (N, 2)` (centre,
+    width): exp(-((t - centre) / width)^2 / 2), 1 where the width is inf."""
+    width = lifespan[:, 1]
+    bounded = width.isfinite()
+    z = torch.where(bounded, (t - lifespan[:, 0]) / width, torch.zeros_like(width))
+    return torch.exp(-0.5 * z * z)
+
+
+def unbounded_lifespan(n: int) -> Tensor:
+    """`(n, 2)` lifespans of Gaussians present at every time (centre 0, width inf)."""
+    return torch.tensor([0.0, float("inf")]).repeat(n, 1)

@@ -180,3 +180,14 @@ def motion_blur_covariance(cov6: Tensor, sweep: Tensor) -> Tensor:
     because every covariance the renderer takes is (unpacking the static Gaussians under camera
     blur, most of N, to `(N, 3, 3)` and back cost milliseconds a step)."""
     return cov6 + sweep[:, _PACK_I] * sweep[:, _PACK_J] / 12.0
+
+
+def velocity_from_offsets(offs: list, h: float, dt: float) -> Tensor:
+    """The velocities K.R. builds on, from the field's `Offsets` at one or three times. One
+    sample (`paper`): v = dx_t / dt, the offset from the
+    canonical position over one frame. Three samples at t, t + h, t - h (`physical`): the
+    central difference of the deformed position over the exposure (`h` at least half a frame,
+    so that short exposures do not amplify noise); the canonical position cancels."""
+    if len(offs) == 1:
+        return offs[0].dx / dt
+    return (offs[1].dx - offs[2].dx) / (2 * h)
