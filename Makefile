@@ -14,9 +14,10 @@ test: setup
 	@if command -v node >/dev/null; then node --test frontend/tests/; else echo "node not found: JS unit tests skipped"; fi
 	$(PY) -m pytest -q tests
 
-# Style and import order (configuration in pyproject.toml); run by .ci/run.
+# Style and import order, and types of the modules listed in pyproject.toml's [tool.mypy]; run by .ci/run.
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 # The built wheel, installed into a fresh venv, trains the demo and serves the viewer.
 wheel-check: setup
