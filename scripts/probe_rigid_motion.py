@@ -59,7 +59,7 @@ def main() -> None:
     ap.add_argument("--smooth", type=float, default=0.0, help="weight of the per-frame motion's second difference")
     ap.add_argument("--lr", default="3e-2,3e-3", help="learning rates of the rotations and translations")
     ap.add_argument("--iterations", type=int, default=1500)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="training seed, and the seed the scene was synthesized with")
     args = ap.parse_args()
     torch.set_num_threads(2)
     scene = load_scene(args.scene_dir)
