@@ -15,7 +15,7 @@ the grouping is given and only the motion differs:
   constant velocity from the last two inside; `--smooth` weighs the squared second difference
   of the per-frame motion.
 
-    python scripts/probe_rigid_motion.py die SCENE_DIR RUN_DIR --motion rigid --window 0.4 --smooth 1
+    python scripts/probe_rigid_motion.py die SCENE_DIR RUN_DIR --motion rigid --window 0.4 --smooth 1 [--set KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import torch
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from kgs_app.cli_args import setting
 from kgs_core.data.formats import load_scene
 from kgs_core.data.synth.scenes import build_world
 from kgs_core.evaluate import evaluate_model, render_at
@@ -59,6 +60,8 @@ def main() -> None:
     ap.add_argument("--smooth", type=float, default=0.0, help="weight of the per-frame motion's second difference")
     ap.add_argument("--lr", default="3e-2,3e-3", help="learning rates of the rotations and translations")
     ap.add_argument("--iterations", type=int, default=1500)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=setting,
+                    help="a training setting, as kgs-app train --set (repeatable)")
     ap.add_argument("--seed", type=int, default=0, help="training seed, and the seed the scene was synthesized with")
     args = ap.parse_args()
     torch.set_num_threads(2)
@@ -171,7 +174,9 @@ def main() -> None:
         Trainer.pick_frames = pick_in_window
         Trainer.loss_for = loss_with_smoothness
 
-    cfg = make_config("fast", iterations=args.iterations, eval_every=max(args.iterations // 10, 1), seed=args.seed)
+    settings = dict(args.set)
+    cfg = make_config("fast", iterations=args.iterations, eval_every=max(args.iterations // 10, 1), seed=args.seed,
+                      **settings)
     info = Trainer(scene, args.run_dir, cfg, progress=False).run()
     run = load_run(args.run_dir)
     m = evaluate_model(run.model, scene)
