@@ -336,7 +336,8 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     unless it is set by hand or the K.R. form cannot carry it."""
     import dataclasses
 
-    from kgs_core.train.config import CAMERA_BLUR_MIN_PX, camera_blur_px
+    from kgs_core.train.config import CAMERA_BLUR_MIN_PX
+    from kgs_core.train.scene_measures import camera_blur_px
 
     frames = sorted(walk.train_frames, key=lambda f: f.time)
     base = frames[0].camera

@@ -184,8 +184,8 @@ def motion_blur_covariance(cov6: Tensor, sweep: Tensor) -> Tensor:
 
 def velocity_from_offsets(offs: list, h: float, dt: float) -> Tensor:
     """The velocities K.R. builds on, from the field's `Offsets` at one or three times. One
-    sample (`paper`): v = dx_t / dt, the offset from the
-    canonical position over one frame. Three samples at t, t + h, t - h (`physical`): the
+    sample (`paper`): v = dx_t / dt, the offset from the canonical position over one frame.
+    Three samples at t, t + h, t - h (`physical`): the
     central difference of the deformed position over the exposure (`h` at least half a frame,
     so that short exposures do not amplify noise); the canonical position cancels."""
     if len(offs) == 1:

@@ -15,8 +15,8 @@ Two rules keep the new Gaussians from bending the background through the shared 
 field: each joins a parent that moves as the flow at its pixel says (not merely the nearest
 dynamic Gaussian, which on real footage is often a wall that K calls dynamic), and its loss does
 not train the field (`KinematicsGS._spawned_offsets`): present for a frame, only its own
-parameters learn. With neither, real-clip runs lost a smeared wall; with the parent rule
-alone, a smeared sign; with both, neither. On for video ingests (`config.VIDEO_SPAWN_FRAMES`; docs/real-footage.md,
+parameters learn. With neither, real-clip runs smeared a wall; with the parent rule alone, a
+sign; with both, nothing. On for video ingests (`config.VIDEO_SPAWN_FRAMES`; docs/real-footage.md,
 "Spawned Gaussians").
 
 A moving pixel that no dynamic Gaussian follows (an object the model has lost everywhere, so
