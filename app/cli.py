@@ -191,7 +191,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     res = export_run(args.run, args.format, out=args.out, times=args.times, camera_path=args.camera_path,
                      exposure=args.exposure, lod=args.lod, side_by_side=args.side_by_side, fps=args.fps,
-                     overwrite=args.force)
+                     overwrite=args.force, size=args.size, web_frame=args.web_frame)
     rep = res.report
     print(f"wrote {res.path} ({len(res.files)} file{'s' if len(res.files) != 1 else ''}, "
           f"{rep['gaussians']:,} Gaussians, LoD {rep['lod']})")
@@ -402,6 +402,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lod", type=int, help="LoD level (default: the finest)")
     p.add_argument("--side-by-side", action="store_true", help="mp4: the input frame beside each render")
     p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--size", type=int, help="mp4: the video's long side in pixels (default: the cameras' own)")
+    p.add_argument("--web-frame", action=argparse.BooleanOptionalAction, default=None,
+                   help="write the file so that antimatter15/splat (.splat, .ply) or splaTV (.splatv) opens on the "
+                        "first training camera's view (default: on for splat and splatv, off for ply-seq; the "
+                        "transform is in export.json)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_export)
 

@@ -84,7 +84,7 @@ def test_ply_sequence_reads_back_with_plyfile(tiny_run, tmp_path):
 
 
 def test_splat_byte_layout(tiny_run, tmp_path):
-    res = export_run(tiny_run, "splat", out=tmp_path / "splat", times="0.25", progress=False)
+    res = export_run(tiny_run, "splat", out=tmp_path / "splat", times="0.25", progress=False, web_frame=False)
     data = res.files[0].read_bytes()
     g = bake(open_source(tiny_run), 0.25)
     assert len(data) == 32 * len(g)
@@ -105,7 +105,7 @@ def test_splat_byte_layout(tiny_run, tmp_path):
 
 def test_splatv_container_and_fit(tiny_run, tmp_path):
     out = tmp_path / "m.splatv"
-    res = export_run(tiny_run, "splatv", out=out, times="0:1:9", progress=False)
+    res = export_run(tiny_run, "splatv", out=out, times="0:1:9", progress=False, web_frame=False)
     data = out.read_bytes()
     magic, n = struct.unpack_from("<II", data, 0)
     assert magic == 0x674B
@@ -356,3 +356,83 @@ def test_server_side_render_of_a_blurred_bake_matches_the_training_render(tiny_r
     # not vacuous: both the elongation and the mass factor change the picture far more
     for effect in (ref - plain, unscaled - ref):
         assert float(effect.abs().max()) > max(20 * err, 2e-5)
+
+
+def first_camera(run):
+    from kgs_core.data.formats import load_scene
+    from kgs_core.run import load_run
+
+    return load_scene(load_run(run).scene_path()).train_frames[0].camera
+
+
+@pytest.mark.parametrize("viewer", ["antimatter15", "splatv"])
+def test_web_frame_puts_the_opening_view_at_the_viewers_default_camera(tiny_run, viewer):
+    """Seen through the viewer's default camera, every Gaussian of the file sits where it sat in
+    front of our opening camera (the first training camera, backed off to the viewer's field of
+    view): camera coordinates equal up to the scale, covariances turned and scaled alike, the
+    content at the depth the viewer is made for."""
+    from kgs_core.export.web_frame import ANTIMATTER15, REFERENCE_WIDTH, SPLATV, opening_camera, viewer_matrix, web_frame
+
+    v = {"antimatter15": ANTIMATTER15, "splatv": SPLATV}[viewer]
+    cam, g = first_camera(tiny_run), bake(open_source(tiny_run), 0.5)
+    sim = web_frame(v, cam.viewmat, cam.K, cam.width, g.means.astype(np.float64))
+    W, depth = opening_camera(cam.viewmat, cam.K, cam.width, g.means.astype(np.float64),
+                              v.fx or cam.K[0, 0] * REFERENCE_WIDTH / cam.width)
+    assert (W[2, 3] > cam.viewmat[2, 3]) == (v.fx is not None and v.fx / REFERENCE_WIDTH > cam.K[0, 0] / cam.width)
+    V, moved = viewer_matrix(v), sim.apply(g)
+    ours = g.means @ W[:3, :3].T + W[:3, 3]
+    theirs = moved.means @ V[:3, :3].T + V[:3, 3]
+    np.testing.assert_allclose(theirs, sim.scale * ours, rtol=1e-4, atol=1e-4 * v.content_depth)
+    assert abs(np.median(theirs[:, 2]) - v.content_depth) < 1e-3 * v.content_depth
+    ours_cov = W[:3, :3] @ g.covars @ W[:3, :3].T
+    theirs_cov = V[:3, :3] @ moved.covars @ V[:3, :3].T
+    np.testing.assert_allclose(theirs_cov, sim.scale**2 * ours_cov, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(moved.velocity @ V[:3, :3].T, sim.scale * g.velocity @ W[:3, :3].T, rtol=1e-4, atol=1e-5)
+
+
+def test_web_frame_turns_the_view_dependent_colour_with_the_scene(tiny_run):
+    """Degree-1 SH seen from a point: the same colour before and after the similarity, from
+    the point moved along (the band is a vector; a wrong sign or order fails)."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from kgs_core.export.web_frame import Similarity
+    from kgs_core.render.sh import eval_sh_reference
+
+    g = bake(open_source(tiny_run), 0.5)
+    rng = np.random.default_rng(0)
+    g.sh = g.sh.copy()
+    g.sh[:, 1:4] = rng.normal(0, 0.5, g.sh[:, 1:4].shape).astype(np.float32)
+    sim = Similarity(1.7, Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix(), np.array([0.3, -2.0, 5.0]))
+    moved = sim.apply(g)
+    eye = np.array([0.5, -0.8, -3.0])
+    colour = lambda h, eye_: eval_sh_reference(torch.tensor(h.sh[:, :4]), torch.tensor(h.means),  # noqa: E731
+                                               torch.tensor(eye_, dtype=torch.float32), 1).numpy()
+    np.testing.assert_allclose(colour(moved, sim.scale * sim.R @ eye + sim.t), colour(g, eye), atol=1e-4)
+    assert np.abs(colour(moved, eye) - colour(g, eye)).max() > 0.05  # the eye moved with it matters
+
+
+def test_web_framed_files_and_cameras_record_the_transform(tiny_run, tmp_path):
+    """`.ply` on request, `.splat` by default: the file's centres are export.json's
+    `file_from_run` applied to the run's, and cameras.json moved along with them."""
+    from plyfile import PlyData
+
+    from kgs_core.export.splatv import splatv_cameras
+
+    res = export_run(tiny_run, "ply-seq", out=tmp_path / "p", times="0.5", progress=False, web_frame=True)
+    report = json.loads((tmp_path / "p" / "export.json").read_text())
+    M = np.asarray(report["web_frame"]["file_from_run"])
+    assert report["web_frame"]["viewer"] == "antimatter15/splat"
+    v = PlyData.read(str(res.files[0]))["vertex"]
+    g = bake(open_source(tiny_run), 0.5)
+    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), g.means @ M[:3, :3].T + M[:3, 3], atol=1e-4)
+    cams = json.loads((tmp_path / "p" / "cameras.json").read_text())
+    from kgs_core.data.formats import load_scene
+    from kgs_core.run import load_run
+
+    raw = splatv_cameras(load_scene(load_run(tiny_run).scene_path()).train_frames)
+    np.testing.assert_allclose(cams[0]["position"], M[:3, :3] @ raw[0]["position"] + M[:3, 3], atol=1e-9)
+    assert "web_frame" in export_run(tiny_run, "splat", out=tmp_path / "s", times="0.5", progress=False).report
+    assert "web_frame" not in export_run(tiny_run, "ply-seq", out=tmp_path / "q", times="0.5", progress=False).report
+    with pytest.raises(ValueError, match="web"):
+        export_run(tiny_run, "glb", out=tmp_path / "g.glb", times="0.5", progress=False, web_frame=True)

@@ -78,7 +78,7 @@ def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, pro
         stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
         if codec == "libx264":
             stream.options = {"crf": str(crf)}
-        for img in progress_bar(frames, desc=f"encode {path.name}", show=progress):
+        for img in progress_bar(frames, desc=f"encode {path.name}", stage="encode video", show=progress):
             if img.shape[:2] != (H, W):
                 img = np.pad(img, ((0, H - img.shape[0]), (0, W - img.shape[1]), (0, 0)), mode="edge")
             for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")):

@@ -16,14 +16,18 @@ does not move (no dynamic Gaussians, or a static ablation) exports one frame, no
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..data.formats import load_scene
 from ..io import atomic_directory, atomic_write_text
+from ..progress import progress_bar
 from .bake import ExportSource, bake, open_source, parse_times
+from .splatv import splatv_cameras
+from .web_frame import ANTIMATTER15, SPLATV, Similarity
+from .web_frame import web_frame as frame_for_viewer
 
 FORMATS = ("ply-seq", "splat", "splatv", "mp4", "glb")
 SUFFIX = {"splatv": ".splatv", "mp4": ".mp4", "glb": ".glb"}
@@ -45,6 +49,19 @@ def _scene_frames(source: ExportSource, required: bool):
         return []
 
 
+def _web_frame(source: ExportSource, frames, fmt: str) -> Similarity:
+    """The coordinates that open the file at the first training camera's view (what our viewer
+    opens on) in the viewer that reads it: splaTV for .splatv, antimatter15/splat otherwise."""
+    cam = frames[0].camera
+    means = source.model.params.means.detach().numpy()[source.keep].astype(np.float64)
+    return frame_for_viewer(SPLATV if fmt == "splatv" else ANTIMATTER15, cam.viewmat, cam.K, cam.width, means)
+
+
+def _cameras(source: ExportSource, frames) -> list[dict]:
+    cams = splatv_cameras(frames)
+    return [source.frame.camera(c) for c in cams] if source.frame is not None else cams
+
+
 def default_times(source: ExportSource, frames) -> list[float]:
     if frames:
         return sorted({f.time for f in frames})
@@ -55,13 +72,26 @@ def default_times(source: ExportSource, frames) -> list[float]:
 def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, times: str | None = None,
                camera_path: str = "training", exposure: float = 0.0, lod: int | None = None,
                side_by_side: bool = False, fps: float = 24.0, overwrite: bool = False,
-               progress: bool = True) -> ExportResult:
+               progress: bool = True, size: int | None = None, view: dict | None = None,
+               web_frame: bool | None = None) -> ExportResult:
+    """`size`: the video's long side in pixels (default: the cameras' own); `view`: the one
+    camera of `camera_path="view"` (`viewmat` 4x4 world-to-camera, `fov_deg` horizontal,
+    `width`, `height`); `web_frame`: write `.splat`/`.ply` in antimatter15/splat's and `.splatv`
+    in splaTV's default view (web_frame.py; default on for splat and splatv, off for ply-seq)."""
     if fmt not in FORMATS:
         raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if not (0.0 <= exposure <= 1.0):
         raise ValueError(f"--exposure must be in [0, 1] (fraction of the frame interval), got {exposure}")
     if not (0 < fps <= 240):
         raise ValueError(f"--fps must be in (0, 240], got {fps}")
+    if size is not None and not (16 <= size <= 4096):
+        raise ValueError(f"--size must be in 16..4096 pixels, got {size}")
+    if size is not None and fmt != "mp4":
+        raise ValueError("--size sets a video's resolution: only with --format mp4")
+    if web_frame and fmt not in ("ply-seq", "splat", "splatv"):
+        raise ValueError("--web-frame places .ply, .splat and .splatv files for the web viewers: not with --format " + fmt)
+    if (camera_path == "view") != (view is not None):
+        raise ValueError("camera path 'view' and a view camera go together")
     source = open_source(run_dir, lod)
     if not source.keep.any():
         raise ValueError("nothing to export: the edit layer removes every Gaussian")
@@ -74,6 +104,16 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
         raise FileExistsError(f"{out} already exists (pass --force to replace it)")
     report = {"format": fmt, "run": str(run_dir), "lod": source.lod, "exposure": exposure,
               "gaussians": int(source.keep.sum()), "edited_out": int((~source.keep).sum()), "moves": source.moves}
+    if web_frame is None:
+        web_frame = fmt in ("splat", "splatv")
+    if web_frame:
+        frames = _scene_frames(source, required=False)
+        if frames:
+            source.frame = _web_frame(source, frames, fmt)
+            report["web_frame"] = {"viewer": (SPLATV if fmt == "splatv" else ANTIMATTER15).name,
+                                   "file_from_run": source.frame.matrix().tolist()}
+        else:
+            report["note"] = "no training cameras to frame the file for the web viewers: written in run coordinates"
 
     if fmt in ("ply-seq", "splat"):
         from .ply import write_ply
@@ -87,29 +127,25 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
         writer, ext = (write_ply, ".ply") if fmt == "ply-seq" else (write_splat, ".splat")
         files = []
         with atomic_directory(out, overwrite=overwrite) as tmp:
-            from tqdm import tqdm
-
-            for i, t in enumerate(tqdm(ts, desc=f"export {fmt}", disable=not progress, unit="frame")):
+            for i, t in enumerate(progress_bar(ts, desc=f"export {fmt}", stage="write frames", show=progress)):
                 fname = f"frame_{i:05d}{ext}"
                 writer(tmp / fname, bake(source, t, exposure))
                 files.append(fname)
             report["frames"] = [{"file": f, "time": t} for f, t in zip(files, ts)]
             atomic_write_text(tmp / "export.json", json.dumps(report, indent=1))
             if frames:  # the 3DGS convention: dropped on antimatter15/splat or splaTV, it sets their view
-                from .splatv import splatv_cameras
-
-                atomic_write_text(tmp / "cameras.json", json.dumps(splatv_cameras(frames), indent=1))
+                atomic_write_text(tmp / "cameras.json", json.dumps(_cameras(source, frames), indent=1))
         return ExportResult(out, [out / f for f in files], report)
 
     if fmt == "splatv":
-        from .splatv import fit_splatv, splatv_cameras, write_splatv
+        from .splatv import fit_splatv, write_splatv
 
         frames = _scene_frames(source, required=False)
         ts = parse_times(times, default_times(source, frames))
         if len(ts) < 4 and source.moves:
             ts = np.linspace(min(ts), max(ts), 32).tolist() if max(ts) > min(ts) else np.linspace(0, 1, 32).tolist()
         words, fit = fit_splatv(source, ts, exposure, progress)
-        write_splatv(out, words, splatv_cameras(frames))
+        write_splatv(out, words, _cameras(source, frames))
         report["fit"] = fit.to_dict()
     elif fmt == "glb":
         from .glb import write_glb
@@ -120,10 +156,14 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
         report["time"] = ts[0]
         report.update(write_glb(out, bake(source, ts[0], exposure)))
     else:  # mp4
-        from .camera_path import keyframe_path, orbit_path, training_path
+        from .camera_path import keyframe_path, orbit_path, training_path, view_path
         from .video import render_path, write_video
 
-        if camera_path == "training":
+        if camera_path == "view":
+            if side_by_side:
+                raise ValueError("--side-by-side needs --camera-path training")
+            steps = view_path(view, parse_times(times, np.linspace(0, 1, 60).tolist()))
+        elif camera_path == "training":
             frames = _scene_frames(source, required=True)
             steps = training_path(frames, None if times is None else parse_times(times, []))
         elif camera_path == "orbit":
@@ -138,6 +178,8 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
             steps = keyframe_path(camera_path)
         if side_by_side and camera_path != "training":
             raise ValueError("--side-by-side needs --camera-path training")
+        if size is not None:  # the long side in pixels, every camera scaled alike
+            steps = [replace(s, camera=s.camera.scaled(size / max(s.camera.width, s.camera.height))) for s in steps]
         images = render_path(source, steps, exposure, side_by_side, progress=progress)
         write_video(out, images, fps, progress)
         report.update({"camera_path": camera_path, "frames": len(images), "fps": fps,

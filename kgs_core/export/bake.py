@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -21,6 +22,9 @@ from ..render.blur import blurred_opacities
 from ..render.covariance import pack_covariance
 from ..render.sh import C0
 from ..run import LoadedRun, load_run
+
+if TYPE_CHECKING:
+    from .web_frame import Similarity
 
 
 @dataclass
@@ -57,6 +61,7 @@ class ExportSource:
     keep: np.ndarray  # (N,) bool: Gaussians surviving the edit layer
     dt: float  # one frame interval in normalised time
     static_only: bool  # a run trained without deformation (`--ablate deform`)
+    frame: "Similarity | None" = None  # coordinates the baked Gaussians are written in (web_frame.py)
 
     @property
     def moves(self) -> bool:
@@ -87,7 +92,8 @@ def bake(source: ExportSource, t: float, exposure: float = 0.0) -> Baked:
     shutter (as captured), 0 the sharp state."""
     m = source.model
     g = m.at_static() if source.static_only else m.at(float(t), exposure=exposure, dt=source.dt)
-    return baked_from(g, source.keep)
+    baked = baked_from(g, source.keep)
+    return source.frame.apply(baked) if source.frame is not None else baked
 
 
 def baked_from(g: GaussiansAt, sel: np.ndarray, dynamic: np.ndarray | None = None) -> Baked:

@@ -1,4 +1,4 @@
-"""Camera paths for video export: the training cameras, an orbit, or JSON keyframes.
+"""Camera paths for video export: the training cameras, an orbit, one fixed view, or JSON keyframes.
 
 Keyframe file (`--camera-path path.json`):
 
@@ -111,3 +111,22 @@ def keyframe_path(path: str | Path) -> list[PathStep]:
         vm = look_at(eye, target, up=up, dtype=torch.float64).numpy()
         steps.append(PathStep(Camera(K=K, viewmat=vm, width=width, height=height), float((1 - w) * kt[i] + w * kt[j])))
     return steps
+
+
+def view_path(view: dict, times: list[float]) -> list[PathStep]:
+    """One fixed camera over `times`: `view` is `{"viewmat": 4x4 world-to-camera, "fov_deg":
+    horizontal field of view, "width", "height"}` (the viewer's current view)."""
+    try:
+        vm = np.asarray(view["viewmat"], dtype=np.float64)
+        width, height, fov = int(view["width"]), int(view["height"]), float(view["fov_deg"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"view: expected viewmat, fov_deg, width and height ({exc})") from None
+    if vm.shape != (4, 4) or not np.isfinite(vm).all():
+        raise ValueError("view.viewmat must be a finite 4x4 matrix")
+    R = vm[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+        raise ValueError("view.viewmat's rotation is not a rotation")
+    if not (16 <= width <= 4096 and 16 <= height <= 4096) or not (1 <= fov < 179):
+        raise ValueError("view: width and height must be in 16..4096 and fov_deg in [1, 179)")
+    K = intrinsics(width, height, fov).double().numpy()
+    return [PathStep(Camera(K=K, viewmat=vm, width=width, height=height), float(t)) for t in times]

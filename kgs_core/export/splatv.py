@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from ..io import atomic_write_bytes
+from ..progress import progress_bar
 from .bake import ExportSource, bake, quat_to_rotmat_np, rotmat_to_quat
 
 SPLATV_MAGIC = 0x674B
@@ -103,7 +103,7 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
     quats = np.empty((len(times), n, 4))
     variances = np.empty((len(times), n, 3))
     opacities = np.empty((len(times), n))
-    for k, t in enumerate(tqdm(times, desc="splatv: sample trajectories", disable=not progress, unit="t")):
+    for k, t in enumerate(progress_bar(times, desc="splatv: sample trajectories", stage="sample trajectories", unit="t", show=progress)):
         g = bake(source, float(t), exposure) if source.moves else ref
         R, var = _aligned_rotations(g.covars, ref_axes)
         means[k], variances[k], quats[k], opacities[k] = g.means, var, rotmat_to_quat(R), g.opacities
@@ -168,7 +168,7 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
     extent = float(np.linalg.norm(ref.means.max(0) - ref.means.min(0))) if n else 1.0
     pos_err, cov_err = [], []
     if dyn.any():
-        for t in tqdm(check, desc="splatv: check fit", disable=not progress, unit="t"):
+        for t in progress_bar(check, desc="splatv: check fit", stage="check the fit", unit="t", show=progress):
             g = bake(source, float(t), exposure)
             p, cov, _ = evaluate_splatv(decoded, float(t))
             pos_err.append(np.linalg.norm(p[dyn] - g.means[dyn], axis=1))

@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..data.video import encode_video
+from ..progress import progress_bar
 from .bake import ExportSource, bake, render_baked
 from .camera_path import PathStep
 
@@ -29,7 +29,7 @@ def render_path(source: ExportSource, steps: list[PathStep], exposure: float = 0
                 background: np.ndarray | None = None, progress: bool = True) -> list[np.ndarray]:
     frames = []
     static = None if source.moves else bake(source, 0.0, exposure)  # a static scene is baked once
-    for step in tqdm(steps, desc="render video", disable=not progress, unit="frame"):
+    for step in progress_bar(steps, desc="render video", show=progress):
         g = static if static is not None else bake(source, step.time, exposure)
         img = _to_uint8(render_baked(g, step.camera, source.sh_degree, background).image.numpy())
         if side_by_side:
