@@ -46,11 +46,13 @@ class DemoStarted(Response):
 # ------------------------------------------------------------------ scenes
 
 
-class IngestProgress(Response):
+class StageProgress(Response):
+    """A job's current stage (`backend/worker.py: stage_writer`): ingests and exports."""
+
     stage: str
     done: int
     total: int | None
-    elapsed: float = Field(description="seconds since the ingest started")
+    elapsed: float = Field(description="seconds since the job started")
     stages: list[tuple[str, float]] = Field(description="the stages done, each with its seconds")
 
 
@@ -58,7 +60,7 @@ class SceneSummary(JobRow):
     name: str
     source: str = Field(description="synth, ingest or upload")
     videos: int | None = Field(None, description="ingest scenes: the videos uploaded (1, or 2 with a sharp camera)")
-    progress: IngestProgress | None = None
+    progress: StageProgress | None = None
 
 
 class SceneDetail(SceneSummary):
@@ -110,6 +112,12 @@ class EditHistory(Response):
     undo_steps: int
     redo: str | None
     redo_steps: int
+
+
+class ObjectSelection(Response):
+    indices: list[int] = Field(description="the object's Gaussians (indices within the LoD level)")
+    lod: int
+    gap: float = Field(description="the distance that separated it from the rest, in scene units")
 
 
 class Split(Response):
@@ -204,3 +212,4 @@ class ExportSummary(JobRow):
     run_id: str
     format: str
     params: dict = Field(description="the export request as given")
+    progress: StageProgress | None = Field(None, description="while it runs: the stage and how far it is")

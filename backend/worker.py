@@ -149,10 +149,15 @@ def run_ingest(spec: dict) -> None:
 
 def run_export(spec: dict) -> None:
     from kgs_core.export import export_run
+    from kgs_core.progress import listen
 
-    export_run(spec["run_dir"], spec["format"], out=spec["out"], times=spec.get("times"),
-               camera_path=spec.get("camera_path", "training"), exposure=float(spec.get("exposure", 0.0)),
-               lod=spec.get("lod"), side_by_side=bool(spec.get("side_by_side")), overwrite=True, progress=False)
+    listener = stage_writer(Path(spec["progress"])) if spec.get("progress") else (lambda *a: None)
+    with listen(listener):
+        export_run(spec["run_dir"], spec["format"], out=spec["out"], times=spec.get("times"),
+                   camera_path=spec.get("camera_path", "training"), exposure=float(spec.get("exposure", 0.0)),
+                   lod=spec.get("lod"), side_by_side=bool(spec.get("side_by_side")), overwrite=True, progress=False,
+                   size=spec.get("size"), view=spec.get("view"), fps=float(spec.get("fps", 24.0)),
+                   web_frame=spec.get("web_frame"))
 
 
 JOBS = {"train": run_train, "synth": run_synth, "ingest": run_ingest, "export": run_export}

@@ -341,6 +341,19 @@ class RunView:
         sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
         return baked_from(g, sel, dynamic=dyn), lod
 
+    def object_at(self, index: int, t: float, lod: int | None = None) -> dict:
+        """The kept dynamic Gaussians connected at time `t` to dynamic Gaussian `index`."""
+        from .selection import GAP_SPACINGS, connected_object, typical_spacing
+
+        g, lod = self.baked(t, lod=lod, subset="dynamic")
+        where = np.nonzero(g.index == index)[0]
+        if not len(where):
+            raise ValueError(f"Gaussian {index} is not a kept moving Gaussian of LoD {lod}: "
+                             "the object tool selects moving objects")
+        gap = GAP_SPACINGS * typical_spacing(g.means)
+        members = connected_object(g.means, int(where[0]), gap)
+        return {"indices": g.index[members].tolist(), "lod": lod, "gap": gap}
+
     # ------------------------------------------------------------ live decomposition and edits
 
     def set_tau(self, tau: float) -> dict:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import pixels
 from PIL import Image
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -28,44 +29,6 @@ pytest.importorskip("playwright.sync_api")
 # CPU rasteriser's PNG of the same camera and time. The browser draws the SH DC colour only and
 # skips the rasteriser's early stop at T < 1e-4; measured 3.05 levels on the test run.
 MAX_MEAN_ERROR = 6.0
-
-
-@pytest.fixture(scope="module")
-def server(tiny_run, tmp_path_factory):
-    import shutil
-
-    from kgs_backend.launch import ServerProcess
-
-    root = tmp_path_factory.mktemp("browser")
-    shutil.copytree(tiny_run.parent.parent, root / "data")
-    run = root / "data" / "runs" / tiny_run.name
-    with ServerProcess([run], root / "ws") as srv:
-        yield {"base": srv.base, "run_id": srv.runs[0]["id"], "run_dir": run}
-
-
-@pytest.fixture
-def page(browser, server):
-    ctx = browser.new_context(viewport={"width": 900, "height": 600}, accept_downloads=True)
-    page = ctx.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    page.goto(f"{server['base']}/#/run/{server['run_id']}")
-    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
-    meta = json.loads(urllib.request.urlopen(f"{server['base']}/api/runs/{server['run_id']}").read())
-    f = meta["frames"][0]
-    K = [v for row in f["K"] for v in row]
-    page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)", [sum(f["viewmat"], []), K, f["width"], f["height"]])
-    yield page
-    assert not errors, errors
-    ctx.close()
-
-
-def pixels(page, t: float | None = None) -> np.ndarray:
-    if t is not None:
-        page.evaluate("(t) => kgs.setTime(t)", t)
-    page.evaluate("kgs.drawn()")
-    d = page.evaluate("kgs.readPixels()")
-    return np.array(d["rgb"], dtype=np.float64).reshape(d["height"], d["width"], 3)
 
 
 def test_page_loads_and_draws(page):

@@ -867,3 +867,79 @@ def test_full_or_read_only_storage_is_named_not_a_500(client, monkeypatch):
     monkeypatch.setattr(ws, "new_dir", lambda *a, **k: (_ for _ in ()).throw(OSError(errno.EACCES, "denied")))
     with pytest.raises(PermissionError):
         client.post("/api/runs", json={"scene_id": scene_id, "iterations": 10})
+
+
+def test_export_options_are_checked_before_a_job_and_a_video_follows_them(client, tmp_path):
+    """Combinations the exporter refuses answer 422 naming the field; a video from one fixed
+    view at a chosen size has that size and one frame a time; its job reported its stages."""
+    import av
+
+    rid = client.run_id
+    vm = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]
+    view = {"viewmat": vm, "fov_deg": 60, "width": 64, "height": 48}
+    for body, word in (({"format": "mp4", "camera_path": "view"}, "view"),
+                       ({"format": "mp4", "view": view}, "view"),
+                       ({"format": "mp4", "camera_path": "view", "view": {**view, "viewmat": [[2, 0, 0, 0]] * 4}}, "rotation"),
+                       ({"format": "mp4", "camera_path": "orbit", "side_by_side": True}, "side_by_side"),
+                       ({"format": "splat", "size": 256}, "size"),
+                       ({"format": "mp4", "size": 8}, "size"),
+                       ({"format": "glb", "web_frame": True}, "web_frame"),
+                       ({"format": "glb", "times": "0,1"}, "one time")):
+        r = client.post(f"/api/runs/{rid}/exports", json=body)
+        assert r.status_code == 422 and word in r.text, (body, r.text[:300])
+    r = client.post(f"/api/runs/{rid}/exports", json={"format": "mp4", "camera_path": "view", "view": view,
+                                                      "size": 96, "times": "0:1:5"})
+    assert r.status_code == 202, r.text
+    e = wait_status(client, f"/api/exports/{r.json()['id']}")
+    assert e["status"] == "done", e
+    (tmp_path / "v.mp4").write_bytes(client.get(f"/api/exports/{e['id']}/download").content)
+    with av.open(str(tmp_path / "v.mp4")) as c:
+        frames = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+    assert len(frames) == 5 and frames[0].shape == (72, 96, 3)
+    progress = json.loads((client.app_.state.ws.root / "jobs" / f"{e['id']}.progress.json").read_text())
+    assert progress["stage"] == "encode video" and progress["done"] == progress["total"] == 5
+    assert [s[0] for s in progress["stages"]] == ["render video"]
+
+
+def test_the_object_tool_selects_the_moving_gaussians_connected_to_one(client):
+    """The ball of the test scene: every Gaussian the endpoint returns is dynamic, kept and
+    joined to the clicked one; a static Gaussian or a bad index is refused by name."""
+    from kgs_core.selection import connected_object
+
+    rid = client.run_id
+    view = client.app_.state.views.get(rid, Path(client.app_.state.ws.get("runs", rid)["path"]))
+    g, lod = view.baked(0.5, subset="dynamic")
+    seed = int(g.index[0])
+    r = client.post(f"/api/runs/{rid}/select-object", json={"index": seed, "t": 0.5})
+    assert r.status_code == 200, r.text
+    got = r.json()
+    assert seed in got["indices"] and set(got["indices"]) <= set(g.index.tolist())
+    expect = g.index[connected_object(g.means, 0, got["gap"])]
+    assert sorted(got["indices"]) == sorted(expect.tolist())
+    static, _ = view.baked(0.5, subset="static")
+    r = client.post(f"/api/runs/{rid}/select-object", json={"index": int(static.index[0]), "t": 0.5})
+    assert r.status_code == 422 and "moving" in r.text
+    assert client.post(f"/api/runs/{rid}/select-object", json={"index": 0, "t": 2}).status_code == 422
+
+
+def test_connected_object_stops_at_empty_space():
+    """Two clusters a gap apart and a chain: the component of a seed is its own cluster, and a
+    chain of close points joins what it links."""
+    from kgs_core.selection import connected_object
+
+    rng = np.random.default_rng(1)
+    a, b = rng.uniform(0, 1, (400, 3)), rng.uniform(0, 1, (300, 3)) + [3, 0, 0]
+    pts = np.concatenate([a, b])
+    assert connected_object(pts, 0).tolist() == list(range(400))
+    assert connected_object(pts, 450).tolist() == list(range(400, 700))
+    chain = np.stack([np.linspace(1, 3, 40), np.full(40, 0.5), np.full(40, 0.5)], 1)
+    assert len(connected_object(np.concatenate([pts, chain]), 0)) == 740
+    with pytest.raises(ValueError, match="seed"):
+        connected_object(pts, 700)
+    # A ball in front of a wall: a seed on the ball's front takes its back half too, not the wall.
+    d = rng.normal(size=(1500, 3))
+    ball = 0.5 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    wall = np.stack([rng.uniform(-2, 2, 3000), rng.uniform(-2, 2, 3000), np.full(3000, 1.5)], 1)
+    front = int(np.argmin(ball[:, 2]))  # nearest a camera looking along +z
+    got = connected_object(np.concatenate([ball, wall]), front)
+    assert got.tolist() == list(range(1500))

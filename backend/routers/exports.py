@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import threading
@@ -11,10 +12,11 @@ from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse
-from pydantic import Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from kgs_core.export import SUFFIX
 from kgs_core.export.bake import parse_times
+from kgs_core.export.camera_path import view_path
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
@@ -25,13 +27,29 @@ from ..schemas import StrictRequest
 router = APIRouter(tags=["exports"])
 
 
+class ViewCamera(BaseModel):
+    """The viewer's current view, for a video from where the user looks."""
+
+    model_config = ConfigDict(extra="forbid")
+    viewmat: list[list[float]] = Field(description="4x4 world-to-camera (OpenCV axes), row-major")
+    fov_deg: float = Field(ge=1, lt=179, description="horizontal field of view")
+    width: int = Field(ge=16, le=4096)
+    height: int = Field(ge=16, le=4096)
+
+
 class ExportRequest(StrictRequest):
     format: Literal["ply-seq", "splat", "splatv", "mp4", "glb"]
     times: str | None = Field(None, max_length=10000, description="T, T1,T2,... or START:STOP:COUNT")
-    camera_path: Literal["training", "orbit"] = "training"
+    camera_path: Literal["training", "orbit", "view"] = Field("training", description="mp4: the training cameras, "
+                                                             "an orbit, or `view` (one fixed camera)")
+    view: ViewCamera | None = Field(None, description="the camera of camera_path `view`")
     exposure: float = Field(0.0, ge=0, le=1)
     lod: int | None = Field(None, ge=1)
-    side_by_side: bool = False
+    side_by_side: bool = Field(False, description="mp4 on the training path: the input frame beside each render")
+    size: int | None = Field(None, ge=16, le=4096, description="mp4: the video's long side in pixels")
+    fps: float = Field(24.0, gt=0, le=240, description="mp4: frames a second")
+    web_frame: bool | None = Field(None, description="write the file at the web viewers' default view (default: on "
+                                   "for splat and splatv)")
 
     @field_validator("times")
     @classmethod
@@ -40,9 +58,36 @@ class ExportRequest(StrictRequest):
         parse_times(v, [])
         return v
 
+    @model_validator(mode="after")
+    def options_fit_the_format(self) -> "ExportRequest":
+        """The combinations `export_run` refuses, refused before the job starts."""
+        if (self.camera_path == "view") != (self.view is not None):
+            raise ValueError("camera_path 'view' and a view go together")
+        if self.view is not None:
+            view_path(self.view.model_dump(), [0.0])  # a viewmat that is not a rotation
+        if self.side_by_side and self.camera_path != "training":
+            raise ValueError("side_by_side needs camera_path 'training'")
+        if self.size is not None and self.format != "mp4":
+            raise ValueError("size sets a video's resolution: only with format mp4")
+        if self.web_frame and self.format not in ("ply-seq", "splat", "splatv"):
+            raise ValueError(f"web_frame is for ply-seq, splat and splatv, not {self.format}")
+        if self.format == "glb" and len(parse_times(self.times, [0.5])) != 1:
+            raise ValueError("glb exports one time")
+        return self
 
-def public(row: dict) -> dict:
-    return {k: row[k] for k in ("id", "run_id", "format", "status", "error", "created", "params", "queue_position")}
+
+def public(row: dict, ws: Workspace | None = None) -> dict:
+    out = {k: row[k] for k in ("id", "run_id", "format", "status", "error", "created", "params", "queue_position")}
+    if ws is not None and row["status"] == JobStatus.RUNNING:
+        try:
+            out["progress"] = json.loads(progress_path(ws, row["id"]).read_text())
+        except (OSError, ValueError):
+            out["progress"] = None
+    return out
+
+
+def progress_path(ws: Workspace, export_id: str) -> Path:
+    return ws.root / "jobs" / f"{export_id}.progress.json"
 
 
 @router.post("/api/runs/{run_id}/exports", status_code=202, response_model=ExportSummary)
@@ -55,7 +100,8 @@ def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(worksp
     out = ws.new_dir("exports", eid) / (f"{req.format}{SUFFIX.get(req.format, '')}")
     ws.insert("exports", id=eid, run_id=run_id, format=req.format, path=str(out), status=JobStatus.QUEUED,
               params=req.model_dump())
-    jr.start("exports", eid, "export", {"run_dir": run["path"], "out": str(out), **req.model_dump()})
+    jr.start("exports", eid, "export", {"run_dir": run["path"], "out": str(out), **req.model_dump(),
+                                        "progress": str(progress_path(ws, eid))})
     return public(ws.get("exports", eid))
 
 
@@ -67,7 +113,7 @@ def list_exports(run_id: str, ws: Workspace = Depends(workspace)) -> list[dict]:
 
 @router.get("/api/exports/{export_id}", response_model=ExportSummary)
 def get_export(export_id: str, ws: Workspace = Depends(workspace)) -> dict:
-    return public(get_or_404(ws, "exports", export_id))
+    return public(get_or_404(ws, "exports", export_id), ws)
 
 
 @router.get("/api/exports/{export_id}/download")
@@ -110,3 +156,4 @@ def delete_export(export_id: str, ws: Workspace = Depends(workspace)) -> None:
     if row["status"] in ACTIVE:
         raise HTTPException(409, "the export is still running")
     ws.remove([("exports", export_id)], [Path(row["path"]).parent])
+    progress_path(ws, export_id).unlink(missing_ok=True)

@@ -17,7 +17,7 @@ from kgs_core.train.settings import NAMED, NamedSetting, bound, named_overrides,
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
 from ..registry import ACTIVE, JobStatus, Workspace, new_id
-from ..responses import Edits, LogRow, RunDetail, RunSummary, Split
+from ..responses import Edits, LogRow, ObjectSelection, RunDetail, RunSummary, Split
 from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
@@ -72,6 +72,12 @@ class EditRequest(StrictRequest):
     lod: int | None = None
     indices: list[int] = Field([], max_length=5_000_000)
     crop: dict | None = None
+
+
+class ObjectRequest(StrictRequest):
+    index: int = Field(ge=0, description="a dynamic Gaussian of the object (its index within the LoD level)")
+    t: float = Field(ge=0, le=1, description="the time the object is looked at")
+    lod: int | None = None
 
 
 def read_json(path: Path) -> dict:
@@ -277,3 +283,13 @@ async def edit(run_id: str, req: EditRequest, request: Request) -> dict:
         raise HTTPException(422, str(exc)) from None
     await request.app.state.hub.broadcast(run_id, {"type": "split", **split})
     return split
+
+
+@router.post("/{run_id}/select-object", response_model=ObjectSelection)
+def select_object(run_id: str, req: ObjectRequest, request: Request) -> dict:
+    """The moving object a Gaussian belongs to: the kept dynamic Gaussians connected to it at
+    time t (`kgs_core.selection`)."""
+    try:
+        return run_view(request.app, run_id).object_at(req.index, req.t, req.lod)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None

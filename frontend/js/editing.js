@@ -1,7 +1,8 @@
 // Selecting and editing splats in the viewer: box and brush selection of the splats in front
-// (or through, at every depth), then hide, delete, restore or crop through the server's edit
-// layer (`/api/runs/{id}/edits`; the model itself is never changed), with undo and redo kept
-// there too, so that they survive a reload. Mixed into `Viewer`.
+// (or through, at every depth), a moving object by a click, all and invert, each replacing,
+// adding to or subtracting from the selection; then hide, delete, restore or crop through the
+// server's edit layer (`/api/runs/{id}/edits`; the model itself is never changed), with undo
+// and redo kept there too, so that they survive a reload. Mixed into `Viewer`.
 
 import { api } from "./api.js";
 import { project } from "./camera.js";
@@ -13,6 +14,8 @@ export const editing = {
     this.tool = "none";
     $("tool").onchange = (e) => { this.tool = e.target.value; this.canvas.style.cursor = this.tool === "none" ? "" : "crosshair"; };
     $("sel-clear").onclick = () => this.setSelection(new Set());
+    $("sel-all").onclick = () => this.selectAll();
+    $("sel-invert").onclick = () => this.invertSelection();
     for (const op of ["hide", "delete"]) $(`edit-${op}`).onclick = () => this.edit(op, [...this.selected]);
     $("edit-unhide").onclick = () => this.edit("unhide", []);
     $("edit-restore").onclick = () => this.edit("restore", []);
@@ -38,7 +41,8 @@ export const editing = {
   // The splats whose centres fall inside a screen region. By default only those at the front:
   // a box around a ball must not take the wall behind it (deleting would leave a hole there).
   // "Through" (#select-through) takes everything inside, at every depth.
-  pick(inside) {
+  // `hits`: the raw [index, u, v, depth] of the front splats, nearest first (the object tool).
+  pick(inside, hits_ = false) {
     const vm = this.currentViewmat(), K = this.intrinsics();
     const hits = [];  // [index, u, v, depth]
     for (const set of [this.static, this.dynamic]) {
@@ -50,8 +54,56 @@ export const editing = {
         if (z > 0.01 && inside(u, v)) hits.push([set.index[i], u, v, z]);
       }
     }
+    if (hits_) return frontOf(hits).sort((a, b) => a[3] - b[3]);
     if ($("select-through").checked) return new Set(hits.map((h) => h[0]));
     return new Set(frontOf(hits).map((h) => h[0]));
+  },
+
+  // The indices of every splat drawn now (the sets shown, at this LoD).
+  shownIndices() {
+    const out = new Set();
+    for (const set of [this.static, this.dynamic]) {
+      if (!set) continue;
+      const isDyn = set === this.dynamic;
+      if ((isDyn && !(this.show & 2)) || (!isDyn && !(this.show & 1))) continue;
+      for (let i = 0; i < set.count; i++) out.add(set.index[i]);
+    }
+    return out;
+  },
+
+  selectAll() { this.setSelection(this.shownIndices()); },
+
+  invertSelection() {
+    this.setSelection(new Set([...this.shownIndices()].filter((i) => !this.selected.has(i))));
+  },
+
+  // How `picked` changes the selection: the mode menu, or Shift (add) and Alt (subtract).
+  combine(picked, e = null) {
+    const mode = e && e.altKey ? "subtract" : e && e.shiftKey ? "add" : $("sel-mode").value;
+    if (mode === "add") return new Set([...this.selected, ...picked]);
+    if (mode === "subtract") return new Set([...this.selected].filter((i) => !picked.has(i)));
+    return picked;
+  },
+
+  // Where a world point lands on the canvas, in canvas pixels: [u, v, depth].
+  screenPoint(p) {
+    return project(this.currentViewmat(), this.intrinsics(), p);
+  },
+
+  // The moving object under canvas pixel (u, v): the nearest visible splat within a few pixels,
+  // then every dynamic Gaussian connected to it (the server's select-object).
+  async selectObjectAt(u, v, e = null) {
+    const r = 8;
+    const hits = this.pick((a, b) => (a - u) ** 2 + (b - v) ** 2 <= r * r, true);
+    const d = this.dynamic;
+    const dynamicIds = new Set(d ? d.index : []);
+    const seed = hits.find((h) => dynamicIds.has(h[0]));
+    if (!seed) { this.status("no moving object under the cursor"); return 0; }
+    const res = await api(`/api/runs/${this.runId}/select-object`, { method: "POST",
+      body: { index: seed[0], t: this.t, lod: this.lod } });
+    this.setSelection(this.combine(new Set(res.indices), e));
+    this.status(`object: ${res.indices.length.toLocaleString()} moving Gaussians`);
+    return res.indices.length;
   },
 
   editPointer(e, phase) {
@@ -59,6 +111,10 @@ export const editing = {
     const sx = this.canvas.width / r.width, sy = this.canvas.height / r.height;
     const u = (e.clientX - r.left) * sx, v = (e.clientY - r.top) * sy;
     const box = $("select-box");
+    if (this.tool === "object") {
+      if (phase === "up") this.selectObjectAt(u, v, e);
+      return;
+    }
     if (this.tool === "box") {
       if (phase === "down") { this.boxStart = [u, v]; box.style.display = "block"; }
       if (!this.boxStart) return;
@@ -67,23 +123,30 @@ export const editing = {
                                  width: `${Math.abs(u - u0) / sx}px`, height: `${Math.abs(v - v0) / sy}px` });
       if (phase === "up") {
         box.style.display = "none";
-        this.selectBox(u0, v0, u, v, e.shiftKey);
+        this.selectBox(u0, v0, u, v, e);
         this.boxStart = null;
       }
     } else if (this.tool === "brush") {
-      if (phase === "down") this.brushing = true;
+      if (phase === "down") {  // a stroke in "replace" starts a new selection, then grows it
+        this.brushing = true;
+        this.brushSubtract = e.altKey || (!e.shiftKey && $("sel-mode").value === "subtract");
+        if (!e.altKey && !e.shiftKey && $("sel-mode").value === "replace") this.selected = new Set();
+      }
       if (phase === "up") this.brushing = false;
       if (!this.brushing) return;
       const rad = parseFloat($("brush-size").value) * sx;
       const picked = this.pick((a, b) => (a - u) ** 2 + (b - v) ** 2 <= rad * rad);
-      this.setSelection(new Set([...this.selected, ...picked]));
+      this.setSelection(this.brushSubtract ? new Set([...this.selected].filter((i) => !picked.has(i)))
+        : new Set([...this.selected, ...picked]));
     }
   },
 
-  selectBox(u0, v0, u1, v1, add = false) {
+  // `e`: the pointer event (its Shift and Alt), or a mode name ("replace", "add", "subtract").
+  selectBox(u0, v0, u1, v1, e = null) {
     const [a0, a1] = [Math.min(u0, u1), Math.max(u0, u1)], [b0, b1] = [Math.min(v0, v1), Math.max(v0, v1)];
     const picked = this.pick((u, v) => u >= a0 && u <= a1 && v >= b0 && v <= b1);
-    this.setSelection(add ? new Set([...this.selected, ...picked]) : picked);
+    const how = typeof e === "string" ? { shiftKey: e === "add", altKey: e === "subtract" } : e;
+    this.setSelection(this.combine(picked, how));
     return picked.size;
   },
 

@@ -63,6 +63,11 @@ export const navigation = {
         if (!$(redo ? "edit-redo" : "edit-undo").disabled) this.edit(redo ? "redo" : "undo", []);
         return;
       }
+      if ((e.ctrlKey || e.metaKey) && !e.altKey && (e.code === "KeyA" || e.code === "KeyI")) {
+        e.preventDefault();  // (not the page's text selection)
+        if (e.code === "KeyA") this.selectAll(); else this.invertSelection();
+        return;
+      }
       if (e.ctrlKey || e.metaKey || e.altKey) return;
       if (this.shortcut(e.code)) e.preventDefault();
       else this.keys.add(e.code);
@@ -81,6 +86,7 @@ export const navigation = {
       KeyR: () => this.resetView(),
       Home: () => this.resetView(),
       Delete: () => this.selected && this.selected.size && this.edit("delete", [...this.selected]),
+      Escape: () => this.setSelection(new Set()),
     };
     if (!(code in actions)) return false;
     actions[code]();
