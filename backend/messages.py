@@ -21,6 +21,7 @@ class Subscribe(ClientMessage):
     type: Literal["subscribe"]
     lod: int | None = None  # 1-based; None: the run's finest. The run checks it against its levels.
     velocity: bool = True  # append velocities to dynamic sets (for the ellipsoid overlay)
+    sh: bool = False  # also send the level's view-dependent colour (SH) coefficients, once
 
 
 class TimeRequest(ClientMessage):

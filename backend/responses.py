@@ -197,6 +197,7 @@ class RunDetail(RunSummary):
     static_only: bool | None = None
     sh_degree: int | None = None
     frames: list[FrameInfo] | None = None
+    frame_rate: float | None = Field(None, description="frames a second of the clip, when its scene recorded one")
     edits: Edits | None = None
 
 

@@ -20,7 +20,7 @@ from .export.bake import Baked, baked_from
 from .model.decomposition import split_counts, variance_histogram
 from .model.gaussians import presence
 from .run import LoadedRun, load_run
-from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, rgba_of
+from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, pack_sh_buffer, rgba_of
 
 _STOP = threading.Event()  # set at interpreter exit: builders stop between samples
 _BUILDERS: set[threading.Thread] = set()
@@ -215,6 +215,7 @@ class RunView:
         self.use_trajectories = True  # False: always evaluate the deformation field exactly
         self.version = 0  # bumped by τ changes and edits: clients re-request the static set
         self._frames: list[dict] | None = None
+        self.frame_rate: float | None = None  # frames a second of the scene's clip, when recorded (set by `frames`)
 
     @property
     def dt(self) -> float:
@@ -227,9 +228,12 @@ class RunView:
             from kgs_core.data.formats import load_scene
 
             try:
-                frames = load_scene(self.run.scene_path()).frames
+                scene = load_scene(self.run.scene_path())
+                frames, extras = scene.frames, scene.extras or {}
             except ValueError:
-                frames = []
+                frames, extras = [], {}
+            rate = extras.get("fps", (extras.get("ingest") or {}).get("fps"))
+            self.frame_rate = float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
             self._frames = [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
                              "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
                             for i, f in enumerate(frames)]
@@ -294,6 +298,15 @@ class RunView:
         if self.use_trajectories:
             self.trajectories(lod, 0.0)  # start building the cache as soon as someone watches
         return buf
+
+    def sh_buffer(self, lod: int | None = None) -> bytes | None:
+        """Every Gaussian's SH coefficients after the DC term, by index within the level (the
+        same whatever τ or the edits: they do not change a Gaussian's index); None at degree 0."""
+        lod, m = self.model(lod)
+        rest = m.params.sh_rest.detach()
+        if rest.shape[1] == 0:
+            return None
+        return pack_sh_buffer({"lod": lod, "degree": m.config.sh_degree}, rest.numpy())
 
     def trajectories(self, lod: int, exposure: float) -> Trajectories | None:
         """The ready trajectory cache for (lod, exposure), starting its build if needed."""

@@ -11,6 +11,11 @@ Layout:
 - then, if `velocity`: N × 3 float16 velocities (scene units per unit time), padded to a
   multiple of 4 bytes.
 
+A view-dependent colour buffer (`kind: "sh"`, sent once per LoD level when asked for) has the
+same magic and header, `{"kind": "sh", "lod": …, "degree": d, "count": N, "bases": B}`, then
+N × B × 3 float16: the SH coefficients after the DC term (B = (d+1)² - 1) of every Gaussian of
+the level, by its index (the records' `index`), padded to a multiple of 4 bytes.
+
 Covariances are divided by `cov_scale` (the median of their traces / 3) so that float16 keeps
 its precision for small Gaussians. `unpack_buffer` is the reference reader; the browser's is
 `frontend/js/buffers.js`.
@@ -73,6 +78,15 @@ def pack_buffer(header: dict, means: np.ndarray, cov6: np.ndarray, rgba: np.ndar
     if vel is not None:
         vel[:] = np.clip(velocity, -F16_MAX, F16_MAX)
     return bytes(buf)
+
+
+def pack_sh_buffer(header: dict, sh_rest: np.ndarray) -> bytes:
+    """The view-dependent colour buffer of `sh_rest (N, B, 3)` (layout above)."""
+    n, bases = sh_rest.shape[:2]
+    hj = json.dumps({**header, "kind": "sh", "count": int(n), "bases": int(bases)}).encode()
+    hj += b" " * (-len(hj) % 4)
+    body = np.clip(sh_rest, -F16_MAX, F16_MAX).astype("<f2").tobytes()
+    return MAGIC + struct.pack("<I", len(hj)) + hj + body + b"\0" * (-len(body) % 4)
 
 
 def unpack_buffer(data: bytes) -> tuple[dict, np.ndarray, np.ndarray | None]:

@@ -1,6 +1,8 @@
-"""The viewer's editor and export panel as a user drives them in headless Chromium (SwiftShader
-WebGL2) against a real `kgs-app serve`: selection (all, invert, subtract, a moving object by a
-click) and the export panel's options. Needs /usr/bin/chromium, as test_browser.py."""
+"""The viewer's editor, export panel and view settings as a user drives them in headless
+Chromium (SwiftShader WebGL2) against a real `kgs-app serve`: selection (all, invert, subtract,
+a moving object by a click), the export panel's options, view-dependent colour, field of view,
+background, screenshots, the time in seconds, and the view and time kept in the URL. Needs
+/usr/bin/chromium, as test_browser.py."""
 
 from __future__ import annotations
 
@@ -11,8 +13,10 @@ import urllib.request
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import pixels
+from PIL import Image
 
 CHROMIUM = Path("/usr/bin/chromium")
 if not CHROMIUM.exists():
@@ -140,3 +144,113 @@ def test_export_panel_options_reach_the_files(page, server, tmp_path):
     times = sorted({f["time"] for f in meta["frames"] if f["split"] == "train" and not f.get("camera_id")})
     assert [round(f["time"], 5) for f in report["frames"]] == [round(t, 5) for t in times[1:4]]
     assert report["web_frame"]["viewer"] == "antimatter15/splat"
+
+
+def open_viewer(browser, base: str, run_id: str, query: str = "", **context):
+    ctx = browser.new_context(viewport={"width": 700, "height": 500}, accept_downloads=True, **context)
+    page = ctx.new_page()
+    page.goto(f"{base}/#/run/{run_id}{query}")
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    page.evaluate("kgs.drawn()")
+    return ctx, page
+
+
+def read(page) -> np.ndarray:
+    page.evaluate("kgs.drawn()")
+    d = page.evaluate("kgs.readPixels()")
+    return np.array(d["rgb"], dtype=np.float64).reshape(d["height"], d["width"], 3)
+
+
+@pytest.fixture(scope="module")
+def sh_server(tiny_run, tmp_path_factory):
+    """The test run with strong view-dependent colour: its SH coefficients after the DC term
+    (every LoD level's) replaced by random ones, so that leaving them out shows."""
+    import shutil
+
+    import torch
+
+    from kgs_backend.launch import ServerProcess
+    from kgs_core.run import load_torch, save_torch
+
+    root = tmp_path_factory.mktemp("sh")
+    shutil.copytree(tiny_run.parent.parent, root / "data")
+    run = root / "data" / "runs" / tiny_run.name
+    state = load_torch(run / "model.pt")
+    gen = torch.Generator().manual_seed(0)
+    for params in [state["model"]["params"], *(lvl["params"] for lvl in state["levels"])]:
+        params["sh_rest"] = 0.5 * torch.randn(params["sh_rest"].shape, generator=gen)
+    save_torch(run / "model.pt", state)
+    with ServerProcess([run], root / "ws") as srv:
+        yield {"base": srv.base, "run_id": srv.runs[0]["id"]}
+
+
+def test_view_dependent_colour_matches_the_cpu_rasteriser(browser, sh_server):
+    """With strong SH terms the browser's frame matches the server's full-SH render from the
+    training camera; drawn with the base colour only it does not (a wrong basis sign fails)."""
+    base, rid = sh_server["base"], sh_server["run_id"]
+    ctx, page = open_viewer(browser, base, rid)
+    meta = json.loads(urllib.request.urlopen(f"{base}/api/runs/{rid}").read())
+    f = meta["frames"][0]
+    page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)",
+                  [sum(f["viewmat"], []), sum(f["K"], []), f["width"], f["height"]])
+    page.evaluate("kgs.setTime(0.5)")
+    web = read(page)
+    png = urllib.request.urlopen(f"{base}/api/runs/{rid}/render?t=0.5&frame=0").read()
+    cpu = np.asarray(Image.open(io.BytesIO(png)), dtype=np.float64)
+    page.uncheck("#view-sh")
+    flat = read(page)
+    ctx.close()
+    err, err_flat = np.abs(web - cpu).mean(), np.abs(flat - cpu).mean()
+    print(f"browser vs CPU with SH: {err:.2f}/255, base colour only: {err_flat:.2f}/255")
+    assert err < 6.0 and err_flat > 2 * err
+
+
+def test_field_of_view_background_and_screenshot(browser, server):
+    ctx, page = open_viewer(browser, server["base"], server["run_id"])
+    w = page.evaluate("kgs.canvas.width")
+    before = read(page)
+    page.fill("#fov", "30")
+    page.dispatch_event("#fov", "input")
+    fx = page.evaluate("kgs.intrinsics()[0]")
+    assert fx == pytest.approx(w / (2 * np.tan(np.radians(15))), rel=1e-6)
+    assert page.inner_text("#fov-label") == "30°" and np.abs(read(page) - before).mean() > 1
+    page.click("#reset-view")
+    assert np.abs(read(page) - before).max() == 0
+    # Background: C + (1 - A) bg, so red where the splats do not cover, the other channels alike.
+    page.eval_on_selector("#background", "(el) => { el.value = '#ff0000'; el.dispatchEvent(new Event('input')); }")
+    red = read(page)
+    assert np.abs(red[..., 1:] - before[..., 1:]).max() <= 1
+    assert (red[..., 0] >= before[..., 0] - 1).all() and (red[..., 0] - before[..., 0]).max() > 20
+    with page.expect_download() as dl:
+        page.click("#screenshot")
+    assert dl.value.suggested_filename == "bounce-tiny-frame1.png"
+    shot = np.asarray(Image.open(dl.value.path()).convert("RGB"), dtype=np.float64)
+    assert shot.shape == red.shape and np.abs(shot - red).max() <= 1
+    ctx.close()
+
+
+def test_the_url_keeps_the_view_and_time_and_the_label_reads_seconds(browser, server):
+    """Step two frames and turn the view: the URL says so, a reload shows the same picture, and
+    the link opened elsewhere too. The time label names the frame and its second (the synthetic
+    camera films at 30 frames a second)."""
+    ctx, page = open_viewer(browser, server["base"], server["run_id"])
+    page.click("#canvas")
+    page.keyboard.press("ArrowRight")
+    page.keyboard.press("ArrowRight")
+    assert page.inner_text("#time-label").startswith("frame 3 of 8 · 0.07 s · t = ")
+    box = page.locator("#canvas").bounding_box()
+    page.mouse.move(box["x"] + 200, box["y"] + 200)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 260, box["y"] + 180, steps=5)
+    page.mouse.up()
+    page.wait_for_function("location.hash.includes('orbit=') && location.hash.includes('t=0.285714')", timeout=5_000)
+    picture = read(page)
+    url = page.url
+    page.reload()
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    assert page.inner_text("#time-label").startswith("frame 3 of 8")
+    assert np.abs(read(page) - picture).mean() < 0.5
+    ctx.close()
+    ctx, page = open_viewer(browser, server["base"], server["run_id"], "?" + url.split("?", 1)[1])
+    assert np.abs(read(page) - picture).mean() < 0.5
+    ctx.close()

@@ -54,6 +54,8 @@ def test_sfm_recovers_camera_centres(room_video, tmp_path):
     print(f"camera centre error {err:.3%} of the scene extent, {report.registered}/{report.frames} registered")
     assert err < 0.02, f"camera centre error {err:.3%} of the scene extent"
     assert scene.extras["ingest"]["registered"] == report.registered
+    # The clip's rate over the stride: what the viewer reads a frame's time in seconds with.
+    assert report.fps == pytest.approx(12 / report.stride) and scene.extras["ingest"]["fps"] == report.fps
     # The rasteriser is pinhole: ingest undistorts, and each frame's pixels match its camera.
     for f in scene.train_frames[:4]:
         assert not np.any(f.camera.distortion)

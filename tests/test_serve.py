@@ -943,3 +943,29 @@ def test_connected_object_stops_at_empty_space():
     front = int(np.argmin(ball[:, 2]))  # nearest a camera looking along +z
     got = connected_object(np.concatenate([ball, wall]), front)
     assert got.tolist() == list(range(1500))
+
+
+def test_stream_sends_the_view_dependent_colour_once_when_asked(client):
+    """With `sh`, after the static set: every Gaussian's SH coefficients after the DC term, by
+    index within the level, in float16; without it, none."""
+    import struct
+
+    rid = client.run_id
+    view = client.app_.state.views.get(rid, Path(client.app_.state.ws.get("runs", rid)["path"]))
+    rest = view.run.level(view.run.n_levels).params.sh_rest.detach().numpy()
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
+        w.send_json({"type": "subscribe", "sh": True})
+        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
+        data = recv_bytes(w)
+        (h,) = struct.unpack_from("<I", data, 4)
+        header = json.loads(data[8:8 + h])
+        assert header["kind"] == "sh" and header["bases"] == rest.shape[1] == 3 and header["count"] == len(rest)
+        got = np.frombuffer(data, "<f2", count=rest.size, offset=8 + h).reshape(rest.shape)
+        np.testing.assert_allclose(got, rest, atol=1e-3, rtol=1e-3)
+        w.send_json({"type": "time", "t": 0.5, "seq": 1})
+        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "dynamic"  # sent once, not with each time
+    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
+        w.send_json({"type": "subscribe"})
+        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
+        w.send_json({"type": "time", "t": 0.5, "seq": 1})
+        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "dynamic"

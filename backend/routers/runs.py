@@ -176,6 +176,7 @@ def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -
     out["static_only"] = view.run.static_only
     out["sh_degree"] = view.run.model.config.sh_degree
     out["frames"] = view.frames()
+    out["frame_rate"] = view.frame_rate
     out["edits"] = view.edits.to_dict()
     return out
 

@@ -1,8 +1,9 @@
 """WebSocket `/api/runs/{id}/stream`: splat buffers for scrubbing, live τ, training progress.
 
 Client → server (JSON text; the models, with their bounds, in `backend/messages.py`):
-* `{"type": "subscribe", "lod": L | null, "velocity": true}`: send the static set (once), then
-  answer time requests with dynamic sets.
+* `{"type": "subscribe", "lod": L | null, "velocity": true, "sh": false}`: send the static set
+  (once; with `sh`, then the level's view-dependent colour coefficients), then answer time
+  requests with dynamic sets.
 * `{"type": "time", "t": 0.42, "exposure": 0, "seq": 17}`: the dynamic set at `t`. Requests that
   arrive while one is being computed coalesce: only the latest is answered (its `seq` is echoed).
 * `{"type": "tau", "tau": 2e-5}`: recompute the split (every subscriber gets the new sets).
@@ -61,6 +62,8 @@ class Connection:
         self.ws, self.run_id = ws, run_id
         self.lod: int | None = None
         self.velocity = True
+        self.sh = False
+        self.sh_sent = False
         self.subscribed = False
         self.static_version = -1
         self.pending: dict | None = None  # latest time request (coalesced)
@@ -106,7 +109,8 @@ async def receiver(conn: Connection, app) -> None:
             continue
         try:
             if isinstance(msg, Subscribe):
-                conn.lod, conn.velocity = msg.lod, msg.velocity
+                conn.lod, conn.velocity, conn.sh = msg.lod, msg.velocity, msg.sh
+                conn.sh_sent = False
                 conn.subscribed = True
                 conn.static_version = -1
                 conn.wake.set()
@@ -159,6 +163,11 @@ async def sender(conn: Connection, app) -> None:
                 continue
             conn.static_version = view.version
             await conn.ws.send_bytes(buf)
+        if conn.sh and not conn.sh_sent:
+            conn.sh_sent = True
+            sh = await build(view.sh_buffer, conn.lod)
+            if sh is not None:
+                await conn.ws.send_bytes(sh)
         if conn.pending is not None:
             req, conn.pending = conn.pending, None
             try:

@@ -1,7 +1,8 @@
 // Parsing the server's splat buffers (layout documented in backend/splats.py):
 // "KGS1", uint32 header length H, H bytes of JSON, count x 32-byte records
 // (position 3 x f32, covariance 6 x f16 in units of cov_scale, RGBA 4 x u8, index u32),
-// then, if header.velocity, count x 3 x f16 velocities.
+// then, if header.velocity, count x 3 x f16 velocities. A "sh" buffer (header.kind) holds
+// count x bases x 3 f16 view-dependent colour coefficients instead, by Gaussian index.
 
 export const RECORD_BYTES = 32;
 
@@ -23,6 +24,7 @@ export function parseBuffer(arrayBuffer) {
   const header = JSON.parse(new TextDecoder().decode(bytes.subarray(8, 8 + h)));
   const n = header.count;
   const base = 8 + h;
+  if (header.kind === "sh") return { header, count: n, bases: header.bases, halfs: new Uint16Array(arrayBuffer.slice(base, base + 6 * n * header.bases)) };
   const positions = new Float32Array(3 * n);
   const covariances = new Float32Array(6 * n);
   const rgba = new Uint8Array(4 * n);

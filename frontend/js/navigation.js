@@ -87,6 +87,7 @@ export const navigation = {
       Home: () => this.resetView(),
       Delete: () => this.selected && this.selected.size && this.edit("delete", [...this.selected]),
       Escape: () => this.setSelection(new Set()),
+      KeyP: () => this.screenshot(),
     };
     if (!(code in actions)) return false;
     actions[code]();

@@ -6,6 +6,22 @@
 
 import { TEX_WIDTH, SPLATS_PER_ROW } from "./pack.js";
 
+// The view-dependent colour texture (RGBA32UI): each Gaussian's SH coefficients after the DC
+// term as float16 pairs, SH_TEXELS texels each, SH_PER_ROW Gaussians a row, by Gaussian index.
+export const SH_PER_ROW = 512;
+export function shTexels(bases) { return Math.ceil((3 * bases) / 8); }
+
+// Packs `halfs` (count x bases x 3 float16 bits) into the texture's words.
+export function packSH(halfs, count, bases) {
+  const texels = shTexels(bases), rows = Math.max(1, Math.ceil(count / SH_PER_ROW));
+  const words = new Uint32Array(rows * SH_PER_ROW * texels * 4);
+  const per = 3 * bases;
+  for (let i = 0; i < count; i++) {
+    const w = i * texels * 4;
+    for (let j = 0; j < per; j++) words[w + (j >> 1)] |= halfs[i * per + j] << (16 * (j & 1));
+  }
+  return { words, rows, texels };
+}
 // Inputs of the WebGL2 vertex shader; the footprint math and the overlay colours come from
 // shaders/splat_common.glsl (shared with the desktop viewer), the fragment shader from
 // shaders/splat.frag.glsl.
@@ -17,12 +33,44 @@ uniform vec2 u_size;        // viewport in pixels
 uniform int u_show;         // bit 0 static, bit 1 dynamic
 uniform int u_overlay;      // 0 none, 1 static/dynamic tint, 2 velocity ellipses
 uniform int u_stride;       // overlay density: every k-th dynamic splat in ellipse mode
+uniform usampler2D u_sh;    // view-dependent colour (see packSH)
+uniform int u_sh_bases;     // SH coefficients after the DC term: 0 (DC only), 3, 8 or 15
+uniform int u_sh_texels;
+uniform vec3 u_eye;         // the camera centre in world coordinates
 in vec2 a_corner;
 in uint a_index;
 out vec4 v_color;
 out vec2 v_offset;          // pixels from the centre
 out vec3 v_conic;
 flat out int v_solid;
+
+// Coefficient j (of 3 x bases, colour-minor) of Gaussian id, a float16 unpacked.
+float sh_coef(int id, int j) {
+  ivec2 texel = ivec2((id % ${SH_PER_ROW}) * u_sh_texels + (j >> 3), id / ${SH_PER_ROW});
+  uvec4 t = texelFetch(u_sh, texel, 0);
+  int w = (j >> 1) & 3;
+  uint word = w == 0 ? t.x : w == 1 ? t.y : w == 2 ? t.z : t.w;
+  vec2 pair = unpackHalf2x16(word);
+  return (j & 1) == 0 ? pair.x : pair.y;
+}
+
+// The colour the SH terms after the DC add, seen along d (kgs_core/render/sh.py's basis).
+vec3 sh_view_colour(int id, vec3 d) {
+  float x = d.x, y = d.y, z = d.z, xx = x * x, yy = y * y, zz = z * z;
+  float b[15] = float[15](-0.4886025119029199 * y, 0.4886025119029199 * z, -0.4886025119029199 * x,
+    1.0925484305920792 * x * y, -1.0925484305920792 * y * z, 0.31539156525252005 * (2.0 * zz - xx - yy),
+    -1.0925484305920792 * x * z, 0.5462742152960396 * (xx - yy),
+    -0.5900435899266435 * y * (3.0 * xx - yy), 2.890611442640554 * x * y * z,
+    -0.4570457994644658 * y * (4.0 * zz - xx - yy), 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+    -0.4570457994644658 * x * (4.0 * zz - xx - yy), 1.445305721320277 * z * (xx - yy),
+    -0.5900435899266435 * x * (xx - 3.0 * yy));
+  vec3 c = vec3(0.0);
+  for (int k = 0; k < 15; k++) {
+    if (k >= u_sh_bases) break;
+    c += b[k] * vec3(sh_coef(id, 3 * k), sh_coef(id, 3 * k + 1), sh_coef(id, 3 * k + 2));
+  }
+  return c;
+}
 
 void main() {
   gl_Position = vec4(0.0, 0.0, 2.0, 1.0);
@@ -39,6 +87,10 @@ void main() {
   float yy = uintBitsToFloat(t1.w), yz = uintBitsToFloat(t2.x), zz = uintBitsToFloat(t2.y);
   mat3 S = mat3(xx, xy, xz, xy, yy, yz, xz, yz, zz);
   vec4 rgba = vec4(float(t0.w & 255u), float((t0.w >> 8) & 255u), float((t0.w >> 16) & 255u), float(t0.w >> 24)) / 255.0;
+  if (u_sh_bases > 0) {
+    vec3 world = uintBitsToFloat(t0.xyz);
+    rgba.rgb = clamp(rgba.rgb + sh_view_colour(int(t2.w), normalize(world - u_eye)), 0.0, 1.0);
+  }
   bool solid = u_overlay == 2 && dyn && (int(t2.w) % max(u_stride, 1)) == 0;
   vec2 center, major;
   float r;
@@ -84,6 +136,16 @@ void main() {
   v_head = a_head;
 }`;
 
+// The background, drawn last under the splats (the same front-to-back blending): a full-screen
+// triangle of one colour.
+const BG_VERT = `#version 300 es
+void main() { gl_Position = vec4(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0, 0.0, 1.0); }`;
+const BG_FRAG = `#version 300 es
+precision highp float;
+uniform vec3 u_bg;
+out vec4 frag;
+void main() { frag = vec4(u_bg, 1.0); }`;
+
 const LINE_FRAG = `#version 300 es
 precision highp float;
 in float v_head;
@@ -123,7 +185,11 @@ export class SplatRenderer {
     this.canvas = canvas;
     this.prog = compile(gl, sources.vert, sources.frag);
     this.lineProg = compile(gl, LINE_VERT, LINE_FRAG);
+    this.bgProg = compile(gl, BG_VERT, BG_FRAG);
+    this.bgColour = gl.getUniformLocation(this.bgProg, "u_bg");
     this.tex = gl.createTexture();
+    this.shTex = gl.createTexture();
+    this.shBases = 0;
     this.count = 0;
     this.order = new Uint32Array(0);
     this.vao = gl.createVertexArray();
@@ -154,7 +220,8 @@ export class SplatRenderer {
     gl.bindVertexArray(null);
     this.lineCount = 0;
     this.uniforms = {};
-    for (const name of ["u_splats", "u_view", "u_intr", "u_size", "u_show", "u_overlay", "u_stride"]) {
+    for (const name of ["u_splats", "u_view", "u_intr", "u_size", "u_show", "u_overlay", "u_stride", "u_sh", "u_sh_bases",
+                        "u_sh_texels", "u_eye"]) {
       this.uniforms[name] = gl.getUniformLocation(this.prog, name);
     }
     this.lineUniforms = {};
@@ -177,6 +244,20 @@ export class SplatRenderer {
     this.count = count;
   }
 
+  // The level's view-dependent colour (a parsed "sh" buffer), by Gaussian index.
+  uploadSH(set) {
+    const gl = this.gl;
+    const { words, rows, texels } = packSH(set.halfs, set.count, set.bases);
+    gl.activeTexture(gl.TEXTURE1);
+    gl.bindTexture(gl.TEXTURE_2D, this.shTex);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32UI, SH_PER_ROW * texels, rows, 0, gl.RGBA_INTEGER, gl.UNSIGNED_INT, words);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+    gl.activeTexture(gl.TEXTURE0);
+    this.shBases = set.bases;
+    this.shTexels = texels;
+  }
+
   setOrder(order) {
     const gl = this.gl;
     this.order = order;
@@ -192,7 +273,8 @@ export class SplatRenderer {
     this.lineCount = lines.length / 4;
   }
 
-  draw({ viewmat, K, show = 3, overlay = 0, stride = 1, arrows = false }) {
+  // `sh`: add the view-dependent colour (when uploaded); `background`: RGB in [0, 1].
+  draw({ viewmat, K, show = 3, overlay = 0, stride = 1, arrows = false, sh = true, background = [0, 0, 0] }) {
     const gl = this.gl;
     const w = this.canvas.width, h = this.canvas.height;
     gl.viewport(0, 0, w, h);
@@ -215,9 +297,26 @@ export class SplatRenderer {
       gl.uniform1i(u.u_show, show);
       gl.uniform1i(u.u_overlay, overlay);
       gl.uniform1i(u.u_stride, stride);
+      const bases = sh ? this.shBases : 0;
+      gl.uniform1i(u.u_sh_bases, bases);
+      if (bases) {
+        gl.activeTexture(gl.TEXTURE1);
+        gl.bindTexture(gl.TEXTURE_2D, this.shTex);
+        gl.uniform1i(u.u_sh, 1);
+        gl.uniform1i(u.u_sh_texels, this.shTexels);
+        const m = viewmat;  // the centre -R^T t of the row-major world-to-camera
+        gl.uniform3f(u.u_eye, -(m[0] * m[3] + m[4] * m[7] + m[8] * m[11]), -(m[1] * m[3] + m[5] * m[7] + m[9] * m[11]),
+                     -(m[2] * m[3] + m[6] * m[7] + m[10] * m[11]));
+        gl.activeTexture(gl.TEXTURE0);
+      }
       gl.bindVertexArray(this.vao);
       gl.drawArraysInstanced(gl.TRIANGLE_FAN, 0, 4, this.order.length);
       gl.bindVertexArray(null);
+    }
+    {  // under everything drawn, C += (1 - A) * background: the picture ends opaque
+      gl.useProgram(this.bgProg);
+      gl.uniform3f(this.bgColour, background[0], background[1], background[2]);
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
     }
     if (arrows && this.lineCount) {
       gl.disable(gl.BLEND);

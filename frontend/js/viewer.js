@@ -13,6 +13,7 @@ import { arrowScale, arrowSegments } from "./arrows.js";
 import { navigation } from "./navigation.js";
 import { editing } from "./editing.js";
 import { exportPanel } from "./export-panel.js";
+import { viewSettings } from "./view-settings.js";
 
 export class Viewer {
   constructor(runId) {
@@ -53,6 +54,7 @@ export class Viewer {
     const m = this.meta;
     this.initCamera();
     this.initControls();
+    this.restoreViewState();
     this.connect();
     this.resize();
     window.addEventListener("resize", () => this.resize());
@@ -102,6 +104,7 @@ export class Viewer {
   intrinsics() {
     if (this.fixedK) return this.fixedK;
     const w = this.canvas.width, h = this.canvas.height;
+    if (this.fovDeg) return intrinsics(w, h, this.fovDeg);  // the field-of-view control
     const f = this.fovFrame;
     if (f) {  // the training camera's field of view, fitted to the canvas
       const fovx = 2 * Math.atan(f.width / (2 * f.K[0][0])) * 180 / Math.PI;
@@ -144,7 +147,7 @@ export class Viewer {
     this.static = null;
     this.dynamic = null;
     this.loadingProgress();
-    this.ws.send(JSON.stringify({ type: "subscribe", lod: this.lod, velocity: true }));
+    this.ws.send(JSON.stringify({ type: "subscribe", lod: this.lod, velocity: true, sh: this.meta.sh_degree > 0 }));
     this.requestTime();
   }
 
@@ -182,6 +185,11 @@ export class Viewer {
 
   onBuffer(data) {
     const set = parseBuffer(data);
+    if (set.header.kind === "sh") {  // the level's view-dependent colour, by Gaussian index
+      this.renderer.uploadSH(set);
+      this.dirty = true;
+      return;
+    }
     if (set.header.kind === "static") {
       this.static = set;
       this.pivotOnContent(set);
@@ -266,7 +274,9 @@ export class Viewer {
     if (this.dirty && this.sortPending === null) {
       const viewmat = this.currentViewmat();
       this.renderer.draw({ viewmat, K: this.intrinsics(), show: this.show, overlay: this.overlay,
-                           stride: this.stride, arrows: this.arrows });
+                           stride: this.stride, arrows: this.arrows, sh: this.viewDependent,
+                           background: this.background });
+      this.saveViewState();
       this.dirty = false;
       this.frameCount += 1;
       this.resolveWaiters();
@@ -298,7 +308,10 @@ export class Viewer {
     if (!fromSlider) $("time").value = Math.round(this.t * 1000);
     const times = this.frameTimes(), k = this.nearestFrame();
     const at = times.length && Math.abs(times[k] - this.t) < 1e-6 ? "frame" : "near frame";
-    $("time-label").textContent = times.length ? `${at} ${k + 1} of ${times.length} · t = ${this.t.toFixed(3)}`
+    // Seconds into the clip when its frame rate is known (frame times run 0 to 1 over it).
+    const rate = this.meta.frame_rate;
+    const secs = rate && times.length > 1 ? ` · ${(this.t * (times.length - 1) / rate).toFixed(2)} s` : "";
+    $("time-label").textContent = times.length ? `${at} ${k + 1} of ${times.length}${secs} · t = ${this.t.toFixed(3)}`
       : `t = ${this.t.toFixed(3)}`;
     this.requestTime();
   }
@@ -337,6 +350,9 @@ export class Viewer {
   resetView() {
     this.fixedView = false;
     this.fixedK = null;
+    this.fovDeg = null;
+    $("fov").value = String(Math.round(this.trainingFov));
+    $("fov-label").textContent = `${Math.round(this.trainingFov)}°`;
     this.initCamera();
     $("mode").value = "orbit";
     this.pivotOnContent(this.static && this.static.count ? this.static : this.dynamic);
@@ -449,6 +465,7 @@ export class Viewer {
     this.initMouse();
     this.initEditing();
     this.initExports();
+    this.initViewSettings();
   }
 
   setTau(value) {
@@ -526,4 +543,4 @@ export class Viewer {
   }
 }
 
-Object.assign(Viewer.prototype, navigation, editing, exportPanel);
+Object.assign(Viewer.prototype, navigation, editing, exportPanel, viewSettings);

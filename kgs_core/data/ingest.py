@@ -38,7 +38,7 @@ from .formats.colmap import camera_from_colmap
 from .lens import LENSES, refine_lens
 from .scene import Camera, Frame, Scene, SceneError
 from .sfm import MAPPERS, extract_and_match, run_sfm
-from .video import count_frames, decode_video
+from .video import count_frames, decode_video, frame_rate
 
 AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
 # Seconds per frame at 320 px on two cores (docs/results.md, "Ingest": walk, kitchen and kitchen
@@ -71,6 +71,8 @@ class IngestReport:
     # The lens refit after mapping (`lens.refine_lens`): kept or not, the reprojection error before
     # and after; empty when none was tried (`--lens simple`, a fixed camera).
     lens: dict = field(default_factory=dict)
+    # Frames a second of the frames kept (the video's rate over the stride); None when unknown.
+    fps: float | None = None
 
     @property
     def registered_fraction(self) -> float:
@@ -390,7 +392,7 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             registered=n_a, eval_registered=n_b, mean_reprojection_error_px=error_px,
             points=rec.num_points3D(), mapper=mapper_used, attempts=attempts, stride=stride,
             stride_reason=stride_reason, cached=reused, poses_from=None if kept is None else kept[3]["from"],
-            lens=lens_report,
+            lens=lens_report, fps=_kept_rate(video, stride),
             holdout=("second camera (novel view)" if eval_video else
                      f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none"))
         t0 = time.perf_counter()
@@ -436,6 +438,11 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
     return report
 
 
+def _kept_rate(video: Path, stride: int) -> float | None:
+    rate = frame_rate(video)
+    return None if rate is None else round(rate / max(stride, 1), 6)
+
+
 def _write_scene(root: Path, name: str, frames: list[Frame], points: np.ndarray, colors: np.ndarray,
                  report: IngestReport, scores: dict) -> None:
     scene = Scene(name=name, root=root, frames=sorted(frames, key=lambda f: (f.camera_id, f.time)),
@@ -468,7 +475,7 @@ def _ingest_fixed_camera(video: Path, out: Path, eval_video: Path | None, stride
     n = len(images)
     report = IngestReport(video=str(video), eval_video=None, frames=n, eval_frames=0, registered=n, eval_registered=0,
                           mean_reprojection_error_px=0.0, points=len(points), mapper="fixed-camera", stride=stride,
-                          stride_reason=stride_reason,
+                          stride_reason=stride_reason, fps=_kept_rate(video, stride),
                           holdout=f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none")
     with atomic_directory(out, overwrite=overwrite) as tmp:
         (tmp / "rgb" / "1x").mkdir(parents=True)

@@ -88,6 +88,19 @@ def encode_video(frames, path: str | Path, fps: float = 24.0, crf: int = 18, pro
     return path
 
 
+def frame_rate(path: Path) -> float | None:
+    """Frames a second of the video's first stream, as its container says (None when it does
+    not, or the file cannot be read: the rate only labels time)."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            rate = container.streams.video[0].average_rate if container.streams.video else None
+    except Exception:  # av's errors: a decodable video was checked before this is asked
+        return None
+    return float(rate) if rate and float(rate) > 0 else None
+
+
 def count_frames(path: Path) -> int:
     """The number of frames in the video's first stream: from the container when it says, else
     estimated from the duration and the frame rate, else counted by demuxing (no decoding)."""

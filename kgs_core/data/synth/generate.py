@@ -19,6 +19,7 @@ from .scenes import SCENES, build_world, heldout_camera, intrinsics, shaky_train
 
 BLUR_LEVELS = {"none": 0.0, "mild": 0.5, "severe": 1.0}
 DEFAULT_SCENE = "sheet"
+SYNTH_FPS = 30.0  # the synthetic camera's frame rate: what a frame's time reads as in seconds
 
 
 @dataclass
@@ -133,7 +134,8 @@ def synthesize(
             name=out.name, root=tmp, frames=scene_frames,
             points=np.concatenate(point_sets), point_colors=np.concatenate(color_sets),
             source_format="synthetic",
-            extras={"generator": {"scene": name, "blur": blur, "exposure": exposure, "seed": seed, "size": size,
+            extras={"fps": SYNTH_FPS,
+                    "generator": {"scene": name, "blur": blur, "exposure": exposure, "seed": seed, "size": size,
                                   "frames": frames, "subframes": n_sub,
                                   "dynamic_objects": [world.objects[k].name for k in sorted(dynamic)],
                                   "points": "surface samples of the visible geometry in 5 frames (stands in for SfM)"}},
