@@ -254,3 +254,86 @@ def test_the_url_keeps_the_view_and_time_and_the_label_reads_seconds(browser, se
     ctx, page = open_viewer(browser, server["base"], server["run_id"], "?" + url.split("?", 1)[1])
     assert np.abs(read(page) - picture).mean() < 0.5
     ctx.close()
+
+
+def drop_file(page, path: Path) -> None:
+    """What the browser does when a file is dragged from the desktop onto the page."""
+    import base64
+
+    page.evaluate("""([name, b64]) => {
+        const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+        const dt = new DataTransfer();
+        dt.items.add(new File([bytes], name));
+        window.dispatchEvent(new DragEvent("drop", { dataTransfer: dt, bubbles: true, cancelable: true }));
+    }""", [path.name, base64.b64encode(path.read_bytes()).decode()])
+
+
+@pytest.mark.parametrize("fmt", ["ply-seq", "splat"])
+def test_a_dropped_file_draws_as_the_run_does(browser, server, tiny_run, tmp_path, fmt):
+    """Our own export at t = 0.5, dropped on the runs page: the viewer opens it (count in the
+    title, the run's controls off) and, from the run's first training camera, draws what the run's
+    viewer draws at t = 0.5 (a .splat holds the base colour only, so the run is drawn so too)."""
+    from kgs_core.export import export_run
+
+    res = export_run(tiny_run, fmt, out=tmp_path / fmt, times="0.5", progress=False, web_frame=False)
+    file = res.files[0].with_name("scene" + res.files[0].suffix)
+    res.files[0].rename(file)
+    meta = json.loads(urllib.request.urlopen(f"{server['base']}/api/runs/{server['run_id']}").read())
+    f = meta["frames"][0]
+    camera = [sum(f["viewmat"], []), sum(f["K"], []), f["width"], f["height"]]
+    ctx, page = open_viewer(browser, server["base"], server["run_id"])
+    page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)", camera)
+    page.evaluate("kgs.setTime(0.5)")
+    if fmt == "splat":
+        page.uncheck("#view-sh")
+    run_picture = read(page)
+    ctx.close()
+    ctx = browser.new_context(viewport={"width": 700, "height": 500})
+    page = ctx.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(f"{server['base']}/")
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    drop_file(page, file)
+    page.wait_for_function("document.body.dataset.page === 'viewer' && document.body.dataset.ready === '1'",
+                           timeout=30_000)
+    assert "(a local file)" in page.inner_text("#run-title") and page.is_disabled("#edit-delete")
+    page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)", camera)
+    local = read(page)
+    err = np.abs(local - run_picture).mean()
+    print(f"dropped {file.name} vs the run at t = 0.5: {err:.2f}/255")
+    assert run_picture.std() > 5 and err < 2.0
+    # A file that is not a splat file: the page says why and stays as it was.
+    bad = tmp_path / "notes.ply"
+    bad.write_text("hello")
+    drop_file(page, bad)
+    page.wait_for_function("document.querySelector('#status').textContent.includes('not a .ply file')", timeout=10_000)
+    assert not errors, errors
+    ctx.close()
+
+
+def test_runs_page_thumbnails_labels_and_a_phone_sized_layout(browser, server):
+    """The runs page: each finished run has a thumbnail (a real picture of it) and labelled
+    figures; at 390 px wide the viewer's canvas takes the width, the controls below it."""
+    ctx = browser.new_context(viewport={"width": 390, "height": 844}, device_scale_factor=1)
+    page = ctx.new_page()
+    page.goto(f"{server['base']}/")
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    page.wait_for_function("(() => { const i = document.querySelector('#run-list img.thumb'); "
+                           "return i && i.complete && i.naturalWidth > 0; })()", timeout=60_000)
+    size = page.eval_on_selector("#run-list img.thumb", "i => [i.naturalWidth, i.naturalHeight]")
+    assert max(size) == 48  # the long side at most 160 px, and this run's 48 px frames not upscaled
+    item = page.inner_text(f"#run-list li[data-run='{server['run_id']}']")
+    assert "scene " in item and "started " in item and "Gaussians" in item and "training" in item
+    thumb = page.evaluate("""async () => { const i = document.querySelector('#run-list img.thumb');
+        const c = document.createElement('canvas'); c.width = i.naturalWidth; c.height = i.naturalHeight;
+        const g = c.getContext('2d'); g.drawImage(i, 0, 0);
+        return Array.from(g.getImageData(0, 0, c.width, c.height).data); }""")
+    assert np.asarray(thumb, dtype=float).reshape(-1, 4)[:, :3].std() > 5  # a picture, not a blank
+    page.click(f"#run-list li[data-run='{server['run_id']}'] a")
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    canvas = page.locator("#canvas").bounding_box()
+    controls = page.locator("#controls").bounding_box()
+    assert canvas["width"] >= 370 and canvas["height"] >= 300, canvas
+    assert controls["y"] >= canvas["y"] + canvas["height"] - 1 and controls["width"] >= 370
+    ctx.close()

@@ -102,6 +102,40 @@ async def render(request: Request, run_id: str, t: float = Query(0.0, ge=0, le=1
     return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
 
 
+THUMBNAIL_SIDE = 160  # the long side of a runs-page thumbnail, in pixels
+
+
+@router.get("/{run_id}/thumbnail", responses={200: {"content": {"image/jpeg": {}}}})
+async def thumbnail(request: Request, run_id: str) -> Response:
+    """A small JPEG of the run at mid-clip from its first training camera, edits applied; kept
+    beside the model (`RUN/.thumbnail.jpg`) until the model or the edits change."""
+    view = run_view(request.app, run_id)
+    run_dir = view.run.path
+
+    def work() -> bytes:
+        from kgs_core.export.bake import render_baked
+        from kgs_core.io import atomic_write_bytes
+
+        stamps = [p.stat().st_mtime_ns for p in (run_dir / "model.pt", run_dir / "edits.json") if p.is_file()]
+        key = f"{stamps}:{view.version}".encode()
+        cached, key_file = run_dir / ".thumbnail.jpg", run_dir / ".thumbnail.key"
+        if cached.is_file() and key_file.is_file() and key_file.read_bytes() == key:
+            return cached.read_bytes()
+        frames = scene_frames(view)
+        train = [f for f in frames if f.split == "train"] or frames
+        if not train:
+            raise HTTPException(409, "the run's scene has no frames to take a thumbnail from")
+        cam = train[0].camera
+        cam = cam.scaled(min(1.0, THUMBNAIL_SIDE / max(cam.width, cam.height)))
+        g, _ = view.baked(0.5)
+        data = _encode(render_baked(g, cam, view.run.model.config.sh_degree, np.zeros(3)).image.numpy(), "jpeg")[0]
+        atomic_write_bytes(cached, data)
+        atomic_write_bytes(key_file, key)
+        return data
+
+    return Response(await run_in_threadpool(work), media_type="image/jpeg", headers={"Cache-Control": "no-cache"})
+
+
 @router.get("/{run_id}/frames/{index}/image", responses={200: {"content": {"image/jpeg": {}}}})
 async def frame_image(request: Request, run_id: str, index: int, which: Literal["input", "sharp"] = "input") -> Response:
     """An input frame of the run's scene (or its sharp ground truth, when the scene has one)."""

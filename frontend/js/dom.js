@@ -27,3 +27,11 @@ export function stageSummary(stages) {
   }
   return merged.map((m) => `${m.base}${m.count > 1 ? ` ×${m.count}` : ""} ${m.seconds.toFixed(0)} s`).join(" · ");
 }
+
+// A duration for people: "42 s", "3 min 05 s", "1 h 02 min".
+export function formatSeconds(seconds) {
+  const s = Math.round(Number(seconds) || 0);
+  if (s < 60) return `${s} s`;
+  if (s < 3600) return `${Math.floor(s / 60)} min ${String(s % 60).padStart(2, "0")} s`;
+  return `${Math.floor(s / 3600)} h ${String(Math.floor((s % 3600) / 60)).padStart(2, "0")} min`;
+}

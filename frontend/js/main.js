@@ -1,4 +1,5 @@
-// Entry point: `#/run/<id>` opens the viewer, anything else the runs page.
+// Entry point: `#/run/<id>` opens the viewer, anything else the runs page. A .ply or .splat
+// file dropped anywhere (or chosen with "open a file") is shown in the viewer (local-view.js).
 
 import { Viewer } from "./viewer.js";
 import { makeDemoScene, showRuns, uploadVideos } from "./train.js";
@@ -29,5 +30,25 @@ async function route() {
   }
 }
 
+async function openLocalFile(file) {
+  try {
+    const viewer = window.kgs || new Viewer(null);
+    window.kgs = viewer;
+    document.body.dataset.ready = "0";
+    await viewer.openLocal(file.name, await file.arrayBuffer());
+    document.body.dataset.ready = "1";
+  } catch (e) {
+    $("status").textContent = e.message;
+    document.body.dataset.ready = "1";
+  }
+}
+
+window.addEventListener("dragover", (e) => e.preventDefault());
+window.addEventListener("drop", (e) => {
+  e.preventDefault();
+  const file = e.dataTransfer && e.dataTransfer.files[0];
+  if (file) openLocalFile(file);
+});
+$("open-file").onchange = (e) => e.target.files[0] && openLocalFile(e.target.files[0]);
 window.addEventListener("hashchange", () => location.reload());
 route();

@@ -1,9 +1,9 @@
 // The runs page: scenes (make the demo scene, upload and ingest a video with its stages shown),
 // start a run with a preset, live loss/PSNR chart, cancel, resume, open.
 
-import { api, openStream, upload } from "./api.js";
+import { api, openStream, upload, withToken } from "./api.js";
 import { drawChart } from "./chart.js";
-import { $, esc, stageSummary } from "./dom.js";
+import { $, esc, formatSeconds, stageSummary } from "./dom.js";
 
 const ACTIVE = ["queued", "running", "cancelling"];
 const RETRYABLE = ["uploaded", "failed", "cancelled", "interrupted"];
@@ -58,9 +58,13 @@ export async function showRuns() {
   act("[data-ingest]", (b) => api(`/api/scenes/${b.dataset.ingest}/ingest`, { method: "POST", body: ingestOptions() })
     .then(showRuns));
   $("run-list").innerHTML = runs.length
-    ? runs.map((r) => `<li data-run="${esc(r.id)}"><b>${esc(r.name)}</b> <span class="status">${esc(statusText(r))}</span>
-        <span class="muted run-where">${esc(r.scene_name || "?")} · ${esc(new Date(r.created * 1000).toLocaleString())} · ${esc(r.folder)}</span>
+    ? runs.map((r) => `<li data-run="${esc(r.id)}">${r.has_model && r.status === "done"
+          ? `<a href="#/run/${encodeURIComponent(r.id)}"><img class="thumb" loading="lazy" alt="${esc(r.name)} at mid-clip" src="${esc(withToken(`/api/runs/${encodeURIComponent(r.id)}/thumbnail`))}"></a>` : ""}
+        <b>${esc(r.name)}</b> <span class="status">${esc(statusText(r))}</span>
+        <span class="muted run-where">scene ${esc(r.scene_name || "?")} · started ${esc(new Date(r.created * 1000).toLocaleString())} · folder ${esc(r.folder)}</span>
         ${r.final_psnr_heldout ? ` · <span title="PSNR on the held-out views at the end of training">held-out ${esc(Number(r.final_psnr_heldout).toFixed(2))} dB</span>` : ""}
+        ${r.gaussians ? ` · <span title="Gaussians in the final model">${esc(Number(r.gaussians).toLocaleString())} Gaussians</span>` : ""}
+        ${r.train_seconds ? ` · <span title="Training time">${esc(formatSeconds(r.train_seconds))} training</span>` : ""}
         ${r.has_model ? `<a href="#/run/${encodeURIComponent(r.id)}">open</a>` : ""}
         ${["queued", "running"].includes(r.status) ? `<button data-watch="${esc(r.id)}">watch</button> <button data-cancel="${esc(r.id)}">cancel</button>` : ""}
         ${r.resumable ? `<button data-resume="${esc(r.id)}" title="${esc(r.error || "")}">resume</button>` : ""}</li>`).join("")

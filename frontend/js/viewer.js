@@ -14,6 +14,7 @@ import { navigation } from "./navigation.js";
 import { editing } from "./editing.js";
 import { exportPanel } from "./export-panel.js";
 import { viewSettings } from "./view-settings.js";
+import { localView } from "./local-view.js";
 
 export class Viewer {
   constructor(runId) {
@@ -58,6 +59,8 @@ export class Viewer {
     this.connect();
     this.resize();
     window.addEventListener("resize", () => this.resize());
+    this.looping = true;
+    this.mouseReady = true;
     requestAnimationFrame((now) => this.loop(now));
   }
 
@@ -298,7 +301,8 @@ export class Viewer {
     return new Promise((resolve) => {
       const t = this.t;
       this.waiters.push({ kind: "frame", resolve,
-        ready: () => this.static && this.dynamic && Math.abs(this.lastDynamicT - t) < 1e-9 && this.sortPending === null });
+        ready: () => this.static && this.sortPending === null
+          && (this.local || (this.dynamic && Math.abs(this.lastDynamicT - t) < 1e-9)) });
       this.dirty = true;
     });
   }
@@ -543,4 +547,4 @@ export class Viewer {
   }
 }
 
-Object.assign(Viewer.prototype, navigation, editing, exportPanel, viewSettings);
+Object.assign(Viewer.prototype, navigation, editing, exportPanel, viewSettings, localView);

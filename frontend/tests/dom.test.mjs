@@ -1,6 +1,6 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
-import { esc, stageSummary } from "../js/dom.js";
+import { esc, stageSummary, formatSeconds } from "../js/dom.js";
 
 test("esc turns every HTML-significant character into an entity", () => {
   assert.equal(esc(`<img src=x onerror="alert('1')">`), "&lt;img src=x onerror=&quot;alert(&#39;1&#39;)&quot;&gt;");
@@ -19,4 +19,10 @@ test("stageSummary merges a stage's passes into one entry with their count and s
   assert.equal(stageSummary(stages), "frames 2 s · register ×3 4 s · points 1 s");
   assert.equal(stageSummary([]), "");
   assert.equal(stageSummary(undefined), "");
+});
+
+test("formatSeconds reads as a person would say it", () => {
+  assert.equal(formatSeconds(29.6), "30 s");
+  assert.equal(formatSeconds(185), "3 min 05 s");
+  assert.equal(formatSeconds(3720), "1 h 02 min");
 });
