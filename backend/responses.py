@@ -117,7 +117,8 @@ class EditHistory(Response):
 class ObjectSelection(Response):
     indices: list[int] = Field(description="the object's Gaussians (indices within the LoD level)")
     lod: int
-    gap: float = Field(description="the distance that separated it from the rest, in scene units")
+    reach: float = Field(description="two Gaussians joined when their centres were at most this many times the "
+                         "sum of their largest standard deviations apart")
 
 
 class Split(Response):

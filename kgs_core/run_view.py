@@ -356,16 +356,15 @@ class RunView:
 
     def object_at(self, index: int, t: float, lod: int | None = None) -> dict:
         """The kept dynamic Gaussians connected at time `t` to dynamic Gaussian `index`."""
-        from .selection import GAP_SPACINGS, connected_object, typical_spacing
+        from .selection import REACH, connected_object, largest_sigma
 
         g, lod = self.baked(t, lod=lod, subset="dynamic")
         where = np.nonzero(g.index == index)[0]
         if not len(where):
             raise ValueError(f"Gaussian {index} is not a kept moving Gaussian of LoD {lod}: "
                              "the object tool selects moving objects")
-        gap = GAP_SPACINGS * typical_spacing(g.means)
-        members = connected_object(g.means, int(where[0]), gap)
-        return {"indices": g.index[members].tolist(), "lod": lod, "gap": gap}
+        members = connected_object(g.means, largest_sigma(g.covars), int(where[0]))
+        return {"indices": g.index[members].tolist(), "lod": lod, "reach": REACH}
 
     # ------------------------------------------------------------ live decomposition and edits
 

@@ -234,6 +234,7 @@ def test_the_url_keeps_the_view_and_time_and_the_label_reads_seconds(browser, se
     the link opened elsewhere too. The time label names the frame and its second (the synthetic
     camera films at 30 frames a second)."""
     ctx, page = open_viewer(browser, server["base"], server["run_id"])
+    assert page.inner_text("#time-label").startswith("frame 1 of 8 · 0.00 s · t = 0.000")
     page.click("#canvas")
     page.keyboard.press("ArrowRight")
     page.keyboard.press("ArrowRight")
@@ -250,6 +251,11 @@ def test_the_url_keeps_the_view_and_time_and_the_label_reads_seconds(browser, se
     page.wait_for_selector("body[data-ready='1']", timeout=60_000)
     assert page.inner_text("#time-label").startswith("frame 3 of 8")
     assert np.abs(read(page) - picture).mean() < 0.5
+    # Playback past the end shows the last frame, then loops to the first.
+    page.evaluate("kgs.setTime(0.99); kgs.advancePlayback(0.1)")
+    assert page.evaluate("kgs.t") == 1 and page.inner_text("#time-label").startswith("frame 8 of 8")
+    page.evaluate("kgs.advancePlayback(0.1)")
+    assert page.evaluate("kgs.t") == 0
     ctx.close()
     ctx, page = open_viewer(browser, server["base"], server["run_id"], "?" + url.split("?", 1)[1])
     assert np.abs(read(page) - picture).mean() < 0.5

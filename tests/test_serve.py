@@ -902,9 +902,9 @@ def test_export_options_are_checked_before_a_job_and_a_video_follows_them(client
 
 
 def test_the_object_tool_selects_the_moving_gaussians_connected_to_one(client):
-    """The ball of the test scene: every Gaussian the endpoint returns is dynamic, kept and
-    joined to the clicked one; a static Gaussian or a bad index is refused by name."""
-    from kgs_core.selection import connected_object
+    """Every Gaussian the endpoint returns is dynamic, kept and joined to the clicked one (the
+    same component `connected_object` finds); a static Gaussian or a bad index is refused."""
+    from kgs_core.selection import connected_object, largest_sigma
 
     rid = client.run_id
     view = client.app_.state.views.get(rid, Path(client.app_.state.ws.get("runs", rid)["path"]))
@@ -914,7 +914,7 @@ def test_the_object_tool_selects_the_moving_gaussians_connected_to_one(client):
     assert r.status_code == 200, r.text
     got = r.json()
     assert seed in got["indices"] and set(got["indices"]) <= set(g.index.tolist())
-    expect = g.index[connected_object(g.means, 0, got["gap"])]
+    expect = g.index[connected_object(g.means, largest_sigma(g.covars), 0)]
     assert sorted(got["indices"]) == sorted(expect.tolist())
     static, _ = view.baked(0.5, subset="static")
     r = client.post(f"/api/runs/{rid}/select-object", json={"index": int(static.index[0]), "t": 0.5})
@@ -922,50 +922,29 @@ def test_the_object_tool_selects_the_moving_gaussians_connected_to_one(client):
     assert client.post(f"/api/runs/{rid}/select-object", json={"index": 0, "t": 2}).status_code == 422
 
 
-def test_connected_object_stops_at_empty_space():
-    """Two clusters a gap apart and a chain: the component of a seed is its own cluster, and a
-    chain of close points joins what it links."""
-    from kgs_core.selection import connected_object
+def test_connected_object_follows_touching_gaussians_and_stops_at_empty_space():
+    """Two clusters a gap apart and a chain of touching Gaussians between two others; a ball in
+    front of a wall: a seed on the ball's front takes its back half, not the wall; a sparse
+    object (large Gaussians far apart) stays whole."""
+    from kgs_core.selection import connected_object, largest_sigma
 
     rng = np.random.default_rng(1)
     a, b = rng.uniform(0, 1, (400, 3)), rng.uniform(0, 1, (300, 3)) + [3, 0, 0]
     pts = np.concatenate([a, b])
-    assert connected_object(pts, 0).tolist() == list(range(400))
-    assert connected_object(pts, 450).tolist() == list(range(400, 700))
-    chain = np.stack([np.linspace(1, 3, 40), np.full(40, 0.5), np.full(40, 0.5)], 1)
-    assert len(connected_object(np.concatenate([pts, chain]), 0)) == 740
+    size = np.full(len(pts), 0.1)  # touching within 0.4: each cluster whole, the 2-unit gap not crossed
+    assert connected_object(pts, size, 0).tolist() == list(range(400))
+    assert connected_object(pts, size, 450).tolist() == list(range(400, 700))
+    chain = np.stack([np.linspace(1, 3, 40), np.full(40, 0.5), np.full(40, 0.5)], 1)  # 0.05 apart
+    assert len(connected_object(np.concatenate([pts, chain]), np.full(740, 0.1), 0)) == 740
+    small_links = np.concatenate([size, np.full(40, 0.005)])  # the chain's Gaussians too small to touch
+    assert len(connected_object(np.concatenate([pts, chain]), small_links, 0)) < 740
     with pytest.raises(ValueError, match="seed"):
-        connected_object(pts, 700)
-    # A ball in front of a wall: a seed on the ball's front takes its back half too, not the wall.
+        connected_object(pts, size, 700)
     d = rng.normal(size=(1500, 3))
     ball = 0.5 * d / np.linalg.norm(d, axis=1, keepdims=True)
     wall = np.stack([rng.uniform(-2, 2, 3000), rng.uniform(-2, 2, 3000), np.full(3000, 1.5)], 1)
     front = int(np.argmin(ball[:, 2]))  # nearest a camera looking along +z
-    got = connected_object(np.concatenate([ball, wall]), front)
+    got = connected_object(np.concatenate([ball, wall]), np.full(4500, 0.02), front)
     assert got.tolist() == list(range(1500))
-
-
-def test_stream_sends_the_view_dependent_colour_once_when_asked(client):
-    """With `sh`, after the static set: every Gaussian's SH coefficients after the DC term, by
-    index within the level, in float16; without it, none."""
-    import struct
-
-    rid = client.run_id
-    view = client.app_.state.views.get(rid, Path(client.app_.state.ws.get("runs", rid)["path"]))
-    rest = view.run.level(view.run.n_levels).params.sh_rest.detach().numpy()
-    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
-        w.send_json({"type": "subscribe", "sh": True})
-        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
-        data = recv_bytes(w)
-        (h,) = struct.unpack_from("<I", data, 4)
-        header = json.loads(data[8:8 + h])
-        assert header["kind"] == "sh" and header["bases"] == rest.shape[1] == 3 and header["count"] == len(rest)
-        got = np.frombuffer(data, "<f2", count=rest.size, offset=8 + h).reshape(rest.shape)
-        np.testing.assert_allclose(got, rest, atol=1e-3, rtol=1e-3)
-        w.send_json({"type": "time", "t": 0.5, "seq": 1})
-        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "dynamic"  # sent once, not with each time
-    with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
-        w.send_json({"type": "subscribe"})
-        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "static"
-        w.send_json({"type": "time", "t": 0.5, "seq": 1})
-        assert unpack_buffer(recv_bytes(w))[0]["kind"] == "dynamic"
+    sparse = np.stack([np.linspace(0, 1, 11), np.zeros(11), np.zeros(11)], 1)  # 0.1 apart, sigma 0.03
+    assert len(connected_object(sparse, largest_sigma(np.tile(np.eye(3) * 0.03**2, (11, 1, 1))), 0)) == 11

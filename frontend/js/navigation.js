@@ -3,7 +3,7 @@
 // the viewer's shortcuts (docs/viewer.md). Mixed into `Viewer` (viewer.js); the editing tools
 // take the pointer while one is active.
 
-import { ORBIT_RADIANS_PER_PIXEL, flyMove, flyTurn } from "./camera.js";
+import { ORBIT_RADIANS_PER_PIXEL, OrbitCamera, flyMove, flyTurn } from "./camera.js";
 import { $ } from "./dom.js";
 
 // Fly speed in scene units per second (the same at any frame rate).
@@ -106,5 +106,47 @@ export const navigation = {
       this.dirty = true;
       this.requestSort();
     }
+  },
+
+  // The opening view again: the first training camera, orbiting about what it sees.
+  resetView() {
+    this.fixedView = false;
+    this.fixedK = null;
+    this.fovDeg = null;
+    $("fov").value = String(Math.round(this.trainingFov));
+    $("fov-label").textContent = `${Math.round(this.trainingFov)}°`;
+    this.initCamera();
+    $("mode").value = "orbit";
+    this.pivotOnContent(this.static && this.static.count ? this.static : this.dynamic);
+    this.dirty = true;
+    this.requestSort();
+  },
+
+  // Orbit about the middle of the selection, or of every shown splat, from far enough to see it
+  // whole (its points within the 5th to 95th percentile of their distance from the middle).
+  frameScene() {
+    const points = [];
+    for (const set of [this.static, this.dynamic]) {
+      if (!set || !set.count) continue;
+      for (let i = 0; i < set.count; i++) {
+        if (this.selected && this.selected.size && !this.selected.has(set.index ? set.index[i] : i)) continue;
+        points.push([set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
+      }
+    }
+    if (!points.length) return;
+    const median = (v) => { const s = [...v].sort((a, b) => a - b); return s[s.length >> 1]; };
+    const centre = [0, 1, 2].map((k) => median(points.map((p) => p[k])));
+    const dist = points.map((p) => Math.hypot(p[0] - centre[0], p[1] - centre[1], p[2] - centre[2])).sort((a, b) => a - b);
+    const radius = Math.max(1e-3, dist[Math.floor(0.95 * (dist.length - 1))]);
+    const K = this.intrinsics(), h = this.canvas.height;
+    const halfFov = Math.atan(h / (2 * K[4]));
+    this.fixedView = false;
+    this.orbit = OrbitCamera.fromViewmat(this.currentViewmat(), centre, this.up);
+    this.orbit.distance = 1.1 * radius / Math.sin(halfFov);
+    this.mode = "orbit";
+    $("mode").value = "orbit";
+    this.pivotSet = true;
+    this.dirty = true;
+    this.requestSort();
   },
 };

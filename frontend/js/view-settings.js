@@ -114,6 +114,8 @@ export const viewSettings = {
       const times = this.frameTimes();
       const near = times.find((ft) => Math.abs(ft - s.t) < 1e-5);
       this.setTime(near !== undefined ? near : s.t);
+    } else {
+      this.setTime(this.t);  // the label names the first frame from the start
     }
     this.urlReady = true;
   },

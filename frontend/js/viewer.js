@@ -1,6 +1,7 @@
 // The viewer page: streams a run's splats from the server, draws them with WebGL2, and wires
-// the controls (time, sets, overlays, tau, exposure, LoD). Camera navigation, editing and the
-// export panel live in navigation.js, editing.js and export-panel.js, mixed into `Viewer`.
+// the controls (sets, overlays, tau, exposure, LoD). Camera navigation (navigation.js), time
+// (timeline.js), editing (editing.js), the export panel (export-panel.js), drawing settings and
+// the URL (view-settings.js) and local files (local-view.js) are mixed into `Viewer`.
 
 import { api, openStream, withToken } from "./api.js";
 import { parseBuffer } from "./buffers.js";
@@ -15,6 +16,7 @@ import { editing } from "./editing.js";
 import { exportPanel } from "./export-panel.js";
 import { viewSettings } from "./view-settings.js";
 import { localView } from "./local-view.js";
+import { timeline } from "./timeline.js";
 
 export class Viewer {
   constructor(runId) {
@@ -268,10 +270,7 @@ export class Viewer {
     // A slow frame (a sort, a new buffer) advances time and the fly camera by at most a tenth of
     // a second, so that playback and flying do not jump.
     const dt = this.lastNow ? Math.min(0.1, (now - this.lastNow) / 1000) : 0;
-    if (this.playing) {
-      const duration = Math.max(1, this.frameTimes().length) / 30;  // play at 30 frames per second
-      this.setTime((this.t + (dt * this.speed) / duration) % 1);
-    }
+    if (this.playing) this.advancePlayback(dt);
     this.lastNow = now;
     this.fly(dt);
     if (this.dirty && this.sortPending === null) {
@@ -305,91 +304,6 @@ export class Viewer {
           && (this.local || (this.dynamic && Math.abs(this.lastDynamicT - t) < 1e-9)) });
       this.dirty = true;
     });
-  }
-
-  setTime(t, fromSlider = false) {
-    this.t = Math.min(1, Math.max(0, t));
-    if (!fromSlider) $("time").value = Math.round(this.t * 1000);
-    const times = this.frameTimes(), k = this.nearestFrame();
-    const at = times.length && Math.abs(times[k] - this.t) < 1e-6 ? "frame" : "near frame";
-    // Seconds into the clip when its frame rate is known (frame times run 0 to 1 over it).
-    const rate = this.meta.frame_rate;
-    const secs = rate && times.length > 1 ? ` · ${(this.t * (times.length - 1) / rate).toFixed(2)} s` : "";
-    $("time-label").textContent = times.length ? `${at} ${k + 1} of ${times.length}${secs} · t = ${this.t.toFixed(3)}`
-      : `t = ${this.t.toFixed(3)}`;
-    this.requestTime();
-  }
-
-  // The training camera's frame times, in order (what frame steps snap to).
-  frameTimes() {
-    if (!this._frameTimes) {
-      const train = this.meta.frames.filter((f) => f.split === "train" && (f.camera_id || 0) === 0);
-      this._frameTimes = [...new Set((train.length ? train : this.meta.frames).map((f) => f.time))].sort((a, b) => a - b);
-    }
-    return this._frameTimes;
-  }
-
-  nearestFrame() {
-    const times = this.frameTimes();
-    let best = 0;
-    times.forEach((t, k) => { if (Math.abs(t - this.t) < Math.abs(times[best] - this.t)) best = k; });
-    return best;
-  }
-
-  // One frame back or forward, onto the frame's own time (from between two frames, to the next).
-  stepFrame(dir) {
-    const times = this.frameTimes();
-    if (!times.length) return this.setTime(this.t + dir * this.meta.dt);
-    const k = this.nearestFrame();
-    const off = Math.abs(times[k] - this.t) < 1e-6 ? dir : (Math.sign(times[k] - this.t) === dir ? 0 : dir);
-    this.setTime(times[Math.min(times.length - 1, Math.max(0, k + off))]);
-  }
-
-  togglePlay() {
-    this.playing = !this.playing;
-    $("play").textContent = this.playing ? "Pause" : "Play";
-  }
-
-  // The opening view again: the first training camera, orbiting about what it sees.
-  resetView() {
-    this.fixedView = false;
-    this.fixedK = null;
-    this.fovDeg = null;
-    $("fov").value = String(Math.round(this.trainingFov));
-    $("fov-label").textContent = `${Math.round(this.trainingFov)}°`;
-    this.initCamera();
-    $("mode").value = "orbit";
-    this.pivotOnContent(this.static && this.static.count ? this.static : this.dynamic);
-    this.dirty = true;
-    this.requestSort();
-  }
-
-  // Orbit about the middle of the selection, or of every shown splat, from far enough to see it
-  // whole (its points within the 5th to 95th percentile of their distance from the middle).
-  frameScene() {
-    const points = [];
-    for (const set of [this.static, this.dynamic]) {
-      if (!set || !set.count) continue;
-      for (let i = 0; i < set.count; i++) {
-        if (this.selected && this.selected.size && !this.selected.has(set.index ? set.index[i] : i)) continue;
-        points.push([set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
-      }
-    }
-    if (!points.length) return;
-    const median = (v) => { const s = [...v].sort((a, b) => a - b); return s[s.length >> 1]; };
-    const centre = [0, 1, 2].map((k) => median(points.map((p) => p[k])));
-    const dist = points.map((p) => Math.hypot(p[0] - centre[0], p[1] - centre[1], p[2] - centre[2])).sort((a, b) => a - b);
-    const radius = Math.max(1e-3, dist[Math.floor(0.95 * (dist.length - 1))]);
-    const K = this.intrinsics(), h = this.canvas.height;
-    const halfFov = Math.atan(h / (2 * K[4]));
-    this.fixedView = false;
-    this.orbit = OrbitCamera.fromViewmat(this.currentViewmat(), centre, this.up);
-    this.orbit.distance = 1.1 * radius / Math.sin(halfFov);
-    this.mode = "orbit";
-    $("mode").value = "orbit";
-    this.pivotSet = true;
-    this.dirty = true;
-    this.requestSort();
   }
 
   // ------------------------------------------------------------------ controls
@@ -547,4 +461,4 @@ export class Viewer {
   }
 }
 
-Object.assign(Viewer.prototype, navigation, editing, exportPanel, viewSettings, localView);
+Object.assign(Viewer.prototype, navigation, timeline, editing, exportPanel, viewSettings, localView);
