@@ -147,6 +147,18 @@ def colmap_text():
 # ------------------------------------------------------------------ the browser viewer's tests
 
 
+def require_browser() -> None:
+    """At a browser test module's import: skip it without Chromium and Playwright, unless
+    KGS_REQUIRE_BROWSER=1 (set by .ci/run), where a missing browser is a failure."""
+    from pathlib import Path
+
+    if not Path("/usr/bin/chromium").exists():
+        if os.environ.get("KGS_REQUIRE_BROWSER") == "1":
+            raise RuntimeError("KGS_REQUIRE_BROWSER=1 but /usr/bin/chromium is missing (apt-get install chromium)")
+        pytest.skip("no /usr/bin/chromium (apt-get install chromium)", allow_module_level=True)
+    pytest.importorskip("playwright.sync_api")
+
+
 @pytest.fixture(scope="module")
 def server(tiny_run, tmp_path_factory):
     import shutil

@@ -9,21 +9,13 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import urllib.request
-from pathlib import Path
 
 import numpy as np
-import pytest
-from conftest import pixels
+from conftest import pixels, require_browser
 from PIL import Image
 
-CHROMIUM = Path("/usr/bin/chromium")
-if not CHROMIUM.exists():
-    if os.environ.get("KGS_REQUIRE_BROWSER") == "1":
-        raise RuntimeError("KGS_REQUIRE_BROWSER=1 but /usr/bin/chromium is missing (apt-get install chromium)")
-    pytest.skip("no /usr/bin/chromium (apt-get install chromium)", allow_module_level=True)
-pytest.importorskip("playwright.sync_api")
+require_browser()
 
 # Mean absolute difference, in 8-bit levels, allowed between the browser's WebGL frame and the
 # CPU rasteriser's PNG of the same camera and time. The browser draws the SH DC colour only and
