@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from .cli_args import add_named_settings, positive_int, setting
+from .cli_args import add_options, options_from, positive_int
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -54,9 +54,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_synth(args: argparse.Namespace) -> int:
     """Render a named synthetic scene with ground truth to a dataset folder."""
     from kgs_core.data.synth.generate import synthesize
+    from kgs_core.job_options import SynthOptions
 
-    out = synthesize(args.name, args.out, blur=args.blur, seed=args.seed, size=args.size, frames=args.frames,
-                     subframes=args.subframes, overwrite=args.overwrite)
+    o = options_from(args, SynthOptions)
+    out = synthesize(o.name, args.out, blur=o.blur, seed=o.seed, size=o.size, frames=o.frames,
+                     subframes=o.subframes, overwrite=args.overwrite)
     print(f"wrote {out} (Nerfies + D-NeRF layouts, ground truth under sharp/, mask/, motion/)")
     return 0
 
@@ -64,12 +66,11 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_ingest(args: argparse.Namespace) -> int:
     """Video -> frames -> sharpness -> pycolmap SfM -> Nerfies-layout scene."""
     from kgs_core.data.ingest import ingest
+    from kgs_core.job_options import IngestOptions
 
-    rep = ingest(args.video, args.out, eval_video=args.eval_video, every=args.every, max_frames=args.max_frames,
-                 max_size=args.max_size, exposure=args.exposure, mapper=args.mapper, lens=args.lens,
-                 holdout_every=args.holdout_every,
-                 fixed_camera=args.fixed_camera, cache_dir=False if args.no_cache else True,
-                 overwrite=args.overwrite, undistort=not args.keep_distortion)
+    o = options_from(args, IngestOptions)
+    rep = ingest(args.video, args.out, eval_video=args.eval_video, cache_dir=False if args.no_cache else True,
+                 overwrite=args.overwrite, **o.ingest_arguments())
     print(f"{rep.mapper} mapper: posed {rep.registered}/{rep.frames} training frames"
           + (f", {rep.eval_registered}/{rep.eval_frames} frames of the second camera" if rep.eval_video else "")
           + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points")
@@ -89,17 +90,16 @@ def cmd_ingest(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     """Train Kinematics-GS on a scene folder; writes a run directory."""
     from kgs_core.data.formats import load_scene
+    from kgs_core.job_options import TrainOptions
     from kgs_core.threads import tuner_for_process
     from kgs_core.train.config import make_config
-    from kgs_core.train.settings import NAMED, named_overrides
     from kgs_core.train.trainer import train
 
-    overrides = named_overrides({name: getattr(args, name) for name in NAMED})
-    overrides.update(dict(args.set or ()))  # --set KEY=VALUE: any setting of the schema, applied last
-    ablate = tuple(a for a in (args.ablate or "").split(",") if a)
-    make_config(args.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
+    o = options_from(args, TrainOptions)
+    overrides, ablate = o.overrides(), tuple(o.ablate)
+    make_config(o.preset, ablate=ablate, **overrides)  # a bad option fails before the scene is read
     scene = load_scene(args.scene)
-    cfg = make_config(args.preset, ablate=ablate, scene=scene, **overrides)
+    cfg = make_config(o.preset, ablate=ablate, scene=scene, **overrides)
     if args.init_from:
         from dataclasses import replace
 
@@ -188,10 +188,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     """Per-frame .ply / .splat, a .splatv, an mp4 or a .glb of ellipsoids from a run."""
     from kgs_core.export import export_run
+    from kgs_core.job_options import ExportOptions
 
-    res = export_run(args.run, args.format, out=args.out, times=args.times, camera_path=args.camera_path,
-                     exposure=args.exposure, lod=args.lod, side_by_side=args.side_by_side, fps=args.fps,
-                     overwrite=args.force, size=args.size, web_frame=args.web_frame)
+    o = options_from(args, ExportOptions)
+    res = export_run(args.run, o.format, out=args.out, overwrite=args.force, keyframes=args.keyframes,
+                     **o.model_dump(exclude={"format", "view"}), view=o.view.model_dump() if o.view else None)
     rep = res.report
     print(f"wrote {res.path} ({len(res.files)} file{'s' if len(res.files) != 1 else ''}, "
           f"{rep['gaussians']:,} Gaussians, LoD {rep['lod']})")
@@ -306,51 +307,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8000)
     p.set_defaults(func=cmd_demo)
 
-    from kgs_core.data.synth.generate import BLUR_LEVELS, DEFAULT_SCENE
-    from kgs_core.data.synth.scenes import SCENES
+    from kgs_core.job_options import ExportOptions, IngestOptions, SynthOptions, TrainOptions
 
     p = sub.add_parser("synth", help="render a synthetic blurry dynamic scene with ground truth")
-    p.add_argument("name", nargs="?", default=DEFAULT_SCENE, choices=sorted(SCENES))
+    add_options(p, SynthOptions, positional=("name",))
     p.add_argument("--out", required=True, help="dataset folder to create")
-    p.add_argument("--blur", default="mild", choices=list(BLUR_LEVELS), help="exposure 0, 0.5 or 1 frame interval")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--size", type=int, default=128, help="image width and height")
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--subframes", type=int, default=16, help="sharp renders averaged per blurry frame")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_synth)
-
-    from kgs_core.data.ingest import DEFAULT_MAX_SIZE
-    from kgs_core.data.lens import LENSES
-    from kgs_core.data.sfm import MAPPERS
 
     p = sub.add_parser("ingest", help="structure from motion on a (blurry) video -> scene folder")
     p.add_argument("video")
     p.add_argument("--eval-video", help="a synchronised second video: registered as held-out test views")
     p.add_argument("--out", required=True)
-    p.add_argument("--every", type=int, help="keep every k-th frame (default: all, or about 300 of a longer video)")
-    p.add_argument("--max-frames", type=int, help="keep at most this many frames from the start")
-    p.add_argument("--mapper", choices=MAPPERS, default="auto",
-                   help="SfM mapper: keyframes (fast), global (GLOMAP), incremental (slowest, most robust); "
-                        "auto reuses the poses of an earlier ingest of the same frames at any --max-size, else "
-                        "tries keyframes, then incremental; a named mapper always maps anew")
-    p.add_argument("--lens", choices=LENSES, default="opencv",
-                   help="lens model: opencv refits each camera after mapping with two focal lengths, two radial "
-                        "and two tangential terms, kept where it lowers the reprojection error; simple keeps "
-                        "SfM's one focal length and one radial term (docs/data.md)")
-    p.add_argument("--holdout-every", type=int,
-                   help="with one video, hold out every n-th frame as a test view (default 8; 0: none)")
-    p.add_argument("--fixed-camera", action="store_true",
-                   help="the camera does not move: skip SfM and give every frame one pose")
+    add_options(p, IngestOptions)
     p.add_argument("--no-cache", action="store_true",
                    help="do not reuse or keep decoded frames, features, matches and poses (cache: $KGS_CACHE_DIR "
                         "or ~/.cache/kinematics-gs)")
-    p.add_argument("--max-size", type=int, default=DEFAULT_MAX_SIZE,
-                   help="downscale so the long side is at most this (default %(default)s)")
-    p.add_argument("--keep-distortion", action="store_true",
-                   help="keep the SfM camera's lens distortion instead of undistorting frames to pinhole "
-                        "(the rasteriser is pinhole: only for export to other tools)")
-    p.add_argument("--exposure", type=float, default=0.5, help="assumed shutter fraction of the training video")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)
 
@@ -359,15 +331,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train Kinematics-GS on a scene folder")
     p.add_argument("scene", help="dataset folder (Nerfies, D-NeRF or COLMAP layout)")
     p.add_argument("--out", required=True, help="run directory")
-    p.add_argument("--preset", default="fast", choices=sorted(PRESETS))
-    p.add_argument("--ablate", help="comma-separated: " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()))
-    add_named_settings(p)
+    add_options(p, TrainOptions, flags={"settings": "--set"}, metavars={"settings": "KEY=VALUE", "ablate": "PART"},
+                extra_help={"preset": f" (one of {', '.join(sorted(PRESETS))})",
+                            "ablate": ": " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()),
+                            "settings": "; e.g. --set lambda_reg=0.02 --set model.knn=16"})
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.add_argument("--init-from", metavar="RUN", help="start from this run directory's final model (fine-tuning), "
                    "split at this run's τ, instead of from points")
-    p.add_argument("--set", action="append", type=setting, metavar="KEY=VALUE",
-                   help="any training setting (a TrainConfig field, model.FIELD or densify.FIELD), checked against the schema; "
-                        "repeatable, applied after the options above. E.g. --set lambda_reg=0.02 --set model.knn=16")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("train-many", help="train scenes x presets x configurations x seeds, in turn or as Ray tasks "
@@ -390,23 +360,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
     p.set_defaults(func=cmd_eval)
 
-    from kgs_core.export import FORMATS
-
     p = sub.add_parser("export", help="export a run: per-frame .ply/.splat, .splatv, mp4 video, .glb ellipsoids")
     p.add_argument("run", help="run directory")
-    p.add_argument("--format", required=True, choices=FORMATS)
+    add_options(p, ExportOptions)
+    p.add_argument("--keyframes", metavar="FILE", help="mp4: a camera path of JSON keyframes (kgs_core/export/"
+                   "camera_path.py documents the format), instead of --camera-path")
     p.add_argument("--out", help="output file or folder (default: RUN/exports/...)")
-    p.add_argument("--times", help="T, T1,T2,... or START:STOP:COUNT in [0, 1] (default: the training frames' times)")
-    p.add_argument("--camera-path", default="training", help="mp4: training, orbit or a keyframe JSON file")
-    p.add_argument("--exposure", type=float, default=0.0, help="shutter fraction to bake in (0 = sharp)")
-    p.add_argument("--lod", type=int, help="LoD level (default: the finest)")
-    p.add_argument("--side-by-side", action="store_true", help="mp4: the input frame beside each render")
-    p.add_argument("--fps", type=float, default=24.0)
-    p.add_argument("--size", type=int, help="mp4: the video's long side in pixels (default: the cameras' own)")
-    p.add_argument("--web-frame", action=argparse.BooleanOptionalAction, default=None,
-                   help="write the file so that antimatter15/splat (.splat, .ply) or splaTV (.splatv) opens on the "
-                        "first training camera's view (default: on for splat and splatv, off for ply-seq; the "
-                        "transform is in export.json)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_export)
 

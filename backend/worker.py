@@ -70,10 +70,11 @@ def run_train(spec: dict) -> None:
 
 def run_synth(spec: dict) -> None:
     from kgs_core.data.synth.generate import synthesize
+    from kgs_core.job_options import SynthOptions
 
-    synthesize(spec["name"], spec["out"], blur=spec.get("blur", "mild"), size=int(spec.get("size", 128)),
-               frames=int(spec.get("frames", 60)), subframes=int(spec.get("subframes", 16)), progress=False,
-               overwrite=True)
+    o = SynthOptions.model_validate({k: v for k, v in spec.items() if k in SynthOptions.model_fields})
+    synthesize(o.name, spec["out"], blur=o.blur, seed=o.seed, size=o.size, frames=o.frames, subframes=o.subframes,
+               progress=False, overwrite=True)
 
 
 class Cancelled(Exception):
@@ -109,7 +110,8 @@ def stage_writer(path: Path, min_interval: float = 0.5):
 
 
 def run_ingest(spec: dict) -> None:
-    from kgs_core.data.ingest import DEFAULT_MAX_SIZE, ingest
+    from kgs_core.data.ingest import ingest
+    from kgs_core.job_options import IngestOptions
     from kgs_core.progress import listen
 
     # Cancelling (SIGTERM) raises between SfM's steps: ingest writes into temporary folders and
@@ -121,15 +123,14 @@ def run_ingest(spec: dict) -> None:
         _raise_cancelled(signum, frame)
 
     previous = signal.signal(signal.SIGTERM, cancel)
-    options = {k: spec[k] for k in ("max_size", "mapper", "holdout_every", "fixed_camera", "exposure") if k in spec}
-    options.setdefault("max_size", DEFAULT_MAX_SIZE)
+    options = IngestOptions.model_validate({k: v for k, v in spec.items() if k in IngestOptions.model_fields})
     listener = stage_writer(Path(spec["progress"])) if spec.get("progress") else (lambda *a: None)
     try:
         try:
             with listen(listener):
                 # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
                 ingest(spec["video"], spec["out"], eval_video=spec.get("eval_video"), cache_dir=False, overwrite=True,
-                       **options)
+                       **options.ingest_arguments())
         finally:
             signal.signal(signal.SIGTERM, previous)
         if asked or STOP:

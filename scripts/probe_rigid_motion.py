@@ -1,7 +1,7 @@
 """Probe: how far a synthetic scene's rigid moving object (`die`, `spin`) gets when its Gaussians
 move rigidly, by the ground truth or by a learned per-frame rigid motion, everything else being
 the full method (fast preset). It answers "is the motion what loses the object, and can a rigid
-representation learn it from the photometric loss" (docs/results.md, "Objects that turn").
+representation learn it from the photometric loss" (docs/method.md, "The motion probe").
 
 A probe, not a feature: it patches `KinematicsGS.offsets_at`, `Trainer.init_model`,
 `Trainer.pick_frames` and `Trainer.loss_for` in this process only. The object's Gaussians are

@@ -32,7 +32,7 @@ def test_help_lists_working_commands():
     [
         (["train", "nowhere", "--out", "x"], "dataset not found"),
         (["train", "nowhere", "--out", "x", "--ablate", "magic"], "unknown ablation 'magic'"),
-        (["train", "nowhere", "--out", "x", "--iterations", "0"], "must be at least 1"),
+        (["train", "nowhere", "--out", "x", "--iterations", "0"], "iterations: Input should be greater than or equal to 1"),
         (["train", "nowhere", "--out", "x", "--set", "lambda_regg=0.1"], "'lambda_regg=0.1' is not KEY=VALUE"),
         (["train", "nowhere", "--out", "x", "--set", "model.knn=many"], "model.knn takes a whole number"),
         (["train", "nowhere", "--out", "x", "--set", "frame_sampling=often"], "frame_sampling must be one of"),
@@ -41,9 +41,9 @@ def test_help_lists_working_commands():
         (["train", "nowhere", "--out", "x", "--set", "model.knn_radius=-1"], "model.knn_radius must be at least 0"),
         (["train", "nowhere", "--out", "x", "--set", "lr_means=NaN"], "lr_means must be a finite number"),
         (["train", "nowhere", "--out", "x", "--set", "init_from=/etc"], "'init_from=/etc' is not KEY=VALUE"),
-        (["ingest", "missing.mp4", "--out", "x", "--lens", "fisheye"], "invalid choice: 'fisheye'"),
+        (["ingest", "missing.mp4", "--out", "x", "--lens", "fisheye"], "lens: Input should be 'opencv' or 'simple'"),
         (["eval", "."], "not a run directory"),
-        (["synth", "die", "--out", "x", "--frames", "1"], "frames >= 2"),
+        (["synth", "die", "--out", "x", "--frames", "1"], "frames: Input should be greater than or equal to 2"),
         (["ingest", "missing.mp4", "--out", "x"], "video not found"),
         (["export", ".", "--format", "splat"], "not a run directory"),
         (["serve", "no/such/run", "--workspace", "ws"], "does not exist"),
@@ -118,28 +118,33 @@ def test_every_setting_parses_its_own_default_and_refuses_another_type():
 
 def test_named_options_of_the_command_line_and_the_server_come_from_one_table():
     from kgs_app.cli import build_parser
-    from kgs_backend.routers.runs import TrainRequest, TrainRequestBase
-    from kgs_core.train.settings import NAMED, named_overrides, schema
+    from kgs_app.cli_args import options_from
+    from kgs_backend.routers.runs import TrainRequest
+    from kgs_core.job_options import TrainOptions
+    from kgs_core.train.settings import NAMED, schema
 
     assert all(named.key in schema() for named in NAMED.values())
     train = next(a for a in build_parser()._subparsers._group_actions[0].choices["train"]._actions if a.dest == "tau")
     assert train.help == NAMED["tau"].help
-    assert set(TrainRequest.model_fields) - set(TrainRequestBase.model_fields) == set(NAMED)
+    assert issubclass(TrainRequest, TrainOptions) and set(NAMED) <= set(TrainOptions.model_fields)
     argv = ["train", "scene", "--out", "run", "--tau", "1e-3", "--pose-refine", "on", "--camera-blur", "poses",
-            "--seed", "3", "--kr-form", "paper", "--on-nonfinite", "restore"]
-    args = build_parser().parse_args(argv)
-    from_cli = named_overrides({name: getattr(args, name) for name in NAMED})
+            "--seed", "3", "--kr-form", "paper", "--on-nonfinite", "restore", "--time-budget", "2m",
+            "--ablate", "kr,reg", "--ablate", "ani", "--set", "model.knn=16"]
+    from_cli = options_from(build_parser().parse_args(argv), TrainOptions)
     body = TrainRequest(scene_id="s", tau=1e-3, pose_refine=True, camera_blur="poses", seed=3, kr_form="paper",
-                        on_nonfinite="restore")
-    assert from_cli == named_overrides(body.model_dump(include=set(NAMED))) == {
+                        on_nonfinite="restore", time_budget=120, ablate=["kr", "reg", "ani"], settings=["model.knn=16"])
+    assert from_cli.overrides() == body.overrides() == {
         "model.tau": 1e-3, "pose_refine": True, "camera_blur": "poses", "seed": 3, "model.kr_form": "paper",
-        "on_nonfinite": "restore"}
-    # The same bounds on both sides.
+        "on_nonfinite": "restore", "time_budget": 120.0, "model.knn": 16}
+    assert from_cli.ablate == body.ablate == ["kr", "reg", "ani"]
+    # The same bounds on both sides, in the same words.
     for name, bad in (("tau", 0), ("exposure", 1.5), ("iterations", 0), ("seed", -1), ("basis", "round")):
-        with pytest.raises(ValueError, match=name):
+        with pytest.raises(ValueError, match=name) as rest:
             TrainRequest(scene_id="s", **{name: bad})
-        with pytest.raises(SystemExit):
-            build_parser().parse_args(["train", "s", "--out", "r", "--" + name, str(bad)])
+        args = build_parser().parse_args(["train", "s", "--out", "r", "--" + name, str(bad)])
+        with pytest.raises(ValueError) as cli:
+            options_from(args, TrainOptions)
+        assert rest.value.errors()[0]["msg"] in str(cli.value)
 
 
 def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
@@ -253,3 +258,51 @@ def test_build_ext_reports_the_compiled_simd_path():
         pytest.skip(r.stderr.strip())
     assert r.returncode == 0, r.stderr
     assert re.search(r"ready in [\d.]+ s \((avx512|avx2|generic) SIMD path\): \S+\.so", r.stdout), r.stdout
+
+
+@pytest.mark.parametrize("job, cli_args, body, path", [
+    ("synth", ["synth", "die", "--out", "x", "--size", "8"], {"name": "die", "size": 8}, "/api/scenes"),
+    ("synth", ["synth", "die", "--out", "x", "--size", "1024", "--frames", "2000"], {"name": "die", "size": 1024, "frames": 2000},
+     "/api/scenes"),
+    ("synth", ["synth", "teapot", "--out", "x"], {"name": "teapot"}, "/api/scenes"),
+    ("ingest", ["ingest", "v.mp4", "--out", "x", "--holdout-every", "1"], {"holdout_every": 1}, "/api/scenes/{scene}/ingest"),
+    ("ingest", ["ingest", "v.mp4", "--out", "x", "--max-size", "32"], {"max_size": 32}, "/api/scenes/{scene}/ingest"),
+    ("export", ["export", "RUN", "--format", "splat", "--size", "256"], {"format": "splat", "size": 256},
+     "/api/runs/{run}/exports"),
+    ("export", ["export", "RUN", "--format", "mp4", "--fps", "500"], {"format": "mp4", "fps": 500}, "/api/runs/{run}/exports"),
+    ("export", ["export", "RUN", "--format", "splat", "--times", "0:2:3"], {"format": "splat", "times": "0:2:3"},
+     "/api/runs/{run}/exports"),
+    ("train", ["train", "SCENE", "--out", "x", "--tau", "0"], {"scene_id": "{scene}", "tau": 0}, "/api/runs"),
+    ("train", ["train", "SCENE", "--out", "x", "--set", "coarse_factor=0"], {"scene_id": "{scene}",
+     "settings": ["coarse_factor=0"]}, "/api/runs"),
+    ("train", ["train", "SCENE", "--out", "x", "--ablate", "magic"], {"scene_id": "{scene}", "ablate": ["magic"]},
+     "/api/runs"),
+    ("train", ["train", "SCENE", "--out", "x", "--preset", "slow"], {"scene_id": "{scene}", "preset": "slow"},
+     "/api/runs"),
+])
+def test_a_bad_option_is_refused_alike_by_the_command_line_and_the_server(job, cli_args, body, path, tmp_path, copy_run):
+    """One schema a job (`kgs_core.job_options`): the command line's error names the field and
+    says what the server's 422 says, word for word."""
+    from fastapi.testclient import TestClient
+
+    from kgs_backend.main import create_app
+    from kgs_backend.settings import Settings
+
+    args = [str(copy_run) if a == "RUN" else "nowhere" if a == "SCENE" else a for a in cli_args]
+    r = subprocess.run([sys.executable, "-m", "kgs_app.cli", *args], capture_output=True, text=True, cwd=tmp_path,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    cli_message = r.stderr.strip().split(": error: ", 1)[1]
+    app = create_app(Settings(workspace=tmp_path / "ws", register=[copy_run]))
+    with TestClient(app, base_url="http://127.0.0.1:8000") as c:
+        ws = app.state.ws
+        scene = ws.insert("scenes", name="clip", path=str(ws.new_dir("scenes", "0123456789ab")), source="ingest",
+                          status="uploaded")
+        url = path.format(run=app.state.registered[0], scene=scene["id"])
+        res = c.post(url, json={k: v.format(scene=scene["id"]) if isinstance(v, str) else v for k, v in body.items()})
+    assert res.status_code == 422, res.text
+    err = res.json()["detail"][0]
+    field = ".".join(str(p) for p in err["loc"][1:])
+    rest_message = (f"{field}: " if field else "") + err["msg"].removeprefix("Value error, ")
+    assert cli_message == rest_message
+    assert not (tmp_path / "x").exists()

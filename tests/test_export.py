@@ -237,7 +237,7 @@ def test_mp4_training_path_and_side_by_side(tiny_run, tmp_path):
     keys.write_text(json.dumps({"width": 64, "height": 32, "frames": 4, "keyframes": [
         {"time": 0, "eye": [0, -3, 1], "target": [0, 0, 0], "up": [0, 0, 1]},
         {"time": 1, "eye": [3, 0, 1], "target": [0, 0, 0], "up": [0, 0, 1]}]}))
-    res = export_run(tiny_run, "mp4", out=tmp_path / "k.mp4", camera_path=str(keys), progress=False)
+    res = export_run(tiny_run, "mp4", out=tmp_path / "k.mp4", keyframes=keys, progress=False)
     assert res.report["times"] == [0.0, 1 / 3, 2 / 3, 1.0]
 
 
@@ -290,13 +290,15 @@ def test_edits_are_honoured_and_static_exports_one_frame(copy_run, tmp_path):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--format", "obj"], "invalid choice"),
+    (["--format", "obj"], "format: Input should be 'ply-seq'"),
     (["--format", "splat", "--times", "0,2"], "must lie in [0, 1]"),
     (["--format", "splat", "--times", "a:b"], "START:STOP:COUNT"),
     (["--format", "glb", "--times", "0,1"], "one time"),
-    (["--format", "mp4", "--exposure", "3"], "--exposure"),
+    (["--format", "mp4", "--exposure", "3"], "exposure: Input should be less than or equal to 1"),
     (["--format", "splat", "--lod", "9"], "LoD level must be in"),
-    (["--format", "mp4", "--camera-path", "nope.json"], "not found"),
+    (["--format", "mp4", "--keyframes", "nope.json"], "not found"),
+    (["--format", "mp4", "--camera-path", "nope.json"], "camera_path: Input should be 'training', 'orbit' or 'view'"),
+    (["--format", "splat", "--size", "256"], "size sets a video's resolution"),
 ])
 def test_bad_export_arguments(tiny_run, tmp_path, capsys, argv, message):
     try:

@@ -8,72 +8,23 @@ import shutil
 import threading
 import uuid
 from pathlib import Path
-from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from kgs_core.export import SUFFIX
-from kgs_core.export.bake import parse_times
-from kgs_core.export.camera_path import view_path
+from kgs_core.job_options import ExportOptions
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
 from ..registry import ACTIVE, JobStatus, Workspace, new_id
 from ..responses import ExportSummary
-from ..schemas import StrictRequest
 
 router = APIRouter(tags=["exports"])
 
 
-class ViewCamera(BaseModel):
-    """The viewer's current view, for a video from where the user looks."""
-
-    model_config = ConfigDict(extra="forbid")
-    viewmat: list[list[float]] = Field(description="4x4 world-to-camera (OpenCV axes), row-major")
-    fov_deg: float = Field(ge=1, lt=179, description="horizontal field of view")
-    width: int = Field(ge=16, le=4096)
-    height: int = Field(ge=16, le=4096)
-
-
-class ExportRequest(StrictRequest):
-    format: Literal["ply-seq", "splat", "splatv", "mp4", "glb"]
-    times: str | None = Field(None, max_length=10000, description="T, T1,T2,... or START:STOP:COUNT")
-    camera_path: Literal["training", "orbit", "view"] = Field("training", description="mp4: the training cameras, "
-                                                             "an orbit, or `view` (one fixed camera)")
-    view: ViewCamera | None = Field(None, description="the camera of camera_path `view`")
-    exposure: float = Field(0.0, ge=0, le=1)
-    lod: int | None = Field(None, ge=1)
-    side_by_side: bool = Field(False, description="mp4 on the training path: the input frame beside each render")
-    size: int | None = Field(None, ge=16, le=4096, description="mp4: the video's long side in pixels")
-    fps: float = Field(24.0, gt=0, le=240, description="mp4: frames a second")
-    web_frame: bool | None = Field(None, description="write the file at the web viewers' default view (default: on "
-                                   "for splat and splatv)")
-
-    @field_validator("times")
-    @classmethod
-    def times_parse(cls, v: str | None) -> str | None:
-        """Refused here (422), not by the export job after a 202."""
-        parse_times(v, [])
-        return v
-
-    @model_validator(mode="after")
-    def options_fit_the_format(self) -> "ExportRequest":
-        """The combinations `export_run` refuses, refused before the job starts."""
-        if (self.camera_path == "view") != (self.view is not None):
-            raise ValueError("camera_path 'view' and a view go together")
-        if self.view is not None:
-            view_path(self.view.model_dump(), [0.0])  # a viewmat that is not a rotation
-        if self.side_by_side and self.camera_path != "training":
-            raise ValueError("side_by_side needs camera_path 'training'")
-        if self.size is not None and self.format != "mp4":
-            raise ValueError("size sets a video's resolution: only with format mp4")
-        if self.web_frame and self.format not in ("ply-seq", "splat", "splatv"):
-            raise ValueError(f"web_frame is for ply-seq, splat and splatv, not {self.format}")
-        if self.format == "glb" and len(parse_times(self.times, [0.5])) != 1:
-            raise ValueError("glb exports one time")
-        return self
+# The body: `kgs_core.job_options.ExportOptions`, as `kgs-app export` takes them.
+ExportRequest = ExportOptions
 
 
 def public(row: dict, ws: Workspace | None = None) -> dict:

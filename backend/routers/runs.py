@@ -8,11 +8,11 @@ from typing import Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Request
-from pydantic import Field, create_model, field_validator
+from pydantic import Field
 
+from kgs_core.job_options import TrainOptions
 from kgs_core.run import RunError, learned_blur, read_log
-from kgs_core.train.config import ABLATIONS, PRESETS, TrainConfig, make_config
-from kgs_core.train.settings import NAMED, NamedSetting, bound, named_overrides, parse_setting, setting_type
+from kgs_core.train.config import TrainConfig, make_config
 
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
@@ -23,39 +23,14 @@ from ..schemas import StrictRequest
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
 
-class TrainRequestBase(StrictRequest):
+class TrainRequest(TrainOptions):  # type: ignore[valid-type,misc]
+    """`kgs_core.job_options.TrainOptions`, as `kgs-app train` takes them, and what the server
+    adds: the scene by id, a name, and a finished run to start from (by id: never a path)."""
+
     scene_id: str
     name: str | None = Field(None, max_length=80)
-    preset: str = "fast"
-    ablate: list[str] = []
-    settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig field, "
-                                "model.FIELD or densify.FIELD), checked against the schema and applied last, as `kgs-app train --set`")
     init_from_run: str | None = Field(None, pattern=r"^[0-9a-f]{12}$",
                                       description="the id of a finished run whose model this one starts from (fine-tuning)")
-
-    @field_validator("settings")
-    @classmethod
-    def _settings_in_schema(cls, value: list[str]) -> list[str]:
-        for text in value:
-            parse_setting(text)  # a ValueError naming the key becomes a 422
-        return value
-
-
-def named_field(named: NamedSetting) -> tuple[object, object]:
-    """A request field for a setting offered by name: the schema's type (optional: None is the
-    preset's value), its bounds (`settings.bound`, as every other way of giving it) and its help."""
-    limits = bound(named.key)
-    if limits is None:
-        return setting_type(named.key) | None, Field(None, description=named.help)
-    return (setting_type(named.key) | None,
-            Field(None, gt=limits.low if limits.above else None, ge=None if limits.above else limits.low,
-                  le=limits.high, description=named.help))
-
-
-# The body of POST /api/runs: the fields above, and one per setting offered by name (`NAMED`,
-# the same table `kgs-app train`'s options come from).
-TrainRequest = create_model("TrainRequest", __base__=TrainRequestBase,
-                            **{name: named_field(named) for name, named in NAMED.items()})
 
 
 class TauRequest(StrictRequest):
@@ -131,13 +106,7 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
     scene = get_or_404(ws, "scenes", req.scene_id)
     if scene["status"] != JobStatus.DONE:
         raise HTTPException(409, f"scene {req.scene_id} is not ready (status: {scene['status']})")
-    if req.preset not in PRESETS:
-        raise HTTPException(422, f"unknown preset {req.preset!r}; one of {sorted(PRESETS)}")
-    bad = [a for a in req.ablate if a not in ABLATIONS]
-    if bad:
-        raise HTTPException(422, f"unknown ablation(s) {bad}; one of {sorted(ABLATIONS)}")
-    overrides = named_overrides(req.model_dump(include=set(NAMED)))
-    overrides.update(parse_setting(text) for text in req.settings)
+    overrides = req.overrides()
     try:
         make_config(req.preset, ablate=tuple(req.ablate), **overrides)  # refused here, not in the job
     except ValueError as exc:

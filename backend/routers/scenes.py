@@ -13,16 +13,13 @@ from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from pydantic import Field, model_validator
 
-from kgs_core.data.ingest import DEFAULT_MAX_SIZE
-from kgs_core.data.synth.scenes import SCENES
+from kgs_core.job_options import IngestOptions, SynthOptions
 
 from ..deps import get_or_404, jobs, workspace
 from ..jobs import JobRunner
 from ..registry import ACTIVE, JobStatus, Workspace, relative_text
 from ..responses import SceneDetail, SceneSummary
-from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/scenes", tags=["scenes"])
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm")
@@ -33,33 +30,12 @@ UPLOAD_TYPES = {"zip": ("application/zip", "application/x-zip-compressed", "appl
                 "video": ("video/*", "application/octet-stream")}
 
 
-MAX_SYNTH_PIXELS = 1 << 31  # rendered: e.g. 512² x 512 x 16; the demo's 128² x 60 x 16 = 2^24
-MAX_SYNTH_FRAME_PIXELS = 1 << 27  # stored (about 16 bytes a pixel on disk): 1024² x 128, 512² x 512
 
 
-class SynthRequest(StrictRequest):
-    """A built-in synthetic scene. Bounds: size² x frames at most 2^27 pixels stored (about 2 GB
-    on disk), size² x frames x subframes at most 2^31 rendered."""
+class SynthRequest(SynthOptions):
+    __doc__ = SynthOptions.__doc__  # `kgs_core.job_options`: the options `kgs-app synth` takes
 
     source: Literal["synth"] = "synth"
-    name: str = Field("sheet", description="built-in scene: " + ", ".join(sorted(SCENES)))
-    size: int = Field(128, ge=16, le=1024)
-    frames: int = Field(60, ge=2, le=2000)
-    subframes: int = Field(16, ge=1, le=64)
-    blur: Literal["none", "mild", "severe"] = "mild"
-
-    @model_validator(mode="after")
-    def bounded_work(self) -> "SynthRequest":
-        # Each bound alone allows 1024² x 2000 x 64 rendered pixels (days of CPU), or 1024² x
-        # 2000 stored (tens of GB).
-        stored = self.size * self.size * self.frames
-        if stored > MAX_SYNTH_FRAME_PIXELS:
-            raise ValueError(f"size² x frames is {stored:,}, above {MAX_SYNTH_FRAME_PIXELS:,} (lower one of them)")
-        renders = stored * self.subframes
-        if renders > MAX_SYNTH_PIXELS:
-            raise ValueError(f"size² x frames x subframes is {renders:,}, above {MAX_SYNTH_PIXELS:,} "
-                             "(lower one of them)")
-        return self
 
 
 # Scene states from which an uploaded video can be ingested (again).
@@ -93,33 +69,17 @@ def list_scenes(ws: Workspace = Depends(workspace)) -> list[dict]:
 
 @router.post("", status_code=202, response_model=SceneSummary)
 def create_scene(req: SynthRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
-    if req.name not in SCENES:
-        raise HTTPException(422, f"unknown synthetic scene {req.name!r}; one of {sorted(SCENES)}")
     from ..registry import new_id
 
     sid = new_id()
     out = ws.new_dir("scenes", sid)
     row = ws.insert("scenes", id=sid, name=req.name, path=str(out), source="synth", status=JobStatus.QUEUED)
-    jr.start("scenes", sid, "synth", {"name": req.name, "out": str(out), "size": req.size, "frames": req.frames,
-                                       "subframes": req.subframes, "blur": req.blur})
+    jr.start("scenes", sid, "synth", {"out": str(out), **req.model_dump(exclude={"source"})})
     return public(ws.get("scenes", row["id"]), ws)
 
 
-class IngestRequest(StrictRequest):
-    """How an uploaded video becomes a scene (`kgs_core.data.ingest.ingest`)."""
-
-    max_size: int = Field(DEFAULT_MAX_SIZE, ge=64, le=4096, description="long side of the frames, in pixels")
-    mapper: Literal["auto", "keyframes", "global", "incremental"] = "auto"
-    holdout_every: int | None = Field(None, ge=0, le=1000,
-                                      description="with one video, every n-th frame is a test view (0: none; default 8)")
-    fixed_camera: bool = Field(False, description="the camera does not move: skip SfM, one pose for every frame")
-    exposure: float = Field(0.5, ge=0, le=1, description="the training video's exposure, a fraction of the frame interval")
-
-    @model_validator(mode="after")
-    def holdout_not_one(self) -> "IngestRequest":
-        if self.holdout_every == 1:
-            raise ValueError("holdout_every must be 0 (none) or at least 2")
-        return self
+# How an uploaded video becomes a scene: `kgs_core.job_options.IngestOptions`, as `kgs-app ingest` takes them.
+IngestRequest = IngestOptions
 
 
 def video_path(ws: Workspace, scene_id: str, role: str = "video") -> Path:

@@ -290,9 +290,7 @@ def frame_ranges(indices: list[int]) -> str:
     return ", ".join(out)
 
 
-# The long side frames are kept at (the CLI's, REST's and UI's default): BARD-GS's full size, so
-# that every training budget can use the detail; a training's time budget picks what it affords.
-DEFAULT_MAX_SIZE = 960
+from ..job_options import DEFAULT_MAX_SIZE  # noqa: E402  (the job's options, declared once)
 
 
 def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = None, every: int | None = None,

@@ -16,7 +16,8 @@ from .sfm import drop_outlier_points, quiet_colmap, use_iterative_schur
 # lens leaves a second camera's images misplaced against the first's (docs/real-footage.md, "The
 # lens model").
 LENS_MODEL = "OPENCV"
-LENSES = ("opencv", "simple")  # ingest's --lens: refit as LENS_MODEL, or keep the mappers' SIMPLE_RADIAL
+from ..job_options import LENSES  # noqa: E402,F401  (ingest's --lens: refit as LENS_MODEL, or keep the mappers' SIMPLE_RADIAL)
+
 LENS_ITERATIONS = 10  # converged: more iterations change the error by under 0.1 % (docs/data.md, "Lens")
 LENS_PROBE_ITERATIONS = 5  # ... the first of them a probe that may stop the refit early (refine_lens)
 # A refitted lens is kept only inside these bounds (a degenerate fit runs away in one of them).

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..job_options import MAPPERS  # noqa: E402,F401  (declared with ingest's options)
 from ..progress import announce, progress_bar
 
-MAPPERS = ("auto", "keyframes", "global", "incremental")
 MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
 MAX_REPROJECTION_ERROR_PX = 4.0
 MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves

@@ -23,13 +23,13 @@ import numpy as np
 
 from ..data.formats import load_scene
 from ..io import atomic_directory, atomic_write_text
+from ..job_options import FORMATS  # noqa: E402,F401  (declared with the export's options)
 from ..progress import progress_bar
 from .bake import ExportSource, bake, open_source, parse_times
 from .splatv import splatv_cameras
 from .web_frame import ANTIMATTER15, SPLATV, Similarity
 from .web_frame import web_frame as frame_for_viewer
 
-FORMATS = ("ply-seq", "splat", "splatv", "mp4", "glb")
 SUFFIX = {"splatv": ".splatv", "mp4": ".mp4", "glb": ".glb"}
 
 
@@ -73,25 +73,23 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
                camera_path: str = "training", exposure: float = 0.0, lod: int | None = None,
                side_by_side: bool = False, fps: float = 24.0, overwrite: bool = False,
                progress: bool = True, size: int | None = None, view: dict | None = None,
-               web_frame: bool | None = None) -> ExportResult:
-    """`size`: the video's long side in pixels (default: the cameras' own); `view`: the one
-    camera of `camera_path="view"` (`viewmat` 4x4 world-to-camera, `fov_deg` horizontal,
-    `width`, `height`); `web_frame`: write `.splat`/`.ply` in antimatter15/splat's and `.splatv`
-    in splaTV's default view (web_frame.py; default on for splat and splatv, off for ply-seq)."""
-    if fmt not in FORMATS:
-        raise ValueError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    if not (0.0 <= exposure <= 1.0):
-        raise ValueError(f"--exposure must be in [0, 1] (fraction of the frame interval), got {exposure}")
-    if not (0 < fps <= 240):
-        raise ValueError(f"--fps must be in (0, 240], got {fps}")
-    if size is not None and not (16 <= size <= 4096):
-        raise ValueError(f"--size must be in 16..4096 pixels, got {size}")
-    if size is not None and fmt != "mp4":
-        raise ValueError("--size sets a video's resolution: only with --format mp4")
-    if web_frame and fmt not in ("ply-seq", "splat", "splatv"):
-        raise ValueError("--web-frame places .ply, .splat and .splatv files for the web viewers: not with --format " + fmt)
-    if (camera_path == "view") != (view is not None):
-        raise ValueError("camera path 'view' and a view camera go together")
+               web_frame: bool | None = None, keyframes: str | Path | None = None) -> ExportResult:
+    """The options are `kgs_core.job_options.ExportOptions` (checked there, the command line's
+    and the server's alike; a bad one is a ValueError naming it); `keyframes`: an mp4's camera
+    path from a JSON file (`camera_path.keyframe_path`) instead of `camera_path`."""
+    from pydantic import ValidationError
+
+    from ..job_options import ExportOptions, first_error
+
+    try:
+        o = ExportOptions(format=fmt, times=times, camera_path=camera_path, view=view, exposure=exposure, lod=lod,
+                          side_by_side=side_by_side, size=size, fps=fps, web_frame=web_frame)
+    except ValidationError as exc:
+        raise ValueError(first_error(exc)) from None
+    if keyframes is not None and (fmt != "mp4" or times is not None or side_by_side or camera_path != "training"):
+        raise ValueError("keyframes: a video's camera path of its own, with its own times (only with format mp4, "
+                         "not with times, side_by_side or another camera_path)")
+    view = o.view.model_dump() if o.view is not None else None
     source = open_source(run_dir, lod)
     if not source.keep.any():
         raise ValueError("nothing to export: the edit layer removes every Gaussian")
@@ -152,37 +150,29 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
 
         ts = parse_times(times, [0.5])
         if len(ts) != 1:
-            raise ValueError("--format glb exports one time: pass --times T")
+            raise ValueError("glb exports one time: give one time")
         report["time"] = ts[0]
         report.update(write_glb(out, bake(source, ts[0], exposure)))
     else:  # mp4
         from .camera_path import keyframe_path, orbit_path, training_path, view_path
         from .video import render_path, write_video
 
-        if camera_path == "view":
-            if side_by_side:
-                raise ValueError("--side-by-side needs --camera-path training")
+        if keyframes is not None:
+            steps = keyframe_path(keyframes)
+        elif camera_path == "view":
             steps = view_path(view, parse_times(times, np.linspace(0, 1, 60).tolist()))
         elif camera_path == "training":
             frames = _scene_frames(source, required=True)
             steps = training_path(frames, None if times is None else parse_times(times, []))
-        elif camera_path == "orbit":
+        else:  # orbit
             frames = _scene_frames(source, required=True)
             centre = np.median(source.model.params.means.detach().numpy()[source.keep], axis=0)
             steps = orbit_path(frames, centre, parse_times(times, np.linspace(0, 1, 120).tolist()))
-        else:
-            if times is not None:
-                raise ValueError("--times cannot be combined with a keyframe file (its keyframes carry the times)")
-            if side_by_side:
-                raise ValueError("--side-by-side needs --camera-path training")
-            steps = keyframe_path(camera_path)
-        if side_by_side and camera_path != "training":
-            raise ValueError("--side-by-side needs --camera-path training")
         if size is not None:  # the long side in pixels, every camera scaled alike
             steps = [replace(s, camera=s.camera.scaled(size / max(s.camera.width, s.camera.height))) for s in steps]
         images = render_path(source, steps, exposure, side_by_side, progress=progress)
         write_video(out, images, fps, progress)
-        report.update({"camera_path": camera_path, "frames": len(images), "fps": fps,
+        report.update({"camera_path": "keyframes" if keyframes is not None else camera_path, "frames": len(images), "fps": fps,
                        "times": [s.time for s in steps][:1000]})
     atomic_write_text(out.with_name(out.name + ".json"), json.dumps(report, indent=1))
     return ExportResult(out, [out], report)

@@ -77,8 +77,8 @@ def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
 
 # Below this share of dynamic Gaussians the run says that its moving objects, if any, render
 # static: a scene whose moving object neither K nor the flow's reading found ends with almost
-# nothing dynamic, far under what scenes with a followed object end with (docs/results.md,
-# "Objects that turn").
+# nothing dynamic, far under what scenes with a followed object end with (docs/method.md,
+# "The motion probe").
 SPLIT_NOTE_SHARE = 0.01
 
 

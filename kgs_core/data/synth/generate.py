@@ -11,13 +11,14 @@ import numpy as np
 from tqdm import tqdm
 
 from ...io import atomic_directory
+from ...job_options import BLURS  # noqa: E402
 from ..formats import write_dnerf, write_nerfies
 from ..images import write_image, write_mask, write_motion
 from ..scene import Camera, Frame, Scene
 from .raytrace import World
 from .scenes import SCENES, build_world, heldout_camera, intrinsics, shaky_training_camera
 
-BLUR_LEVELS = {"none": 0.0, "mild": 0.5, "severe": 1.0}
+BLUR_LEVELS = dict(zip(BLURS, (0.0, 0.5, 1.0)))  # exposure, in frame intervals
 DEFAULT_SCENE = "sheet"
 SYNTH_FPS = 30.0  # the synthetic camera's frame rate: what a frame's time reads as in seconds
 
