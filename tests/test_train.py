@@ -394,7 +394,7 @@ def test_runs_saved_before_kr_form_load_with_the_paper_form():
     from kgs_core.model.config import ModelConfig
 
     old = ModelConfig().to_dict()
-    del old["kr_form"]
+    del old["kr_form"], old["config_version"]  # as saved then: no version number either
     assert ModelConfig.from_dict(old).kr_form == "paper"
     assert ModelConfig.from_dict(ModelConfig().to_dict()).kr_form == "convolve"
     with pytest.raises(ValueError, match="model.kr_form"):
@@ -445,7 +445,7 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
         tiny_config(camera_blur="yes")
     # runs saved when camera_blur was an on/off switch load as "poses" / "off"
     for old, new in ((True, "poses"), (False, "off")):
-        saved = {**cfg.to_dict(), "camera_blur": old}
+        saved = {k: v for k, v in cfg.to_dict().items() if k != "config_version"} | {"camera_blur": old}
         assert TrainConfig.from_dict(saved).camera_blur == new
 
 
@@ -464,7 +464,8 @@ def test_a_saved_config_round_trips_and_a_malformed_one_names_the_field():
         with pytest.raises(ValueError, match=needle):
             TrainConfig.from_dict(bad)
     # Runs saved with the densification settings at the top level still load.
-    flat = {k: v for k, v in good.items() if k != "densify"} | {"grad_threshold": 3e-4, "densify_every": 77}
+    flat = {k: v for k, v in good.items() if k not in ("densify", "config_version")} | {"grad_threshold": 3e-4,
+                                                                                       "densify_every": 77}
     old = TrainConfig.from_dict(flat)
     assert old.densify.grad_threshold == 3e-4 and old.densify.every == 77
 
@@ -756,3 +757,25 @@ def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
     assert saved["config"]["flow_split_method"] == split_method
 
+
+
+def test_saved_configurations_of_every_version_load_through_one_migration():
+    """`kgs_core.migrations`: a version-0 run.json config (flat densification keys, the camera
+    blur as a switch, no kr_form, knn_radius, spawned_motion or tau_auto) loads as the layout
+    it meant; a current one round-trips; a version from the future is refused by name."""
+    from kgs_core.migrations import CONFIG_VERSION, migrate_config
+    from kgs_core.train.config import TrainConfig, make_config
+
+    cfg = make_config("fast", iterations=300)
+    d = cfg.to_dict()
+    assert d["config_version"] == d["model"]["config_version"] == CONFIG_VERSION
+    assert TrainConfig.from_dict(d) == cfg
+    old = {k: v for k, v in d.items() if k not in ("config_version", "densify", "tau_auto")}
+    old.update({"densify_from": 123, "max_gaussians": 777, "camera_blur": True})
+    old["model"] = {k: v for k, v in d["model"].items() if k not in ("config_version", "kr_form", "knn_radius",
+                                                                     "spawned_motion")}
+    got = TrainConfig.from_dict(old)
+    assert (got.densify.start, got.densify.max_gaussians, got.camera_blur, got.tau_auto) == (123, 777, "poses", False)
+    assert (got.model.kr_form, got.model.knn_radius, got.model.spawned_motion) == ("paper", 0.0, "field")
+    with pytest.raises(ValueError, match="config.config_version must be a whole number"):
+        migrate_config({**d, "config_version": CONFIG_VERSION + 1})

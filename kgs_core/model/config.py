@@ -66,20 +66,18 @@ class ModelConfig:
             raise ValueError(f"model.knn_radius must be >= 0 (0: no bound), got {self.knn_radius!r}")
 
     def to_dict(self) -> dict:
+        from ..migrations import CONFIG_VERSION
+
         d = asdict(self)
         d["deform_multires"] = list(self.deform_multires)
-        return d
+        return {"config_version": CONFIG_VERSION, **d}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
         """From `to_dict`'s output (a run.json's `config.model`); ValueError naming a bad field."""
-        d = json_object(d, "model")
+        from ..migrations import migrate_model_config
+
+        d = migrate_model_config(json_object(d, "model"))
         if "deform_multires" in d:
             d["deform_multires"] = tuple(d["deform_multires"])
-        # Runs saved before kr_form existed all used the paper's form: keep rendering them so.
-        d.setdefault("kr_form", "paper")
-        # ... and before knn_radius, C.F. averaged over unbounded neighbourhoods.
-        d.setdefault("knn_radius", 0.0)
-        # ... and before spawned_motion, spawned Gaussians followed the field.
-        d.setdefault("spawned_motion", "field")
         return from_fields(cls, d, "model.")

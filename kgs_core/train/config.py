@@ -16,10 +16,6 @@ FrameSampling = Literal["uniform", "loss"]
 OnNonfinite = Literal["error", "restore"]
 # The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
 NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
-# Where the densification settings were before they became `TrainConfig.densify` (old run.json).
-FLAT_DENSIFY = {"grad_threshold": "grad_threshold", "densify_from": "start", "densify_until": "stop",
-                "densify_every": "every", "prune_opacity": "prune_opacity", "percent_dense": "percent_dense",
-                "opacity_reset_at": "opacity_reset_at", "max_gaussians": "max_gaussians"}
 
 ABLATIONS = {
     "cf": "no coarse-to-fine (dynamic Gaussians use the field's own offsets)",
@@ -204,33 +200,33 @@ class TrainConfig:
                              f"and {self.coarse_factor!r}")
 
     def to_dict(self) -> dict:
+        from ..migrations import CONFIG_VERSION
+
         d = asdict(self)
         d["model"] = self.model.to_dict()
         d["densify"]["opacity_reset_at"] = list(self.densify.opacity_reset_at)
         for k in ("lod_fractions", "ablate"):
             d[k] = list(d[k])
-        return d
+        return {"config_version": CONFIG_VERSION, **d}
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        """From `to_dict`'s output (a run.json's `config`), older layouts included; ValueError
-        naming the field when a part is malformed (keys this version does not know are skipped
-        at the top level, refused inside `model` and `densify`)."""
-        d = json_object(d, "config")
+        """From `to_dict`'s output (a run.json's `config`) of any version (`kgs_core.migrations`);
+        ValueError naming the field when a part is malformed (keys this version does not know
+        are skipped at the top level, refused inside `model` and `densify`)."""
+        from ..migrations import CONFIG_VERSION, migrate_config
+
+        d = migrate_config(json_object(d, "config"))
         if "model" not in d:
             raise ValueError("config has no model block")
         m = d.pop("model")
-        # Runs saved before the densification settings were one field kept them at the top level.
-        densify = d.pop("densify", None) or {new: d[old] for old, new in FLAT_DENSIFY.items() if old in d}
+        densify = d.pop("densify", None) or {}
         for k in ("lod_fractions", "ablate"):
             if k in d:
                 d[k] = tuple(d[k])
-        if isinstance(d.get("camera_blur"), bool):  # runs saved when it was an on/off switch
-            d["camera_blur"] = "poses" if d["camera_blur"] else "off"
-        d.setdefault("tau_auto", False)  # runs saved before it split at their configured τ
         known = {f.name for f in fields(cls)} - {"model", "densify"}
-        return cls(model=ModelConfig.from_dict(m), densify=from_fields(DensifyStrategy, densify, "densify."),
-                   **{k: v for k, v in d.items() if k in known})
+        return cls(model=ModelConfig.from_dict({"config_version": CONFIG_VERSION, **m}),
+                   densify=from_fields(DensifyStrategy, densify, "densify."), **{k: v for k, v in d.items() if k in known})
 
 
 # Both presets' Gaussian budget on the 128² demo (fit_to_scene scales it with the pixel
