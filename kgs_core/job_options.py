@@ -11,9 +11,10 @@ command line; uploads and workspace folders on the server) and whether to replac
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, create_model, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, create_model, field_validator, model_validator
 
 from .data.synth.scenes import SCENES
 
@@ -172,6 +173,8 @@ class TrainOptionsBase(JobOptions):
     ablate: list[str] = Field([], max_length=16, description="parts of the method to leave out (or comma-separated)")
     settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig "
                                 "field, model.FIELD or densify.FIELD), checked against the schema and applied last")
+    config: Any = Field(None, description="any training setting, typed: {FIELD: VALUE, model: {FIELD: VALUE}, "
+                        "densify: {FIELD: VALUE}}, applied after the named ones and before `settings`")
 
     @field_validator("preset")
     @classmethod
@@ -210,6 +213,11 @@ class TrainOptionsBase(JobOptions):
         from .train.settings import NAMED, named_overrides, parse_setting
 
         out = named_overrides({name: getattr(self, name, None) for name in NAMED})
+        if self.config is not None:
+            given = self.config.model_dump(exclude_none=True)
+            for part in ("model", "densify"):
+                out.update({f"{part}.{k}": v for k, v in (given.pop(part, None) or {}).items()})
+            out.update(given)
         out.update(parse_setting(text) for text in self.settings)
         return out
 
@@ -232,10 +240,34 @@ def _named_field(name: str) -> tuple[object, object]:
                                le=limits.high, description=named.help))
 
 
+def _checked(key: str, value):
+    from .train.settings import check_setting
+
+    return check_setting(key, value)
+
+
+def _training_settings() -> type[BaseModel]:
+    """Every training setting as an optional typed field, bounded as `--set` bounds it: the
+    schema of `TrainOptions.config` (so that OpenAPI shows each one)."""
+    from .train.settings import schema, setting_type
+
+    parts: dict[str, dict] = {"": {}, "model": {}, "densify": {}}
+    for key, (_, default) in schema().items():
+        part, _, name = key.rpartition(".")
+        kind: Any = Annotated[setting_type(key), AfterValidator(partial(_checked, key))]
+        parts[part][name] = (kind | None, Field(None, description=f"default {default!r}"))
+    model = create_model("ModelSettings", __base__=JobOptions, **parts["model"])  # type: ignore[call-overload]
+    densify = create_model("DensifySettings", __base__=JobOptions, **parts["densify"])  # type: ignore[call-overload]
+    nested: Any = {"model": (model | None, None), "densify": (densify | None, None)}
+    return create_model("TrainingSettings", __base__=JobOptions, **nested, **parts[""])  # type: ignore[call-overload]
+
+
 def _train_options() -> type[TrainOptionsBase]:
     from .train.settings import NAMED
 
+    settings = _training_settings()
     return create_model("TrainOptions", __base__=TrainOptionsBase,  # type: ignore[call-overload]
+                        config=(settings | None, Field(None, description=TrainOptionsBase.model_fields["config"].description)),
                         **{name: _named_field(name) for name in NAMED})
 
 

@@ -104,13 +104,16 @@ def test_the_pilot_times_real_steps_at_two_counts(walk):
 
 def test_the_command_line_and_the_rest_body_take_a_budget():
     from kgs_app.cli import build_parser
+    from kgs_app.cli_args import options_from
     from kgs_backend.routers.runs import TrainRequest
+    from kgs_core.job_options import TrainOptions
 
     ap = build_parser()
     args = ap.parse_args(["train", "scene", "--out", "o", "--time-budget", "10m"])
-    assert args.time_budget == 600.0
-    with pytest.raises(SystemExit):
-        ap.parse_args(["train", "scene", "--out", "o", "--time-budget", "soon"])
+    assert options_from(args, TrainOptions).time_budget == 600.0
+    with pytest.raises(ValueError, match="time_budget"):
+        options_from(ap.parse_args(["train", "scene", "--out", "o", "--time-budget", "soon"]), TrainOptions)
     assert TrainRequest(scene_id="x", time_budget=600).time_budget == 600
+    assert TrainRequest(scene_id="x", time_budget="10m").time_budget == 600  # the same reading as the command line
     with pytest.raises(ValueError):
         TrainRequest(scene_id="x", time_budget=10**9)

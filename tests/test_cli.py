@@ -137,6 +137,15 @@ def test_named_options_of_the_command_line_and_the_server_come_from_one_table():
         "model.tau": 1e-3, "pose_refine": True, "camera_blur": "poses", "seed": 3, "model.kr_form": "paper",
         "on_nonfinite": "restore", "time_budget": 120.0, "model.knn": 16}
     assert from_cli.ablate == body.ablate == ["kr", "reg", "ani"]
+    # Every training setting is typed in the REST schema (and `--config JSON`), bounded as `--set` is.
+    defs = TrainRequest.model_json_schema()["$defs"]
+    from kgs_core.train.settings import schema as settings_schema
+
+    typed = {*defs["TrainingSettings"]["properties"], *(f"model.{k}" for k in defs["ModelSettings"]["properties"]),
+             *(f"densify.{k}" for k in defs["DensifySettings"]["properties"])} - {"model", "densify"}
+    assert typed == set(settings_schema())
+    both = TrainRequest(scene_id="s", config={"lambda_reg": 0.02, "model": {"knn": 16}}, settings=["model.knn=12"])
+    assert both.overrides() == {"lambda_reg": 0.02, "model.knn": 12}  # `settings` last
     # The same bounds on both sides, in the same words.
     for name, bad in (("tau", 0), ("exposure", 1.5), ("iterations", 0), ("seed", -1), ("basis", "round")):
         with pytest.raises(ValueError, match=name) as rest:
@@ -279,6 +288,8 @@ def test_build_ext_reports_the_compiled_simd_path():
      "/api/runs"),
     ("train", ["train", "SCENE", "--out", "x", "--preset", "slow"], {"scene_id": "{scene}", "preset": "slow"},
      "/api/runs"),
+    ("train", ["train", "SCENE", "--out", "x", "--config", '{"model": {"knn": 0}}'], {"scene_id": "{scene}",
+     "config": {"model": {"knn": 0}}}, "/api/runs"),
 ])
 def test_a_bad_option_is_refused_alike_by_the_command_line_and_the_server(job, cli_args, body, path, tmp_path, copy_run):
     """One schema a job (`kgs_core.job_options`): the command line's error names the field and
