@@ -141,8 +141,9 @@ class LoadedRun:
 
 def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     """A model sharing the networks of `model` with a level snapshot's Gaussians."""
-    from .model.gaussians import GaussianParams, unbounded_lifespan
+    from .model.gaussians import GaussianParams
     from .model.neighbours import checked_knn
+    from .model.per_gaussian import PerGaussian
 
     # Everything of the model's (its config and every network, whichever it has) is shared; the
     # per-Gaussian state below is the snapshot's. The view is a fresh Module (its own hook and
@@ -156,10 +157,7 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     view.training = model.training  # as its (shared) networks are: Module.__init__ set it to True
     view.params = GaussianParams(**snap["params"])
     view.decomposed = model.decomposed
-    view.dynamic = snap["dynamic"]
-    view.variance = snap["variance"]
-    view.lifespan = snap["lifespan"] if "lifespan" in snap else unbounded_lifespan(len(view.params))
-    view.own_velocity = snap["own_velocity"] if "own_velocity" in snap else torch.zeros(len(view.params), 3)
+    view.per_gaussian = PerGaussian.from_state(snap, len(view.params))  # its own: the model's stays the model's
     view.min_scale = snap["min_scale"]
     # The graph the level trained with (snapshots from before it was kept: rebuilt).
     view._knn = checked_knn(snap.get("knn"), int(view.dynamic.sum()))

@@ -802,3 +802,33 @@ def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_t
         assert few.kappa is m.kappa and m.params.means.shape[0] == len(before)
         # A loaded run's model is in eval mode, and so is a view of its levels.
         assert not level_view(m.eval(), snap).training and level_view(m.train(), snap).training
+
+
+def test_per_gaussian_state_resizes_in_lock_step_and_checks_what_it_loads():
+    """Every field of `PerGaussian` follows a prune and a densification alike (a new field added
+    to FIELDS is resized with no other change), inherits or takes given rows, and a malformed or
+    missing saved field is refused by name; a field absent from an older run gets its fill."""
+    from kgs_core.model.per_gaussian import FIELDS, PerGaussian
+
+    pg = PerGaussian.empty(5)
+    pg.dynamic[[1, 3]] = True
+    pg.variance[:] = torch.arange(5.0)
+    pg.lifespan[2] = torch.tensor([0.4, 0.1])
+    kept = pg.select(torch.tensor([True, True, False, True, False]))
+    assert len(kept) == 3 and all(len(v) == 3 for _, v in kept.items())
+    assert kept.variance.tolist() == [0.0, 1.0, 3.0] and kept.dynamic.tolist() == [False, True, True]
+    grown = pg.append(torch.tensor([2, 3]), own_velocity=torch.ones(2, 3))
+    assert len(grown) == 7 and set(dict(grown.items())) == set(FIELDS)
+    assert torch.equal(grown.lifespan[5], pg.lifespan[2]) and grown.dynamic[6] and grown.own_velocity[5:].eq(1).all()
+    state = pg.state()
+    assert PerGaussian.from_state(state, 5).variance.equal(pg.variance)
+    old = {k: v for k, v in state.items() if k not in ("lifespan", "own_velocity")}  # saved before those existed
+    assert torch.isinf(PerGaussian.from_state(old, 5).lifespan[:, 1]).all()
+    with pytest.raises(ValueError, match="'dynamic': expected a bool mask"):
+        PerGaussian.from_state({**state, "dynamic": state["dynamic"].float()}, 5)
+    with pytest.raises(ValueError, match="'lifespan': expected floats, finite centres and widths > 0"):
+        PerGaussian.from_state({**state, "lifespan": torch.zeros(5, 2)}, 5)
+    with pytest.raises(ValueError, match="'variance': expected 5 rows"):
+        PerGaussian.from_state({**state, "variance": torch.zeros(4)}, 5)
+    with pytest.raises(ValueError, match="no field 'variance'"):
+        PerGaussian.from_state({k: v for k, v in state.items() if k != "variance"}, 5)

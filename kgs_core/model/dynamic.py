@@ -20,7 +20,7 @@ from ..render.covariance import normalize_quats, pack_covariance, quat_to_rotmat
 from .config import ModelConfig
 from .decomposition import Decomposition
 from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
-from .gaussians import GaussianParams, append, presence, select, unbounded_lifespan
+from .gaussians import GaussianParams, append, presence, select
 from .kinematics import (
     motion_blur_covariance,
     quat_multiply,
@@ -30,6 +30,7 @@ from .kinematics import (
     velocity_from_offsets,
 )
 from .neighbours import NeighbourGraph, checked_knn
+from .per_gaussian import PerGaussian
 
 
 @dataclass
@@ -84,16 +85,8 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         self.kappa = nn.Parameter(torch.tensor(float(c.kappa_init)))
         n = len(params)
         self.decomposed = False  # before the split every Gaussian deforms
-        self.dynamic = torch.zeros(n, dtype=torch.bool)
-        self.variance = torch.zeros(n)
-        # (N, 2): each Gaussian's time of presence (centre, width; normalised time). Width inf,
-        # the paper's Gaussians: present at every time. Spawned ones (train/spawn.py) live
-        # around the frame they were made for: opacity x exp(-((t - centre) / width)^2 / 2).
-        self.lifespan = unbounded_lifespan(n)
-        # (N, 3): the world velocity (per unit of normalised time) of the Gaussians with a
-        # bounded lifespan under `spawned_motion="own"`: at time t such a Gaussian sits at its
-        # mean + own_velocity (t - centre). Zeros, and unread, for the others.
-        self.own_velocity = torch.zeros(n, 3)
+        # Flags, K, lifespans and own velocities, one row per Gaussian (model/per_gaussian.py).
+        self.per_gaussian = PerGaussian.empty(n)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
         self._knn: Tensor | None = None
         self._knn_mean: tuple | None = None  # (knn and dropped rows it was built from, W, W^T): neighbour_mean
@@ -113,48 +106,48 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
     # velocities, a strategy's statistics) is resized in lock-step by `keep_gaussians` and
     # `add_gaussians` only, C.F.'s graph included: carried, not rebuilt, since each fine residual
     # is fitted to its neighbours' offsets (docs/real-footage.md, "The paper preset on walk").
-    def set_params(self, params: GaussianParams, dynamic: Tensor, variance: Tensor, lifespan: Tensor,
-                   own_velocity: Tensor, knn: Tensor | None = None) -> None:
+    # The per-Gaussian state, read and written by name (the split sets `dynamic`, spawning
+    # `lifespan`); resized only through `set_params`, `keep_gaussians`, `add_gaussians`.
+    dynamic = property(lambda self: self.per_gaussian.dynamic, lambda self, v: setattr(self.per_gaussian, "dynamic", v))
+    variance = property(lambda self: self.per_gaussian.variance, lambda self, v: setattr(self.per_gaussian, "variance", v))
+    lifespan = property(lambda self: self.per_gaussian.lifespan, lambda self, v: setattr(self.per_gaussian, "lifespan", v))
+    own_velocity = property(lambda self: self.per_gaussian.own_velocity,
+                            lambda self, v: setattr(self.per_gaussian, "own_velocity", v))
+
+    def set_params(self, params: GaussianParams, per_gaussian: PerGaussian, knn: Tensor | None = None) -> None:
         """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
-        if not len(params) == len(dynamic) == len(variance) == len(lifespan) == len(own_velocity):
-            raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, {len(dynamic)} flags, "
-                             f"{len(variance)} values of K, {len(lifespan)} lifespans, "
-                             f"{len(own_velocity)} own velocities")
-        if knn is not None and len(knn) != int(dynamic.sum()):
-            raise ValueError(f"kNN graph out of step: {len(knn)} rows for {int(dynamic.sum())} dynamic Gaussians")
+        if any(len(v) != len(params) for _, v in per_gaussian.items()):
+            raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, "
+                             + ", ".join(f"{len(v)} rows of {k}" for k, v in per_gaussian.items()))
+        if knn is not None and len(knn) != int(per_gaussian.dynamic.sum()):
+            raise ValueError(f"kNN graph out of step: {len(knn)} rows for {int(per_gaussian.dynamic.sum())} dynamic Gaussians")
         self.params = params
-        self.dynamic = dynamic
-        self.variance = variance
-        self.lifespan = lifespan
-        self.own_velocity = own_velocity
+        self.per_gaussian = per_gaussian
         self._knn = knn
 
     def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None,
                        state: dict[str, Tensor] | None = None, heirs: Tensor | None = None) -> None:
         """Keeps the Gaussians where `keep (N,) bool` is true (pruning): parameters, Adam
-        moments, dynamic flags, K, the kNN graph, and the (N, ...) tensors of `state` (a
+        moments, the per-Gaussian state, the kNN graph, and the (N, ...) tensors of `state` (a
         strategy's statistics, replaced in the dict).
 
         In the graph a removed neighbour is replaced by its heir, `heirs (N,)` (a split parent's
         child; -1: none), or else by the row's own Gaussian (as `knn_radius` does)."""
-        self.set_params(select(self.params, optimizer, keep), self.dynamic[keep], self.variance[keep],
-                        self.lifespan[keep], self.own_velocity[keep], self._graph_after_keep(keep, heirs))
+        self.set_params(select(self.params, optimizer, keep), self.per_gaussian.select(keep),
+                        self._graph_after_keep(keep, heirs))
         for k, v in (state or {}).items():
             state[k] = v[keep]
 
     def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None,
                       state: dict[str, Tensor] | None = None, lifespan: Tensor | None = None,
                       own_velocity: Tensor | None = None) -> None:
-        """Appends Gaussians (densification: clones and split children); each inherits the dynamic
-        flag, K, kNN neighbours, lifespan and own velocity of its parent (or takes `lifespan (M,
-        2)`, `own_velocity (M, 3)` when given), `parents (M,)` indices into the current set, and
-        starts with zero Adam moments and zeros in `state`."""
-        life = self.lifespan[parents] if lifespan is None else lifespan
-        velocity = self.own_velocity[parents] if own_velocity is None else own_velocity
+        """Appends Gaussians (densification: clones and split children); each inherits its
+        parent's per-Gaussian state (dynamic flag, K, lifespan, own velocity; or takes `lifespan
+        (M, 2)`, `own_velocity (M, 3)` when given) and kNN neighbours, `parents (M,)` indices
+        into the current set, and starts with zero Adam moments and zeros in `state`."""
         knn = self._graph_after_add(parents)
-        self.set_params(append(self.params, optimizer, new), torch.cat([self.dynamic, self.dynamic[parents]]),
-                        torch.cat([self.variance, self.variance[parents]]), torch.cat([self.lifespan, life]),
-                        torch.cat([self.own_velocity, velocity]), knn)
+        self.set_params(append(self.params, optimizer, new),
+                        self.per_gaussian.append(parents, lifespan=lifespan, own_velocity=own_velocity), knn)
         for k, v in (state or {}).items():
             state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
 
@@ -431,10 +424,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             "params": {k: v.detach().clone() for k, v in self.params.items()},
             "networks": {k: v for k, v in self.state_dict().items()},
             "decomposed": self.decomposed,
-            "dynamic": self.dynamic.clone(),
-            "variance": self.variance.clone(),
-            "lifespan": self.lifespan.clone(),
-            "own_velocity": self.own_velocity.clone(),
+            **self.per_gaussian.state(),
             "min_scale": self.min_scale,
             # The kNN graph is rebuilt only when the dynamic set changes, from the positions of
             # that moment; a resumed run must reuse it, not rebuild it from later positions.
@@ -449,28 +439,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         model = cls(params, ModelConfig.from_dict(state["config"]))
         model.load_state_dict(state["networks"])
         model.decomposed = bool(state["decomposed"])
-        _check_per_gaussian([("dynamic", state["dynamic"]), ("variance", state["variance"])], n)
-        if state["dynamic"].dtype != torch.bool:
-            raise ValueError(f"model state field 'dynamic': expected a bool mask, got {state['dynamic'].dtype}")
-        model.dynamic = state["dynamic"].clone()
-        model.variance = state["variance"].clone()
-        life = state.get("lifespan")  # absent in runs saved before spawning existed
-        if life is not None:
-            _check_per_gaussian([("lifespan", life)], n)
-            ok = (life.dim() == 2 and life.shape[1] == 2 and life.dtype.is_floating_point
-                  and bool(torch.isfinite(life[:, 0]).all()) and bool((life[:, 1] > 0).all()))
-            if not ok:  # a NaN or non-positive width would make NaN opacities deep in the renderer
-                raise ValueError(f"model state field 'lifespan': expected ({n}, 2) floats, finite centres and "
-                                 f"widths > 0 (inf: always present), got {tuple(life.shape)} {life.dtype}")
-        model.lifespan = unbounded_lifespan(n) if life is None else life.clone()
-        own = state.get("own_velocity")  # absent in runs saved before spawned Gaussians moved on their own
-        if own is not None:
-            _check_per_gaussian([("own_velocity", own)], n)
-            if not (own.dim() == 2 and own.shape[1] == 3 and own.dtype.is_floating_point
-                    and bool(torch.isfinite(own).all())):
-                raise ValueError(f"model state field 'own_velocity': expected ({n}, 3) finite floats, got "
-                                 f"{tuple(own.shape)} {own.dtype}")
-        model.own_velocity = torch.zeros(n, 3) if own is None else own.clone()
+        model.per_gaussian = PerGaussian.from_state(state, n)
         model.min_scale = float(state["min_scale"])
         model._knn = checked_knn(state.get("knn"), int(model.dynamic.sum()))  # absent in older runs
         return model

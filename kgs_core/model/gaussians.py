@@ -145,8 +145,3 @@ def presence(lifespan: Tensor, t: float) -> Tensor:
     bounded = width.isfinite()
     z = torch.where(bounded, (t - lifespan[:, 0]) / width, torch.zeros_like(width))
     return torch.exp(-0.5 * z * z)
-
-
-def unbounded_lifespan(n: int) -> Tensor:
-    """`(n, 2)` lifespans of Gaussians present at every time (centre 0, width inf)."""
-    return torch.tensor([0.0, float("inf")]).repeat(n, 1)

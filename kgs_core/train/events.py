@@ -178,10 +178,9 @@ class ScheduleEvents:
         keep = imp >= self.cfg.lod_prune_importance
         if keep.sum() >= 4:
             model.keep_gaussians(keep, self.opt, self.strategy.state)
-        snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, "dynamic": model.dynamic.clone(),
-                "variance": model.variance.clone(), "lifespan": model.lifespan.clone(),
-                "own_velocity": model.own_velocity.clone(), "min_scale": model.min_scale,
-                "knn": None if model._knn is None else model._knn.clone(), "iteration": self.iteration}
+        snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, **model.per_gaussian.state(),
+                "min_scale": model.min_scale, "knn": None if model._knn is None else model._knn.clone(),
+                "iteration": self.iteration}
         self.levels.append(snap)
         old, new = model.min_scale, self.level_min_scale(level_idx)
         with torch.no_grad():
