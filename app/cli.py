@@ -57,8 +57,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from kgs_core.job_options import SynthOptions
 
     o = options_from(args, SynthOptions)
-    out = synthesize(o.name, args.out, blur=o.blur, seed=o.seed, size=o.size, frames=o.frames,
-                     subframes=o.subframes, overwrite=args.overwrite)
+    out = synthesize(out=args.out, overwrite=args.overwrite, **o.model_dump())  # the options are its arguments
     print(f"wrote {out} (Nerfies + D-NeRF layouts, ground truth under sharp/, mask/, motion/)")
     return 0
 
@@ -191,8 +190,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from kgs_core.job_options import ExportOptions
 
     o = options_from(args, ExportOptions)
-    res = export_run(args.run, o.format, out=args.out, overwrite=args.force, keyframes=args.keyframes,
-                     **o.model_dump(exclude={"format", "view"}), view=o.view.model_dump() if o.view else None)
+    res = export_run(args.run, out=args.out, overwrite=args.force, keyframes=args.keyframes, **o.export_arguments())
     rep = res.report
     print(f"wrote {res.path} ({len(res.files)} file{'s' if len(res.files) != 1 else ''}, "
           f"{rep['gaussians']:,} Gaussians, LoD {rep['lod']})")

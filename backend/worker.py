@@ -73,8 +73,7 @@ def run_synth(spec: dict) -> None:
     from kgs_core.job_options import SynthOptions
 
     o = SynthOptions.model_validate({k: v for k, v in spec.items() if k in SynthOptions.model_fields})
-    synthesize(o.name, spec["out"], blur=o.blur, seed=o.seed, size=o.size, frames=o.frames, subframes=o.subframes,
-               progress=False, overwrite=True)
+    synthesize(out=spec["out"], progress=False, overwrite=True, **o.model_dump())
 
 
 class Cancelled(Exception):
@@ -150,15 +149,13 @@ def run_ingest(spec: dict) -> None:
 
 def run_export(spec: dict) -> None:
     from kgs_core.export import export_run
+    from kgs_core.job_options import ExportOptions
     from kgs_core.progress import listen
 
+    o = ExportOptions.model_validate({k: v for k, v in spec.items() if k in ExportOptions.model_fields})
     listener = stage_writer(Path(spec["progress"])) if spec.get("progress") else (lambda *a: None)
     with listen(listener):
-        export_run(spec["run_dir"], spec["format"], out=spec["out"], times=spec.get("times"),
-                   camera_path=spec.get("camera_path", "training"), exposure=float(spec.get("exposure", 0.0)),
-                   lod=spec.get("lod"), side_by_side=bool(spec.get("side_by_side")), overwrite=True, progress=False,
-                   size=spec.get("size"), view=spec.get("view"), fps=float(spec.get("fps", 24.0)),
-                   web_frame=spec.get("web_frame"))
+        export_run(spec["run_dir"], out=spec["out"], overwrite=True, progress=False, **o.export_arguments())
 
 
 JOBS = {"train": run_train, "synth": run_synth, "ingest": run_ingest, "export": run_export}

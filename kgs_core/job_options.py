@@ -140,6 +140,11 @@ class ExportOptions(JobOptions):
                                    "splaTV opens on the first training camera's view (default: on for splat and "
                                    "splatv; the transform is in export.json)")
 
+    def export_arguments(self) -> dict:
+        """The keyword arguments of `kgs_core.export.export_run` these options are."""
+        return {"fmt": self.format, **self.model_dump(exclude={"format", "view"}),
+                "view": None if self.view is None else self.view.model_dump()}
+
     @field_validator("times")
     @classmethod
     def times_parse(cls, value: str | None) -> str | None:

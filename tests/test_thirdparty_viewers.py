@@ -73,20 +73,16 @@ class QuietHandler(http.server.SimpleHTTPRequestHandler):
 
 
 def viewer_camera(tiny_run, fx: float = SPLAT_FX, fy: float = SPLAT_FY) -> tuple[np.ndarray, np.ndarray]:
-    """(K, viewmat): the first training camera moved back along its axis until the scene
-    fills the viewer's field of view (focal lengths `fx`, `fy` against the window, as the
-    viewers draw) as it filled the training frame."""
-    from kgs_core.data.formats import load_scene
-    from kgs_core.run import load_run
+    """(K, viewmat): the first training camera moved back along its axis until the scene fills
+    the test window at the viewer's focal lengths (`fx`, `fy` against the window, as the viewers
+    draw) as it filled the training frame: the exporter's own back-off, at the test's width."""
+    from kgs_core.export.bake import bake, open_source
+    from kgs_core.export.web_frame import opening_camera
 
-    scene = load_scene(load_run(tiny_run).scene_path())
-    frame = scene.train_frames[0]
-    vm = frame.camera.viewmat.copy()
-    depth = float(np.median(scene.points @ vm[2, :3] + vm[2, 3])) if len(scene.points) else 3.0
-    ratio = (frame.camera.K[0, 0] / frame.camera.width) / (fx / WIDTH)  # < 1: the viewer is narrower
-    vm[2, 3] += depth * (1 / ratio - 1)
-    K = np.array([[fx, 0, WIDTH / 2], [0, fy, HEIGHT / 2], [0, 0, 1.0]])
-    return K, vm
+    cam = first_train_camera(tiny_run)
+    means = bake(open_source(tiny_run), TIME).means.astype(np.float64)
+    vm, _ = opening_camera(cam.viewmat, cam.K, cam.width, means, fx, viewer_width=WIDTH)
+    return np.array([[fx, 0, WIDTH / 2], [0, fy, HEIGHT / 2], [0, 0, 1.0]]), vm
 
 
 def our_render(tiny_run, K, vm) -> np.ndarray:
