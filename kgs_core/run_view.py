@@ -178,7 +178,6 @@ def split_copy(model, tau: float):
     by K would show another model than the one trained."""
     m = copy.copy(model)
     m.config = copy.copy(model.config)
-    m.per_gaussian = copy.copy(model.per_gaussian)  # its own container: setting m.dynamic must not reach the model
     if m.decomposed:
         m.params = model.params.detach_clone()
         m.dynamic = model.dynamic.clone()

@@ -832,3 +832,20 @@ def test_per_gaussian_state_resizes_in_lock_step_and_checks_what_it_loads():
         PerGaussian.from_state({**state, "variance": torch.zeros(4)}, 5)
     with pytest.raises(ValueError, match="no field 'variance'"):
         PerGaussian.from_state({k: v for k, v in state.items() if k != "variance"}, 5)
+
+
+def test_setting_a_per_gaussian_field_on_a_shallow_copy_leaves_the_original_alone():
+    """The server re-splits shallow copies of a served model (run_view.split_copy): a field set on
+    the copy must not reach the original through a shared container."""
+    import copy
+
+    from kgs_core.model.config import ModelConfig
+    from kgs_core.model.dynamic import KinematicsGS
+    from kgs_core.model.gaussians import init_from_points
+
+    pts = torch.rand(30, 3).numpy()
+    m = KinematicsGS(init_from_points(pts, pts, 1, 16), ModelConfig())
+    c = copy.copy(m)
+    c.dynamic = torch.ones(30, dtype=torch.bool)
+    c.variance = torch.full((30,), 2.0)
+    assert not m.dynamic.any() and not m.variance.any() and c.dynamic.all()

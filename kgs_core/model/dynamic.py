@@ -9,6 +9,7 @@ backward is serial on CPU (docs/results.md, "Training speed").
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -107,12 +108,16 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
     # `add_gaussians` only, C.F.'s graph included: carried, not rebuilt, since each fine residual
     # is fitted to its neighbours' offsets (docs/real-footage.md, "The paper preset on walk").
     # The per-Gaussian state, read and written by name (the split sets `dynamic`, spawning
-    # `lifespan`); resized only through `set_params`, `keep_gaussians`, `add_gaussians`.
-    dynamic = property(lambda self: self.per_gaussian.dynamic, lambda self, v: setattr(self.per_gaussian, "dynamic", v))
-    variance = property(lambda self: self.per_gaussian.variance, lambda self, v: setattr(self.per_gaussian, "variance", v))
-    lifespan = property(lambda self: self.per_gaussian.lifespan, lambda self, v: setattr(self.per_gaussian, "lifespan", v))
-    own_velocity = property(lambda self: self.per_gaussian.own_velocity,
-                            lambda self, v: setattr(self.per_gaussian, "own_velocity", v))
+    # `lifespan`); resized only through `set_params`, `keep_gaussians`, `add_gaussians`. Setting
+    # a field makes a new container, so that a shallow copy of the model (the server's τ copies)
+    # never writes into the container it shares with the original.
+    dynamic = property(lambda self: self.per_gaussian.dynamic, lambda self, v: self._set_state(dynamic=v))
+    variance = property(lambda self: self.per_gaussian.variance, lambda self, v: self._set_state(variance=v))
+    lifespan = property(lambda self: self.per_gaussian.lifespan, lambda self, v: self._set_state(lifespan=v))
+    own_velocity = property(lambda self: self.per_gaussian.own_velocity, lambda self, v: self._set_state(own_velocity=v))
+
+    def _set_state(self, **field: Tensor) -> None:
+        self.per_gaussian = dataclasses.replace(self.per_gaussian, **field)
 
     def set_params(self, params: GaussianParams, per_gaussian: PerGaussian, knn: Tensor | None = None) -> None:
         """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
