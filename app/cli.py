@@ -335,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "settings": "; e.g. --set lambda_reg=0.02 --set model.knn=16"})
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
     p.add_argument("--init-from", metavar="RUN", help="start from this run directory's final model (fine-tuning), "
-                   "split at this run's τ, instead of from points")
+                   "decomposed at this run's τ, instead of from points")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("train-many", help="train scenes x presets x configurations x seeds, in turn or as Ray tasks "
@@ -345,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "on a cluster, a folder every node mounts)")
     p.add_argument("--presets", default="fast", help="comma-separated, of: " + ", ".join(sorted(PRESETS)))
     p.add_argument("--configs", default="full", help="comma-separated configurations, as for bench quality (full, "
-                   "split, deform, cf, ..., NAME@KEY=VALUE)")
+                   "decompose, deform, cf, ..., NAME@KEY=VALUE)")
     p.add_argument("--seeds", default="0", help="comma-separated training seeds")
     p.add_argument("--iterations", type=positive_int, help="override every preset's iteration count")
     from .cluster import add_ray_options

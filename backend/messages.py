@@ -35,7 +35,7 @@ class TimeRequest(ClientMessage):
 
 
 class SetTau(ClientMessage):
-    """Re-split at τ; every subscriber of the run gets the new sets."""
+    """Re-decompose at τ; every subscriber of the run gets the new sets."""
 
     type: Literal["tau"]
     tau: float = Field(gt=0.0)

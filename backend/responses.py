@@ -121,8 +121,8 @@ class ObjectSelection(Response):
                          "sum of their largest standard deviations apart")
 
 
-class Split(Response):
-    """The static/dynamic split at the run's live τ, with what the edit layer keeps."""
+class Decomposition(Response):
+    """The static/dynamic decomposition at the run's live τ, with what the edit layer keeps."""
 
     tau: float
     lod: int
@@ -189,7 +189,7 @@ class RunDetail(RunSummary):
     """A run with a model adds what a viewer needs to open it."""
 
     tau: float | None = None
-    split: Split | None = None
+    decomposition: Decomposition | None = None
     histogram: Histogram | None = None
     levels: list[Level] | None = None
     dt: float | None = None

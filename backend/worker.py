@@ -29,7 +29,7 @@ def _on_term(signum, frame) -> None:
 def run_train(spec: dict) -> None:
     from kgs_core.data.formats import load_scene
     from kgs_core.io import atomic_write_text
-    from kgs_core.model.decomposition import split_counts
+    from kgs_core.model.decomposition import decomposition_counts
     from kgs_core.threads import omp_threads, tuner_for_process
     from kgs_core.train.config import TrainConfig, make_config
     from kgs_core.train.trainer import Trainer
@@ -56,7 +56,7 @@ def run_train(spec: dict) -> None:
         if now - state["last"] < 0.5 and it < cfg.iterations:
             return
         state["last"] = now
-        counts = split_counts(trainer.model, trainer.static_only)
+        counts = decomposition_counts(trainer.model, trainer.static_only)
         atomic_write_text(run_dir / "progress.json", json.dumps({
             "iteration": it, "iterations": cfg.iterations, "loss": loss, "psnr_heldout": state["psnr"],
             "elapsed": now - t0, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}))

@@ -16,7 +16,7 @@ from .data.formats import load_scene
 from .data.scene import Frame, Scene
 from .io import atomic_write_text
 from .losses import psnr, ssim
-from .model.decomposition import split_counts
+from .model.decomposition import decomposition_counts
 from .model.dynamic import KinematicsGS
 from .model.render import render_model
 from .render import rasterize
@@ -331,7 +331,7 @@ def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> di
     for level in range(1, run.n_levels + 1):
         m = run.level(level)
         metrics["levels"].append({"level": level, "gaussians": len(m), "render_fps": render_fps(m, frame, scene.dt)})
-    metrics.update(split_counts(run.model, run.static_only))
+    metrics.update(decomposition_counts(run.model, run.static_only))
     metrics["train_seconds"] = run.info.get("train_seconds")
     metrics["scene"] = str(scene.root)
     run_dir = Path(run_dir)
@@ -359,8 +359,8 @@ def metrics_markdown(m: dict, info: dict) -> str:
         lines += ["", f"Held-out views: {m['heldout']['kind']}."]
     if info.get("kr_note"):
         lines += ["", f"Kinematic refinement: {info['kr_note']}."]
-    if info.get("split_note"):
-        lines += ["", f"Static/dynamic split: {info['split_note']}."]
+    if info.get("decomposition_note"):
+        lines += ["", f"Static/dynamic decomposition: {info['decomposition_note']}."]
     lines += ["", f"LPIPS: {m['lpips_note']}.", f"Decomposition IoU against the ground-truth dynamic masks: {f(m['decomposition_iou'], 3)}",
               f"Velocity end-point error against ground-truth motion (still held-out camera, dynamic mask): "
               f"{f(m.get('velocity_epe_px'), 3)} px per frame interval", "",

@@ -193,15 +193,13 @@ class TrainOptionsBase(JobOptions):
     @field_validator("ablate", mode="before")
     @classmethod
     def known_ablations(cls, value: Any) -> Any:
-        from .train.config import ABLATIONS
+        from .train.config import check_ablations
 
         if isinstance(value, str):
             value = [value]
         if isinstance(value, list):  # "kr,cf" on the command line
             value = [a for v in value for a in (v.split(",") if isinstance(v, str) else [v]) if a != ""]
-            bad = [a for a in value if a not in ABLATIONS]
-            if bad:
-                raise ValueError(f"unknown ablation {bad[0]!r}; one of {', '.join(ABLATIONS)}")
+            check_ablations(value)
         return value
 
     @field_validator("settings")

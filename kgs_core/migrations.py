@@ -1,16 +1,18 @@
-"""Every change to a saved layout, in one place: a run's training configuration (run.json's
-`config`) and its model configuration (run.json's `config.model`, model.pt's `config`), read
-back whatever version wrote them.
+"""Every change to a saved layout, in one place: run.json (`migrate_run_json`), its training
+configuration (`config`, `migrate_config`), the model configuration (`config.model`, model.pt's
+`config`, `migrate_model_config`) and a saved model's state (model.pt, checkpoints:
+`migrate_model_state`), read back whatever version wrote them.
 
-Each layout carries `config_version` from version 1 on; a dict without one is version 0 (every
-run saved before the number existed). `migrate_config` and `migrate_model_config` step a dict
-through the upgrades from its version to the current one; each upgrade says what changed. To
-change a layout: add a step below and bump CONFIG_VERSION.
+run.json carries `format_version`; each configuration `config_version` from version 1 on (a
+dict without one is version 0, every run saved before the number existed). Each function steps
+a dict through the upgrades from its version to the current one; each upgrade says what
+changed. To change a layout: add a step below and bump the version.
 """
 
 from __future__ import annotations
 
-CONFIG_VERSION = 1
+CONFIG_VERSION = 2
+RUN_FORMAT_VERSION = 2
 
 # Where the densification settings were before they became `TrainConfig.densify`.
 FLAT_DENSIFY = {"grad_threshold": "grad_threshold", "densify_from": "start", "densify_until": "stop",
@@ -31,12 +33,37 @@ def _config_v0_to_v1(d: dict) -> dict:
         d["densify"] = {new: d.pop(old) for old, new in FLAT_DENSIFY.items() if old in d}
     if isinstance(d.get("camera_blur"), bool):  # when it was an on/off switch
         d["camera_blur"] = "poses" if d["camera_blur"] else "off"
-    d.setdefault("tau_auto", False)  # runs saved before it split at their configured τ
+    d.setdefault("tau_auto", False)  # runs saved before it decomposed at their configured τ
     return d
 
 
-MODEL_STEPS = [_model_v0_to_v1]  # MODEL_STEPS[v] upgrades a version-v model config to v + 1
-CONFIG_STEPS = [_config_v0_to_v1]
+# Version 2 named the static/dynamic split "decompose" and the temporal variance K, as the
+# paper does; old names, new names.
+DECOMPOSE_RENAMES = {"split_in_place": "decompose_in_place", "resplit_to_dynamic": "redecompose_to_dynamic",
+                     "flow_split_share": "flow_vote_share", "flow_split_method": "flow_vote_method"}
+MODEL_RENAMES = {"variance_times": "K_times"}
+ABLATION_RENAMES = {"split": "decompose"}
+STATE_RENAMES = {"variance": "K"}  # per-Gaussian fields of a saved model
+RUN_JSON_RENAMES = {"flow_split": "flow_vote", "split_note": "decomposition_note"}
+
+
+def _renamed(d: dict, renames: dict) -> dict:
+    return {renames.get(k, k): v for k, v in d.items()}
+
+
+def _model_v1_to_v2(d: dict) -> dict:
+    return _renamed(d, MODEL_RENAMES)
+
+
+def _config_v1_to_v2(d: dict) -> dict:
+    d = _renamed(d, DECOMPOSE_RENAMES)
+    if isinstance(d.get("ablate"), (list, tuple)):
+        d["ablate"] = [ABLATION_RENAMES.get(a, a) for a in d["ablate"]]
+    return d
+
+
+MODEL_STEPS = [_model_v0_to_v1, _model_v1_to_v2]  # MODEL_STEPS[v] upgrades a version-v model config to v + 1
+CONFIG_STEPS = [_config_v0_to_v1, _config_v1_to_v2]
 assert len(MODEL_STEPS) == len(CONFIG_STEPS) == CONFIG_VERSION
 
 
@@ -68,3 +95,53 @@ def migrate_config(d: dict) -> dict:
         model.setdefault("config_version", version)  # the model block was written with the config
         d["model"] = migrate_model_config(model)
     return d
+
+
+def migrate_model_state(state: dict, version: int | None = None) -> dict:
+    """A saved model's state (`KinematicsGS.state`) or a level snapshot of any version, its
+    per-Gaussian fields under their current names; the version is its model configuration's
+    (a snapshot, which has none, takes its model's: `version`)."""
+    if version is None:
+        config = state.get("config")
+        version = config.get("config_version", 0) if isinstance(config, dict) else CONFIG_VERSION
+    return _renamed(state, STATE_RENAMES) if isinstance(version, int) and version < 2 else state
+
+
+def migrate_saved_model(saved: dict) -> dict:
+    """model.pt or a checkpoint (`{"model": state, "levels": [snapshot, ...], ...}`) with the
+    model, its level snapshots and a checkpoint's records in the current layout."""
+    model = saved.get("model")
+    if not isinstance(model, dict):
+        return saved
+    config = model.get("config")
+    version = config.get("config_version", 0) if isinstance(config, dict) else CONFIG_VERSION
+    levels = saved.get("levels")
+    if isinstance(version, int) and version < 2:
+        saved = _renamed(saved, RUN_JSON_RENAMES)  # a checkpoint's copy of run.json's records
+    return {**saved, "model": migrate_model_state(model, version),
+            "levels": [migrate_model_state(s, version) if isinstance(s, dict) else s for s in levels]
+            if isinstance(levels, list) else levels}
+
+
+def migrate_run_json(info: dict, where: str = "run.json") -> dict:
+    """A run.json of any format version in the current layout: its keys renamed, its `config`
+    migrated (`migrate_config`) and stamped with the current version; ValueError naming `where`
+    for a version this code does not know."""
+    version = info.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= RUN_FORMAT_VERSION:
+        raise ValueError(f"{where}: run format {version!r} not supported (expected 1..{RUN_FORMAT_VERSION})")
+    out = _renamed(info, RUN_JSON_RENAMES) if version < 2 else dict(info)
+    out["format_version"] = RUN_FORMAT_VERSION
+    if isinstance(out.get("config"), dict):
+        config = migrate_config(out["config"])
+        if isinstance(config.get("model"), dict):
+            config["model"] = {"config_version": CONFIG_VERSION, **config["model"]}
+        out["config"] = {"config_version": CONFIG_VERSION, **config}
+    return out
+
+
+def renamed_setting(key: str) -> str | None:
+    """The current name of a setting an older version called `key` (`model.` prefix kept)."""
+    prefix, _, name = key.rpartition(".")
+    new = (MODEL_RENAMES if prefix == "model" else DECOMPOSE_RENAMES).get(name)
+    return None if new is None else f"{prefix}.{new}" if prefix else new

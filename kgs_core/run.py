@@ -27,9 +27,8 @@ import numpy as np
 import torch
 
 from .io import atomic_write_bytes, atomic_write_text
+from .migrations import RUN_FORMAT_VERSION, migrate_run_json, migrate_saved_model
 from .model.dynamic import KinematicsGS
-
-RUN_FORMAT_VERSION = 1
 
 
 class RunError(ValueError):
@@ -61,9 +60,12 @@ def read_run_json(run_dir: Path) -> dict:
         info = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise RunError(f"{path}: invalid JSON ({exc.msg})") from None
-    if info.get("format_version") != RUN_FORMAT_VERSION:
-        raise RunError(f"{path}: run format {info.get('format_version')} not supported (expected {RUN_FORMAT_VERSION})")
-    return info
+    if not isinstance(info, dict):
+        raise RunError(f"{path}: must be a JSON object")
+    try:
+        return migrate_run_json(info, str(path))
+    except ValueError as exc:
+        raise RunError(str(exc)) from None
 
 
 def learned_blur(info: dict) -> dict:
@@ -80,7 +82,7 @@ def learned_blur(info: dict) -> dict:
     check, effect = info.get("kr_check"), info.get("kr_effect")
     if exposure <= 0:
         return {"objects": False, "camera": camera, "note": "trained at exposure 0: no blur was modelled"}
-    if not kinematic or "split" in (cfg.get("ablate") or ()) or "deform" in (cfg.get("ablate") or ()):
+    if not kinematic or "decompose" in (cfg.get("ablate") or ()) or "deform" in (cfg.get("ablate") or ()):
         return {"objects": False, "camera": camera, "note": "trained without K.R.: no motion blur was modelled"}
     measured = check if check is not None else effect
     if check is not None and not check.get("kept", True):
@@ -175,6 +177,9 @@ def load_run(run_dir: str | Path) -> LoadedRun:
         state = load_torch(path)
     except Exception as exc:
         raise RunError(f"{path}: cannot load ({exc})") from None
+    if not isinstance(state, dict):
+        raise RunError(f"{path}: malformed model file (not a dict)")
+    state = migrate_saved_model(state)
     try:
         model = KinematicsGS.from_state(state["model"])
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
@@ -196,7 +201,7 @@ def read_log(run_dir: Path) -> list[dict]:
     return rows
 
 
-def save_decomposition(run_dir: Path, variance: torch.Tensor) -> None:
+def save_decomposition(run_dir: Path, K: torch.Tensor) -> None:
     buf = io.BytesIO()
-    np.save(buf, variance.numpy().astype(np.float32))
+    np.save(buf, K.numpy().astype(np.float32))
     atomic_write_bytes(run_dir / "decomposition.npy", buf.getvalue())

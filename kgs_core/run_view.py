@@ -17,7 +17,7 @@ import torch
 
 from .edits import EditLayer, load_edits, save_edits
 from .export.bake import Baked, baked_from
-from .model.decomposition import split_counts, variance_histogram
+from .model.decomposition import K_histogram, decomposition_counts
 from .model.gaussians import presence
 from .run import LoadedRun, load_run
 from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, pack_sh_buffer, rgba_of
@@ -167,14 +167,14 @@ def presence_rgba(rgba: np.ndarray, lifespan: np.ndarray, t: float) -> np.ndarra
     return out
 
 
-def split_copy(model, tau: float):
-    """A copy of `model` split at `tau` in place (`KinematicsGS.decompose`: a Gaussian that
-    changes sides keeps its average place, as a re-split in training keeps it), with its own
+def decomposed_copy(model, tau: float):
+    """A copy of `model` decomposed at `tau` in place (`KinematicsGS.decompose`: a Gaussian that
+    changes sides keeps its average place, as a re-decomposition in training keeps it), with its own
     canonical Gaussians and the networks shared. Readers keep whichever snapshot they started
     with, so a τ change never mutates a model in use.
 
-    At the model's own τ the copy keeps the split training made: that is not always K > τ (the
-    splits' reading of the flow, one-way re-splits on video ingests), and re-deciding it
+    At the model's own τ the copy keeps the decomposition training made: that is not always K > τ (the
+    decompositions' reading of the flow, one-way re-decompositions on video ingests), and re-deciding it
     by K would show another model than the one trained."""
     m = copy.copy(model)
     m.config = copy.copy(model.config)
@@ -246,7 +246,7 @@ class RunView:
             if not 1 <= lod <= self.run.n_levels:
                 raise ValueError(f"lod must be in 1..{self.run.n_levels}, got {lod}")
             if lod not in self._models:
-                self._models[lod] = split_copy(self.run.level(lod), self.tau)
+                self._models[lod] = decomposed_copy(self.run.level(lod), self.tau)
             return lod, self._models[lod]
 
     def state(self, lod: int | None):
@@ -261,7 +261,7 @@ class RunView:
             return lod, m, self._keep[key], self.version
 
     def nothing_dynamic(self, lod: int, model) -> bool:
-        """True when the run has no dynamic set to send at this LoD (a static run, or a split
+        """True when the run has no dynamic set to send at this LoD (a static run, or a decomposition
         that left every Gaussian static); asked on every buffer request, so kept per version."""
         with self.lock:
             key = (lod, self.version)
@@ -374,20 +374,20 @@ class RunView:
         with self.lock:
             self.tau = float(tau)
             # (From the run's own models, so that moves in place do not add up over τ changes.)
-            self._models = {lod: split_copy(self.run.level(lod), self.tau) for lod in self._models}
+            self._models = {lod: decomposed_copy(self.run.level(lod), self.tau) for lod in self._models}
             self._invalidate()
-        return self.split()
+        return self.decomposition()
 
-    def split(self, lod: int | None = None) -> dict:
+    def decomposition(self, lod: int | None = None) -> dict:
         lod, m, keep, version = self.state(lod)
-        counts = split_counts(m, self.run.static_only)
+        counts = decomposition_counts(m, self.run.static_only)
         dyn = self._dynamic_mask(m)
         return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()), "dynamic_kept": int((dyn & keep).sum()),
                 "static_kept": int((~dyn & keep).sum()), "version": version, "history": self.edits.history_labels()}
 
     def histogram(self, lod: int | None = None) -> dict:
         _, m = self.model(lod)
-        return variance_histogram(m.variance.numpy())
+        return K_histogram(m.K.numpy())
 
     def apply_edit(self, op: str, lod: int | None, indices: list[int] | None = None,
                    crop: dict | None = None) -> dict:
@@ -423,7 +423,7 @@ class RunView:
             save_edits(self.run.path, edits)
             self.edits = edits
             self._invalidate()
-        return self.split(lod)
+        return self.decomposition(lod)
 
     def _invalidate(self) -> None:
         self.version += 1

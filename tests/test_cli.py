@@ -61,7 +61,7 @@ def test_bad_arguments_fail_with_a_message(args, needle, tmp_path):
 def test_bench_quality_configs_take_short_names_and_reject_unknown_ones():
     from kgs_app.bench.quality import CONFIGS, select_configs
 
-    assert select_configs("full,split") == ["full", "no split, D3DGS-like (split)"]
+    assert select_configs("full,decompose") == ["full", "no decomposition, D3DGS-like (decompose)"]
     assert select_configs(None) == list(CONFIGS)
     with pytest.raises(SystemExit, match="unknown bogus"):
         select_configs("full,bogus")
@@ -80,11 +80,11 @@ def test_bench_quality_configs_take_overrides_of_training_settings():
     from kgs_app.bench.quality import config_overrides, select_configs
     from kgs_core.train.config import make_config
 
-    names = select_configs("split@noise_init_frames=0.1,full@model.tau=1e-4@camera_blur=poses,full")
+    names = select_configs("decompose@noise_init_frames=0.1,full@model.tau=1e-4@camera_blur=poses,full")
     # CONFIGS' order, so the plain `full` still comes first and sets the time budget.
-    assert names == ["full", "full@model.tau=1e-4@camera_blur=poses", "no split, D3DGS-like (split)@noise_init_frames=0.1"]
+    assert names == ["full", "full@model.tau=1e-4@camera_blur=poses", "no decomposition, D3DGS-like (decompose)@noise_init_frames=0.1"]
     over = config_overrides(names[2])
-    assert over == {"ablate": ("split",), "noise_init_frames": 0.1}
+    assert over == {"ablate": ("decompose",), "noise_init_frames": 0.1}
     over = config_overrides(names[1])
     cfg = make_config("fast", **over)
     assert cfg.model.tau == 1e-4 and cfg.camera_blur == "poses"
@@ -163,9 +163,9 @@ def test_every_benchmark_answers_help_and_bench_step_prints_its_table():
         r = kgs("bench", what, "--help")
         assert r.returncode == 0 and "usage: kgs-app bench " + what in r.stdout, (what, r.stderr)
     r = kgs("bench", "step", "--size", "32", "--frames", "6", "--warmup", "20", "--steps", "3", "--repeats", "1",
-            "--configs", "full,split", "--levels", "1,2", "--profile", timeout=300)
+            "--configs", "full,decompose", "--levels", "1,2", "--profile", timeout=300)
     assert r.returncode == 0, r.stderr
-    rows = [line for line in r.stdout.splitlines() if line.startswith("| full") or line.startswith("| no split")]
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| full") or line.startswith("| no decomposition")]
     assert len(rows) == 2
     for row in rows:
         step_ms = float(row.rstrip(" |").split("|")[-1].strip(" *"))
@@ -188,16 +188,16 @@ def test_bench_quality_trains_the_equal_time_baseline_at_several_cuts_and_averag
     def slower_baseline(trainers):
         interleave(trainers)
         for tr in trainers:
-            if "split" in tr.cfg.ablate:
+            if "decompose" in tr.cfg.ablate:
                 tr.train_seconds *= 1.5
 
     real = equal_time_module.equal_time
     monkeypatch.setattr(equal_time_module, "equal_time",
                         lambda *args, **kwargs: real(*args, **{**kwargs, "train_all": slower_baseline}))
-    assert main(["--scene", "panel", "--size", "24", "--frames", "4", "--iterations", "60", "--configs", "full,split",
+    assert main(["--scene", "panel", "--size", "24", "--frames", "4", "--iterations", "60", "--configs", "full,decompose",
                  "--cuts", "2", "--taus", "2e-5", "--plot", "", "--out", str(tmp_path / "q")]) == 0
     stdout = capsys.readouterr().out
-    rows = [line.split("|")[1:-1] for line in stdout.splitlines() if line.startswith("| no split")]
+    rows = [line.split("|")[1:-1] for line in stdout.splitlines() if line.startswith("| no decomposition")]
     cuts = [row for row in rows if "same time (" in row[0]]
     counts = [int(row[-2]) for row in cuts]
     assert len(cuts) == 2 and counts[0] < counts[1], rows
@@ -245,11 +245,11 @@ def test_bench_quality_runs_end_to_end(tmp_path):
     """A tiny `bench quality`: both configurations get a table row (and one more for an
     equal-time re-run when their measured costs differ), the τ sweep and the plot exist."""
     r = kgs("bench", "quality", "--scene", "sheet", "--size", "32", "--frames", "6", "--iterations", "60",
-            "--configs", "full,split", "--taus", "2e-5,1e-3", "--out", str(tmp_path / "runs"),
+            "--configs", "full,decompose", "--taus", "2e-5,1e-3", "--out", str(tmp_path / "runs"),
             "--plot", str(tmp_path / "plot.png"), timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
-    rows = [line for line in r.stdout.splitlines() if line.startswith("| full |") or line.startswith("| no split")]
-    assert rows[0].startswith("| full |") and rows[1].startswith("| no split, D3DGS-like (split) |"), r.stdout
+    rows = [line for line in r.stdout.splitlines() if line.startswith("| full |") or line.startswith("| no decomposition")]
+    assert rows[0].startswith("| full |") and rows[1].startswith("| no decomposition, D3DGS-like (decompose) |"), r.stdout
     assert all(line.split("|")[9].strip() == "60" for line in rows[:2])  # the first round: equal iterations
     for line in rows[2:]:  # an equal-time re-run: another count, its time derived from the measured rate
         assert "same time" in line and line.split("|")[9].strip() != "60" and "≈" in line.split("|")[10]
@@ -258,7 +258,7 @@ def test_bench_quality_runs_end_to_end(tmp_path):
     import json
 
     rates = json.loads((tmp_path / "runs" / "bench.json").read_text())["seconds_per_iteration"]
-    assert set(rates) == {"full", "no split, D3DGS-like (split)"} and all(v > 0 for v in rates.values())
+    assert set(rates) == {"full", "no decomposition, D3DGS-like (decompose)"} and all(v > 0 for v in rates.values())
 
 
 def test_build_ext_reports_the_compiled_simd_path():

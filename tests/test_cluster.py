@@ -45,7 +45,7 @@ def test_a_ray_sweep_equals_the_same_sweep_trained_in_turn(tiny_run, tmp_path):
 
     scene_dir = tiny_run.parent.parent / "scenes" / "bounce"
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # a task of one CPU runs one thread; float sums depend on the split
+    torch.set_num_threads(1)  # a task of one CPU runs one thread; float sums depend on how work is split between threads
     try:
         local = sweep(scene_dir, tmp_path / "local")
         for t in local:
@@ -86,15 +86,15 @@ def test_train_many_trains_every_combination_in_turn(tiny_run, tmp_path, capsys)
 
     scene = tiny_run.parent.parent / "scenes" / "bounce"
     out = tmp_path / "many"
-    assert main(["train-many", str(scene), "--out", str(out), "--configs", "full,split", "--seeds", "0,1",
+    assert main(["train-many", str(scene), "--out", str(out), "--configs", "full,decompose", "--seeds", "0,1",
                  "--iterations", "8"]) == 0
     rows = json.loads((out / "train-many.json").read_text())
     names = sorted(p.name for p in (out / "runs").iterdir())
-    assert names == sorted(f"bounce-fast-{c}-s{s}" for c in ("full", "no_split_D3DGS-like") for s in (0, 1))
+    assert names == sorted(f"bounce-fast-{c}-s{s}" for c in ("full", "no_decomposition_D3DGS-like") for s in (0, 1))
     assert len(rows) == 4 and all(r["iterations"] == 8 for r in rows)
     assert all(json.loads((out / "runs" / n / "run.json").read_text())["config"]["seed"] == int(n[-1]) for n in names)
     assert main(["train-many", str(scene), "--out", str(out), "--iterations", "8", "--seeds", "0",
-                 "--configs", "split"]) == 2  # the run exists: refused, nothing overwritten
+                 "--configs", "decompose"]) == 2  # the run exists: refused, nothing overwritten
     assert "exists" in capsys.readouterr().err
 
 

@@ -135,7 +135,7 @@ def test_imgui_controls_change_what_is_drawn(model, egl):
         # tau slider: far right makes everything static
         ui.click(model, "tau", at=0.99)
         model.sync()
-        assert model.source.meta["split"]["dynamic"] < 5
+        assert model.source.meta["decomposition"]["dynamic"] < 5
     finally:
         ui.close()
         model.state.t, model.state.playing = 0.5, False

@@ -58,7 +58,7 @@ def test_fitted_exposure_starts_inside_its_range_and_round_trips():
 
 
 def test_training_fits_the_exposure_and_records_the_choice(tmp_path):
-    """The fitted exposure moves once K.R. acts (after the split), is logged per evaluation,
+    """The fitted exposure moves once K.R. acts (after the decomposition), is logged per evaluation,
     written to run.json with how it was chosen, and survives a resume."""
     import csv
     import json
@@ -69,7 +69,7 @@ def test_training_fits_the_exposure_and_records_the_choice(tmp_path):
     from kgs_core.train.trainer import Trainer
 
     walk = load_scene(Path(__file__).parent / "fixtures" / "walk96")
-    # τ ~0 (a τ must be above 0): every Gaussian dynamic from the split on, so that K.R. blurs (and the fit acts) at once.
+    # τ ~0 (a τ must be above 0): every Gaussian dynamic from the decomposition on, so that K.R. blurs (and the fit acts) at once.
     cfg = make_config("fast", scene=walk, iterations=40, decompose_at=10, decompose_every=0, eval_every=20,
                       checkpoint_every=20, fit_exposure=True, exposure=0.3, tau_auto=False, **{"model.tau": 1e-12})
     t = Trainer(walk, tmp_path / "r", cfg, progress=False)

@@ -168,7 +168,7 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
     tr.model.zero_grad(set_to_none=True)
     info = tr.run()
     assert info["iteration"] == 40 and torch.isfinite(torch.tensor(info["final_psnr_heldout"]))
-    # After a split (here one that calls every Gaussian dynamic: 40 steps of a 40 px scene move
+    # After a decomposition (here one that calls every Gaussian dynamic: 40 steps of a 40 px scene move
     # too little for τ), with an exposure, the term reads K.R.'s velocity with its gradient.
     tr.model.decompose(tau=-1.0, recompute=False)
     out, g = render_model(tr.model, frame.camera, frame.time, 0.5, scene.dt)
@@ -181,7 +181,7 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
 
 
 def test_without_kr_velocity_the_flow_term_moves_own_line_gaussians_by_their_own_velocity(tmp_path):
-    """Where K.R. computes no velocity (before the split, or after its mid-run check turned it
+    """Where K.R. computes no velocity (before the decomposition, or after its mid-run check turned it
     off) a training render hands the flow term no velocity, and the term evaluates the field no
     second time: a Gaussian on its own line moves by its `own_velocity` (changing it changes
     the term), every other one is read as standing still (changing where the field would put

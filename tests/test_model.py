@@ -19,7 +19,7 @@ from kgs_core.render.covariance import covariance_from_quat_scale, pack_covarian
 
 
 def moving_model(n: int = 48, seed: int = 0, **config) -> KinematicsGS:
-    """A small model whose field moves things (random last layers and planes), split with
+    """A small model whose field moves things (random last layers and planes), decomposed with
     every Gaussian dynamic."""
     g = torch.Generator().manual_seed(seed)
     p = init_from_points((0.3 * torch.randn(n, 3, generator=g)).numpy(), np.full((n, 3), 0.5), 1, 4).requires_grad_(True)
@@ -390,7 +390,7 @@ def test_temporal_variance_is_the_papers_k_of_the_fields_offsets():
     """K_i = mean over T evenly spaced times of |dx_i(t) - mean_t dx_i(t)|^2, from the
     deformation field alone (no coarse-to-fine averaging, no time noise), written out here
     with a field whose offsets are known."""
-    m = moving_model(n=40, variance_times=5)
+    m = moving_model(n=40, K_times=5)
     x = m.params.means.detach()
     # A known field: dx = (t^2 a_i, sin(3 t) b_i, c_i), with per-point a, b, c.
     g = torch.Generator().manual_seed(3)
@@ -407,21 +407,21 @@ def test_temporal_variance_is_the_papers_k_of_the_fields_offsets():
         return out
 
     m.deform.at_times = field
-    k = m.temporal_variance(chunk=16)  # chunks smaller than N: the rows must line up
+    k = m.compute_K(chunk=16)  # chunks smaller than N: the rows must line up
     ts = torch.linspace(0, 1, 5)
     dx = torch.stack([torch.stack([t ** 2 * a, torch.sin(3 * t) * b, c], -1) for t in ts])  # (T, N, 3)
     expected = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
     torch.testing.assert_close(k, expected)
     assert float(k.min()) > 0  # every point moves; the constant z offset adds nothing
-    # The split: dynamic exactly where K exceeds tau.
+    # The decomposition: dynamic exactly where K exceeds tau.
     tau = float(expected.median())
     assert torch.equal(m.decompose(tau, recompute=True), expected > tau)
 
 
 def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
-    """A split in place moves a Gaussian that turns static to its time-averaged deformed mean,
+    """A decomposition in place moves a Gaussian that turns static to its time-averaged deformed mean,
     rotation and scale (exactly: a static Gaussian has no field), leaves untouched those that
-    stay static, and keeps the average position of the rest closer than a plain split does;
+    stay static, and keeps the average position of the rest closer than a plain decomposition does;
     with keep_static no static Gaussian turns dynamic."""
     from kgs_core.model.dynamic import residual_covariance
 
@@ -432,37 +432,37 @@ def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
     plain, moved = moving_model(n=64), moving_model(n=64)
     x0, off0 = average_state(moved)
     assert float(off0[:, :3].norm(dim=-1).median()) > 0.05  # the field's mean offsets are not small
-    k = moved.temporal_variance()
+    k = moved.compute_K()
     tau = float(k.median())
     for m, in_place in ((plain, False), (moved, True)):
-        m.variance = k.clone()
+        m.K = k.clone()
         m.decompose(tau, recompute=False, in_place=in_place)
     turned = ~moved.dynamic
     assert torch.equal(turned, ~plain.dynamic) and 20 < int(turned.sum()) < 44
     x1, _ = average_state(moved)
     torch.testing.assert_close(x1[turned], x0[turned], atol=1e-6, rtol=0)
     jumped = (average_state(plain)[0] - x0).norm(dim=-1)
-    assert float(jumped[turned].min()) > 1e-3  # ... where a plain split makes them jump
+    assert float(jumped[turned].min()) > 1e-3  # ... where a plain decomposition makes them jump
     # Their covariance is the deformed one at the mean offsets.
     with torch.no_grad():
         was = unpack_covariance(residual_covariance(plain.params.quats[turned], plain.scales()[turned],
-                                                    Offsets.split(off0[turned]), moved.config.lambda_s))
+                                                    Offsets.from_cat(off0[turned]), moved.config.lambda_s))
         now = covariance_from_quat_scale(moved.params.quats[turned], moved.scales()[turned])
     torch.testing.assert_close(now, was, atol=1e-6, rtol=1e-4)
-    # The ones that stay dynamic: on average nearer where they were than after a plain split.
+    # The ones that stay dynamic: on average nearer where they were than after a plain decomposition.
     stay = moved.dynamic
-    # (Their kNN neighbours changed: a plain split moved them by 0.01 on average here, in place
+    # (Their kNN neighbours changed: a plain decomposition moved them by 0.01 on average here, in place
     # by 0.0007, not 0, since moving a canonical mean also moves the field's value there.)
     assert float(jumped[stay].mean()) > 1e-3
     assert float((x1 - x0)[stay].norm(dim=-1).mean()) < 0.2 * float(jumped[stay].mean())
-    # A second split: Gaussians static on both sides stay bit for bit.
+    # A second decomposition: Gaussians static on both sides stay bit for bit.
     before = {k: v.detach().clone() for k, v in moved.params.items()}
     moved.decompose(2 * tau, recompute=False, in_place=True)
     still = turned & ~moved.dynamic
     assert int(still.sum()) > 0
     for name, value in moved.params.items():
         assert torch.equal(value.detach()[still], before[name][still]), name
-    # keep_static (training's re-splits): a lower τ turns none of the static ones dynamic.
+    # keep_static (training's re-decompositions): a lower τ turns none of the static ones dynamic.
     static = ~moved.dynamic
     assert torch.equal(~moved.decompose(0.0, recompute=False, keep_static=True), static)
     assert moved.decompose(0.0, recompute=False).all()
@@ -513,7 +513,7 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
 
     m = moving_model(n=10)
     m.dynamic[:5] = False
-    m.variance = torch.arange(10.0)
+    m.K = torch.arange(10.0)
     m.own_velocity = torch.arange(10.0)[:, None].repeat(1, 3)
     opt = torch.optim.Adam([{"params": [v], "name": k} for k, v in m.params.items()], lr=1e-3)
     sum(v.sum() for _, v in m.params.items()).backward()
@@ -524,16 +524,16 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
     keep = torch.tensor([i % 3 != 0 for i in range(10)])  # 1 2 4 5 7 8
     means, moment = m.params.means.detach()[keep].clone(), opt.state[m.params.means]["exp_avg"][keep].clone()
     m.keep_gaussians(keep, opt, strategy.state)
-    assert len(m) == 6 and torch.equal(m.variance, torch.tensor([1.0, 2, 4, 5, 7, 8]))
-    assert torch.equal(m.own_velocity[:, 0], m.variance)
+    assert len(m) == 6 and torch.equal(m.K, torch.tensor([1.0, 2, 4, 5, 7, 8]))
+    assert torch.equal(m.own_velocity[:, 0], m.K)
     assert torch.equal(m.dynamic, torch.tensor([False, False, False, True, True, True]))
-    assert torch.equal(strategy.state["grad_sum"], 2 * m.variance) and len(strategy.state["count"]) == 6
+    assert torch.equal(strategy.state["grad_sum"], 2 * m.K) and len(strategy.state["count"]) == 6
     assert torch.equal(m.params.means.detach(), means) and torch.equal(opt.state[m.params.means]["exp_avg"], moment)
     parents = torch.tensor([0, 5])
     new = GaussianParams(*(v.detach()[parents].clone() for _, v in m.params.items()))
     m.add_gaussians(new, parents, opt, strategy.state)
-    assert len(m) == 8 and torch.equal(m.variance[6:], torch.tensor([1.0, 8.0]))
-    assert torch.equal(m.own_velocity[:, 0], m.variance)
+    assert len(m) == 8 and torch.equal(m.K[6:], torch.tensor([1.0, 8.0]))
+    assert torch.equal(m.own_velocity[:, 0], m.K)
     assert torch.equal(m.dynamic[6:], torch.tensor([False, True]))
     assert torch.equal(strategy.state["grad_sum"][6:], torch.zeros(2)) and len(strategy.state["count"]) == 8
     assert torch.equal(opt.state[m.params.means]["exp_avg"][6:], torch.zeros(2, 3))
@@ -546,7 +546,7 @@ def test_pruning_and_adding_resize_every_per_gaussian_tensor_in_lock_step():
 def test_densification_carries_the_coarse_to_fine_graph_instead_of_rebuilding_it():
     """Adding and pruning Gaussians keeps every dynamic Gaussian's kNN neighbours, though the
     canonical means have moved since the graph was built: a clone (here at its parent's very
-    spot) changes no other Gaussian's offsets, and a split child takes its parent's row with
+    spot) changes no other Gaussian's offsets, and a densification split's child takes its parent's row with
     itself in its parent's place. A rebuilt graph would give Gaussians other neighbours, and so
     other coarse offsets under fine residuals fitted to the old ones."""
     from kgs_core.model.gaussians import GaussianParams
@@ -585,7 +585,7 @@ def test_densification_carries_the_coarse_to_fine_graph_instead_of_rebuilding_it
 
 
 def test_a_re_split_carries_the_graph_of_the_gaussians_that_stay_dynamic():
-    """At a re-split the Gaussians that stay dynamic keep their neighbours (one turned static is
+    """At a re-decomposition the Gaussians that stay dynamic keep their neighbours (one turned static is
     replaced by the row's own Gaussian), and only those that turn dynamic get their nearest
     dynamic neighbours by canonical mean."""
     m = moving_model(n=30, knn_radius=0.0)
@@ -597,7 +597,7 @@ def test_a_re_split_carries_the_graph_of_the_gaussians_that_stay_dynamic():
     dynamic = m.dynamic.clone()
     dynamic[[1, 3]] = True  # turn dynamic
     dynamic[[10, 20]] = False  # turn static
-    m.variance = dynamic.float()
+    m.K = dynamic.float()
     m.decompose(tau=0.5, recompute=False)
     members = torch.nonzero(dynamic).squeeze(1)
     new_row = torch.full((30,), -1, dtype=torch.long)
@@ -614,8 +614,8 @@ def test_a_re_split_carries_the_graph_of_the_gaussians_that_stay_dynamic():
 
 
 def test_a_split_childs_sibling_rows_point_at_the_first_child():
-    """Adaptive density control passes the split parents' heirs on: the Gaussians that
-    averaged a split parent average its first child, and no row points at a removed one."""
+    """Adaptive density control passes the densification split parents' heirs on: the Gaussians that
+    averaged a densification split parent average its first child, and no row points at a removed one."""
     from kgs_core.train.densify import DensifyStrategy
 
     m = moving_model(n=30)
@@ -791,11 +791,11 @@ def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_t
         from kgs_core.run import level_view
 
         snap = {"params": {k: v.detach() for k, v in m.params.items()}, "dynamic": m.dynamic,
-                "variance": m.variance, "lifespan": m.lifespan, "own_velocity": m.own_velocity, "min_scale": 0.0}
+                "K": m.K, "lifespan": m.lifespan, "own_velocity": m.own_velocity, "min_scale": 0.0}
         assert torch.allclose(level_view(m, snap).at(0.2, velocity=False).opacities, early, atol=1e-6)
         # It shares every network the model has, and a view of fewer Gaussians leaves the model's alone.
         few = level_view(m, {**snap, "params": {k: v[:3] for k, v in snap["params"].items()},
-                             "dynamic": m.dynamic[:3], "variance": m.variance[:3], "lifespan": m.lifespan[:3],
+                             "dynamic": m.dynamic[:3], "K": m.K[:3], "lifespan": m.lifespan[:3],
                              "own_velocity": m.own_velocity[:3]})
         assert len(few) == 3 and len(m) == len(before) and len(few.at(0.2, velocity=False).opacities) == 3
         assert all(getattr(few, name) is net for name, net in m.named_children() if name != "params")
@@ -812,30 +812,30 @@ def test_per_gaussian_state_resizes_in_lock_step_and_checks_what_it_loads():
 
     pg = PerGaussian.empty(5)
     pg.dynamic[[1, 3]] = True
-    pg.variance[:] = torch.arange(5.0)
+    pg.K[:] = torch.arange(5.0)
     pg.lifespan[2] = torch.tensor([0.4, 0.1])
     kept = pg.select(torch.tensor([True, True, False, True, False]))
     assert len(kept) == 3 and all(len(v) == 3 for _, v in kept.items())
-    assert kept.variance.tolist() == [0.0, 1.0, 3.0] and kept.dynamic.tolist() == [False, True, True]
+    assert kept.K.tolist() == [0.0, 1.0, 3.0] and kept.dynamic.tolist() == [False, True, True]
     grown = pg.append(torch.tensor([2, 3]), own_velocity=torch.ones(2, 3))
     assert len(grown) == 7 and set(dict(grown.items())) == set(FIELDS)
     assert torch.equal(grown.lifespan[5], pg.lifespan[2]) and grown.dynamic[6] and grown.own_velocity[5:].eq(1).all()
     state = pg.state()
-    assert PerGaussian.from_state(state, 5).variance.equal(pg.variance)
+    assert PerGaussian.from_state(state, 5).K.equal(pg.K)
     old = {k: v for k, v in state.items() if k not in ("lifespan", "own_velocity")}  # saved before those existed
     assert torch.isinf(PerGaussian.from_state(old, 5).lifespan[:, 1]).all()
     with pytest.raises(ValueError, match="'dynamic': expected a bool mask"):
         PerGaussian.from_state({**state, "dynamic": state["dynamic"].float()}, 5)
     with pytest.raises(ValueError, match="'lifespan': expected floats, finite centres and widths > 0"):
         PerGaussian.from_state({**state, "lifespan": torch.zeros(5, 2)}, 5)
-    with pytest.raises(ValueError, match="'variance': expected 5 rows"):
-        PerGaussian.from_state({**state, "variance": torch.zeros(4)}, 5)
-    with pytest.raises(ValueError, match="no field 'variance'"):
-        PerGaussian.from_state({k: v for k, v in state.items() if k != "variance"}, 5)
+    with pytest.raises(ValueError, match="'K': expected 5 rows"):
+        PerGaussian.from_state({**state, "K": torch.zeros(4)}, 5)
+    with pytest.raises(ValueError, match="no field 'K'"):
+        PerGaussian.from_state({k: v for k, v in state.items() if k != "K"}, 5)
 
 
 def test_setting_a_per_gaussian_field_on_a_shallow_copy_leaves_the_original_alone():
-    """The server re-splits shallow copies of a served model (run_view.split_copy): a field set on
+    """The server re-decomposes shallow copies of a served model (run_view.decomposed_copy): a field set on
     the copy must not reach the original through a shared container."""
     import copy
 
@@ -847,5 +847,5 @@ def test_setting_a_per_gaussian_field_on_a_shallow_copy_leaves_the_original_alon
     m = KinematicsGS(init_from_points(pts, pts, 1, 16), ModelConfig())
     c = copy.copy(m)
     c.dynamic = torch.ones(30, dtype=torch.bool)
-    c.variance = torch.full((30,), 2.0)
-    assert not m.dynamic.any() and not m.variance.any() and c.dynamic.all()
+    c.K = torch.full((30,), 2.0)
+    assert not m.dynamic.any() and not m.K.any() and c.dynamic.all()

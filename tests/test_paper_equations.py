@@ -98,7 +98,7 @@ def test_the_paper_velocity_is_the_offset_over_the_frame_interval():
     from kgs_core.model.kinematics import velocity_from_offsets
 
     g = torch.Generator().manual_seed(3)
-    offs = [Offsets.split(torch.randn(20, 9, generator=g, dtype=torch.float64)) for _ in range(3)]
+    offs = [Offsets.from_cat(torch.randn(20, 9, generator=g, dtype=torch.float64)) for _ in range(3)]
     dt, h = 1 / 60, 1 / 120
     assert torch.allclose(velocity_from_offsets(offs[:1], h, dt), offs[0].dx * 60)
     assert torch.allclose(velocity_from_offsets(offs, h, dt), (offs[1].dx - offs[2].dx) * 60)
@@ -132,7 +132,7 @@ def test_coarse_to_fine_offsets_are_the_dynamic_neighbours_mean_of_the_field_plu
 
 
 def _trainer(tmp_path, **over):
-    """A trainer on the real fixture, split with about half its Gaussians dynamic, no time noise."""
+    """A trainer on the real fixture, decomposed with about half its Gaussians dynamic, no time noise."""
     from pathlib import Path
 
     from kgs_core.data.formats import load_scene

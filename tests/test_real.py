@@ -49,7 +49,7 @@ def test_full_method_beats_static_3dgs_where_the_person_walks(walk, walk_runs):
     # (Measured margins: docs/results.md, "Real footage"; the bound leaves room for seed noise.)
     assert full["psnr_mask"] > static["psnr_mask"] + 1.5, (full, static)
     assert full["psnr"] > static["psnr"] + 0.3, (full, static)
-    # τ came from the distribution of K, above the fitted floor, and the split left most of the
+    # τ came from the distribution of K, above the fitted floor, and the decomposition left most of the
     # corridor static (a fixed τ called 84-99 % of the Gaussians dynamic on real footage).
     info = walk_runs["full"].info
     assert info["tau"] > info["config"]["model"]["tau"] and "Otsu" in info["tau_choice"]
@@ -194,18 +194,18 @@ def test_settings_follow_the_clip(walk):
     assert make_config("fast", scene=no_ingest).lambda_flow == 0.0
     assert make_config("fast", scene=no_ingest).spawn_frames == 0
     assert make_config("paper", scene=no_ingest).lod_levels == 5
-    # ... and with one-way re-splits (a static Gaussian stays static); elsewhere both ways.
-    assert cfg.resplit_to_dynamic is False and "resplit_to_dynamic" in cfg.fitted
-    assert make_config("fast", scene=no_ingest).resplit_to_dynamic is True
-    assert make_config("fast", scene=walk, resplit_to_dynamic=True).resplit_to_dynamic is True
+    # ... and with one-way re-decompositions (a static Gaussian stays static); elsewhere both ways.
+    assert cfg.redecompose_to_dynamic is False and "redecompose_to_dynamic" in cfg.fitted
+    assert make_config("fast", scene=no_ingest).redecompose_to_dynamic is True
+    assert make_config("fast", scene=walk, redecompose_to_dynamic=True).redecompose_to_dynamic is True
     # ... and with an opacity that varies in time for the dynamic Gaussians.
     assert cfg.model.time_opacity is True and "model.time_opacity" in cfg.fitted
     assert make_config("fast", scene=no_ingest).model.time_opacity is False
     assert make_config("fast", scene=walk, **{"model.time_opacity": False}).model.time_opacity is False
-    # ... and with splits that read DIS's flow down to full resolution (small, fast objects).
-    assert cfg.flow_split_method == "dis_full" and "flow_split_method" in cfg.fitted
-    assert cfg.flow_method == "dis" and make_config("fast", scene=no_ingest).flow_split_method == "dis"
-    assert make_config("fast", scene=walk, flow_split_method="dis").flow_split_method == "dis"
+    # ... and with decompositions that read DIS's flow down to full resolution (small, fast objects).
+    assert cfg.flow_vote_method == "dis_full" and "flow_vote_method" in cfg.fitted
+    assert cfg.flow_method == "dis" and make_config("fast", scene=no_ingest).flow_vote_method == "dis"
+    assert make_config("fast", scene=walk, flow_vote_method="dis").flow_vote_method == "dis"
 
 
 def test_equal_time_mean_covers_seeds_that_needed_no_retraining():
@@ -283,12 +283,12 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
     out = tmp_path / "out"
     shutil.copytree(FIXTURE, out / "scenes" / "walk96")
     assert main(["walk", "--data", str(data), "--size", "96", "--iterations", "40", "--configs",
-                 "full,split,split@lambda_flow=0", "--seeds", "0,1", "--out", str(out)]) == 0
+                 "full,decompose,decompose@lambda_flow=0", "--seeds", "0,1", "--out", str(out)]) == 0
     results = json.loads((out / "results.json").read_text())["walk"]
     # a configuration with an override gets rows of its own, not its base's
-    assert {"full", "no split, D3DGS-like", "no split, D3DGS-like @lambda_flow=0", "static 3DGS"} <= set(results)
-    assert (results["no split, D3DGS-like"]["seeds"]["0"]["run"]
-            != results["no split, D3DGS-like @lambda_flow=0"]["seeds"]["0"]["run"])
+    assert {"full", "no decomposition, D3DGS-like", "no decomposition, D3DGS-like @lambda_flow=0", "static 3DGS"} <= set(results)
+    assert (results["no decomposition, D3DGS-like"]["seeds"]["0"]["run"]
+            != results["no decomposition, D3DGS-like @lambda_flow=0"]["seeds"]["0"]["run"])
     for row in results.values():
         assert 5 < row["psnr"] < 50 and row["iterations"] >= 40
         # the row is the mean of each seed's, and the seeds trained apart
@@ -362,5 +362,5 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     assert f"{streak:.1f} px streak" in make_config("fast", scene=walk).fitted["camera_blur"]
     assert make_config("fast", scene=walk, camera_blur="off").camera_blur == "off"
     assert make_config("fast", scene=walk, **{"model.kr_form": "paper"}).camera_blur == "off"
-    assert make_config("fast", scene=walk, ablate=("split",)).camera_blur == "off"
+    assert make_config("fast", scene=walk, ablate=("decompose",)).camera_blur == "off"
     assert make_config("fast", scene=still).camera_blur == "off"

@@ -83,9 +83,9 @@ def test_system_docs_and_run_metadata(client):
     meta = client.get(f"/api/runs/{client.run_id}").json()
     assert meta["lod_levels"] == 2 and len(meta["levels"]) == 2
     assert len(meta["frames"]) >= 8 and all(0 <= f["time"] <= 1 for f in meta["frames"])
-    assert sum(meta["histogram"]["counts"]) == meta["split"]["gaussians"]
-    assert meta["split"]["dynamic"] + meta["split"]["static"] == meta["split"]["gaussians"]
-    assert 0 < meta["split"]["dynamic"] < meta["split"]["gaussians"]
+    assert sum(meta["histogram"]["counts"]) == meta["decomposition"]["gaussians"]
+    assert meta["decomposition"]["dynamic"] + meta["decomposition"]["static"] == meta["decomposition"]["gaussians"]
+    assert 0 < meta["decomposition"]["dynamic"] < meta["decomposition"]["gaussians"]
     assert meta["tau"] > 0
     assert meta["blur"]["camera"] == "off" and meta["blur"]["note"].startswith("exposure 0.50")
 
@@ -107,7 +107,7 @@ def test_openapi_documents_every_json_response(client):
                     untyped.append(f"{method.upper()} {path}")
     assert untyped == [], untyped
     props = api["components"]["schemas"]["RunDetail"]["properties"]
-    assert {"frames", "split", "histogram", "edits", "progress", "resumable"} <= set(props)
+    assert {"frames", "decomposition", "histogram", "edits", "progress", "resumable"} <= set(props)
     RunDetail.model_validate(client.get(f"/api/runs/{client.run_id}").json())
 
 
@@ -135,11 +135,11 @@ def test_stream_static_once_then_dynamic_and_coalescing(client):
     with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
         w.send_json({"type": "subscribe", "velocity": True})
         h, rec, _ = unpack_buffer(recv_bytes(w))
-        assert h["kind"] == "static" and h["count"] == meta["split"]["static_kept"]
+        assert h["kind"] == "static" and h["count"] == meta["decomposition"]["static_kept"]
         assert len(set(rec["index"].tolist())) == len(rec)
         w.send_json({"type": "time", "t": 0.0, "seq": 0})
         h0, rec0, vel0 = unpack_buffer(recv_bytes(w))
-        assert h0["kind"] == "dynamic" and h0["count"] == meta["split"]["dynamic_kept"] and vel0.shape == (len(rec0), 3)
+        assert h0["kind"] == "dynamic" and h0["count"] == meta["decomposition"]["dynamic_kept"] and vel0.shape == (len(rec0), 3)
         assert set(rec0["index"].tolist()).isdisjoint(rec["index"].tolist())
         recv_json_until(w, "answered")
         # A burst of scrub requests: the latest wins, the ones in between are dropped.
@@ -172,20 +172,20 @@ def test_stream_static_once_then_dynamic_and_coalescing(client):
 
 def test_live_tau_pushes_new_sets(client):
     rid = client.run_id
-    before = client.get(f"/api/runs/{rid}").json()["split"]
+    before = client.get(f"/api/runs/{rid}").json()["decomposition"]
     with client.websocket_connect(WS + f"/api/runs/{rid}/stream") as w:
         w.send_json({"type": "subscribe"})
         recv_bytes(w)
         r = client.post(f"/api/runs/{rid}/tau", json={"tau": before["tau"] * 10})
         after = r.json()
         assert after["dynamic"] < before["dynamic"] and after["version"] == before["version"] + 1
-        split = recv_json_until(w, "split")
-        assert split["dynamic"] == after["dynamic"]
+        decomposition = recv_json_until(w, "decomposition")
+        assert decomposition["dynamic"] == after["dynamic"]
         h, rec, _ = unpack_buffer(recv_bytes(w))
         assert h["kind"] == "static" and h["count"] == after["static_kept"]
         # tau over the socket too
         w.send_json({"type": "tau", "tau": before["tau"]})
-        assert recv_json_until(w, "split")["dynamic"] == before["dynamic"]
+        assert recv_json_until(w, "decomposition")["dynamic"] == before["dynamic"]
     assert client.post(f"/api/runs/{rid}/tau", json={"tau": -1}).status_code == 422
     assert client.post(f"/api/runs/{rid}/tau", json={"tau": "x"}).status_code == 422
     assert client.post(f"/api/runs/{rid}/tau", content=b"{oops", headers={"content-type": "application/json"}).status_code == 422
@@ -206,7 +206,7 @@ def test_edits_change_sets_and_are_stored(client, copy_run):
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "delete", "indices": [10**9]}).status_code == 422
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "explode"}).status_code == 422
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "restore"}).json()["kept"] == client.get(
-        f"/api/runs/{rid}").json()["split"]["gaussians"]
+        f"/api/runs/{rid}").json()["decomposition"]["gaussians"]
 
 
 def test_undo_and_redo_walk_the_edit_history_and_survive_a_reload(client, copy_run):
@@ -218,7 +218,7 @@ def test_undo_and_redo_walk_the_edit_history_and_survive_a_reload(client, copy_r
 
     rid = client.run_id
     edit = lambda **body: client.post(f"/api/runs/{rid}/edits", json=body)  # noqa: E731
-    total = client.get(f"/api/runs/{rid}").json()["split"]["gaussians"]
+    total = client.get(f"/api/runs/{rid}").json()["decomposition"]["gaussians"]
     assert edit(op="undo").status_code == 422  # nothing to undo yet
     assert edit(op="delete", indices=[0, 1, 2]).json()["kept"] == total - 3
     cropped = edit(op="crop", crop={"min": [-0.01, -0.01, -0.01], "max": [0.01, 0.01, 0.01]}).json()
@@ -229,7 +229,7 @@ def test_undo_and_redo_walk_the_edit_history_and_survive_a_reload(client, copy_r
     stored = json.loads((copy_run / "edits.json").read_text())
     assert stored["crop"] is None and [s["label"] for s in stored["history"]["redo"]] == ["crop"]
     reloaded = RunView(copy_run)  # what a reload or a restarted server reads
-    assert reloaded.edits.crop_min is None and reloaded.split()["kept"] == total - 3
+    assert reloaded.edits.crop_min is None and reloaded.decomposition()["kept"] == total - 3
     assert edit(op="redo").json()["kept"] == cropped["kept"]
     assert edit(op="undo").json()["kept"] == total - 3
     assert edit(op="undo").json()["kept"] == total  # back to the start
@@ -434,13 +434,13 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
         names = z.namelist()
         assert "frame_00000.splat" in names and len(z.read("frame_00000.splat")) % 32 == 0
     assert client.post(f"/api/runs/{done['id']}/exports", json={"format": "obj"}).status_code == 422
-    # Fine-tune from a new split: a new run starting from this model, split at the given tau.
+    # Fine-tune from a new decomposition: a new run starting from this model, decomposed at the given tau.
     tau = client.get(f"/api/runs/{done['id']}").json()["tau"] * 5
     ft = client.post(f"/api/runs/{done['id']}/finetune", json={"tau": tau, "iterations": 20}).json()
     ft = wait_status(client, f"/api/runs/{ft['id']}")
     assert ft["status"] == "done" and ft["iteration"] == 20, ft
     meta = client.get(f"/api/runs/{ft['id']}").json()
-    assert meta["tau"] == pytest.approx(tau) and meta["split"]["gaussians"] == done["gaussians"]
+    assert meta["tau"] == pytest.approx(tau) and meta["decomposition"]["gaussians"] == done["gaussians"]
     assert client.post("/api/runs/nope/finetune", json={}).status_code == 404
     assert client.post(f"/api/runs/{done['id']}/resume").status_code == 409  # it finished
     # A run.json whose configuration is malformed is refused with the field named, not a 500.
@@ -477,16 +477,16 @@ def test_exact_dynamic_buffer_without_velocities_is_the_same_set(copy_run):
 
 
 def test_the_view_at_the_runs_own_tau_shows_the_split_training_made(copy_run):
-    """At the run's τ the viewer shows the trained model: the split training made (here with
-    the Gaussians the splits' flow reading added, whose K is under τ) and its canonical
-    means, not a re-split by K that turns those static and moves their neighbours."""
+    """At the run's τ the viewer shows the trained model: the decomposition training made (here with
+    the Gaussians the decompositions' flow reading added, whose K is under τ) and its canonical
+    means, not a re-decomposition by K that turns those static and moves their neighbours."""
     from kgs_core.run_view import RunView
 
     view = RunView(copy_run)
     lod, m = view.model(None)
     trained = view.run.level(lod)
     assert view.tau == trained.config.tau
-    assert (trained.dynamic & (trained.variance <= view.tau)).any()  # what K alone would not call dynamic
+    assert (trained.dynamic & (trained.K <= view.tau)).any()  # what K alone would not call dynamic
     assert torch.equal(m.dynamic, trained.dynamic)
     assert torch.equal(m.params.means, trained.params.means.detach())
 
@@ -508,7 +508,7 @@ def test_live_tau_keeps_gaussians_that_turn_static_where_they_were_drawn(copy_ru
         turned = m0.dynamic & ~m1.dynamic
         assert int(turned.sum()) > 0
         torch.testing.assert_close(m1.params.means[turned], average[turned], atol=1e-6, rtol=0)
-        assert float((average - own)[turned].norm(dim=-1).max()) > 1e-4  # a plain split would move them
+        assert float((average - own)[turned].norm(dim=-1).max()) > 1e-4  # a plain decomposition would move them
     assert torch.equal(view.run.level(lod).params.means.detach(), own)
 
 

@@ -56,7 +56,7 @@ def test_independent_motion_is_flow_the_still_scene_does_not_make():
 
 
 def test_the_relative_test_reads_a_depth_error_under_a_pan_as_still():
-    """The splits' reading (`relative`): a camera panning fast past a wall rendered 20 %
+    """The decompositions' reading (`relative`): a camera panning fast past a wall rendered 20 %
     too near gives every pixel 20 % more predicted parallax than the flow shows, several pixels,
     which the absolute test calls motion everywhere; the relative test calls it still, but still
     sees a patch that moves on its own by more than half the parallax, and reads nothing whose
@@ -93,7 +93,7 @@ def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from
                               max_new=50, life=life, rng=np.random.default_rng(0))
     assert added.gaussians == 50 and len(m) == n0 + 50
     # Every per-Gaussian tensor grew in lock-step; the new ones are dynamic, coloured from the frame.
-    assert (len(m.dynamic) == len(m.variance) == len(m.lifespan) == len(m.own_velocity) == len(strategy.state["grad_sum"])
+    assert (len(m.dynamic) == len(m.K) == len(m.lifespan) == len(m.own_velocity) == len(strategy.state["grad_sum"])
             == len(m))
     assert m.dynamic[n0:].all()
     assert torch.allclose(m.lifespan[n0:], torch.tensor([t, life]).expand(50, 2))
@@ -299,7 +299,7 @@ def test_lifespans_survive_pruning_the_split_and_a_save():
     spawn_unexplained(m, None, {}, 0.5, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 3.0), target, g.means,
                       20, 0.05, np.random.default_rng(0))
     bounded = m.lifespan[:, 1].isfinite()
-    # A split with a τ above every K keeps the ones present for part of the clip dynamic.
+    # A decomposition with a τ above every K keeps the ones present for part of the clip dynamic.
     m.decompose(tau=1e9)
     assert torch.equal(m.dynamic, bounded)
     m.own_velocity[bounded] = torch.randn(int(bounded.sum()), 3)

@@ -287,7 +287,7 @@ def test_nonfinite_gradient_error_names_tensor_and_iteration(tiny_scene, tmp_pat
 ])
 def test_nonfinite_gradient_of_the_camera_and_exposure_parameters_is_named(tiny_scene, tmp_path, name, settings, tensor):
     """Not only the Gaussians and the field: every fitted parameter is checked (the exposure
-    and the learned camera motion act after the split at iteration 10)."""
+    and the learned camera motion act after the decomposition at iteration 10)."""
     from kgs_core.train.trainer import NonFiniteError, Trainer
 
     tr = Trainer(tiny_scene, tmp_path / "run", _cfg(**settings, **{"model.tau": 1e-9}), progress=False)

@@ -81,14 +81,14 @@ def count_calls(monkeypatch, module, name):
     return calls
 
 
-@pytest.mark.parametrize("ablate", ["", "kr", "cf", "split", "deform", "reg", "ani"])
+@pytest.mark.parametrize("ablate", ["", "kr", "cf", "decompose", "deform", "reg", "ani"])
 def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     import kgs_core.model.dynamic as dyn
 
     # K.R. in either form: the convolve form (the default) or the paper's eqs. 9-14.
     refine = count_calls(monkeypatch, dyn, "motion_blur_covariance")
     refine_paper = count_calls(monkeypatch, dyn, "refine_covariance")
-    # A tiny tau so that the split leaves dynamic Gaussians for C.F. and K.R. to act on.
+    # A tiny tau so that the decomposition leaves dynamic Gaussians for C.F. and K.R. to act on.
     cfg = tiny_config(iterations=70, ablate=tuple(a for a in [ablate] if a), lod_levels=1, lod_fractions=(1.0,),
                       **{"model.tau": 1e-9})
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
@@ -114,7 +114,7 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     if ablate == "deform":
         assert deform["n"] == 0 and decomp["n"] == 0
         assert shares and max(shares) == 0.0  # a static run reports no dynamic Gaussians
-    elif ablate == "split":
+    elif ablate == "decompose":
         assert decomp["n"] == 0 and deform["n"] > 0 and refine["n"] == 0 and fine["n"] == 0
     else:
         assert decomp["n"] == 1
@@ -135,7 +135,7 @@ def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
     """A run stopped and resumed follows the uninterrupted one. Stopping at 40 resumes right
     after a level change (FLoD's importance pass once leaked the gradient of a rendered sum
     into the deformation field's next step, in the uninterrupted run only); at 65, after the
-    split at 60 (the kNN graph of that moment must come back from the checkpoint, not be
+    decomposition at 60 (the kNN graph of that moment must come back from the checkpoint, not be
     rebuilt from later positions). A tiny tau keeps Gaussians dynamic so C.F. runs."""
     cfg = tiny_config(iterations=80, checkpoint_every=40, **{"model.tau": 1e-9})
     train(scene, tmp_path / "full", cfg, progress=False)
@@ -153,7 +153,7 @@ def test_resume_continues_where_it_stopped(scene, tmp_path, stop_at):
     assert [r["iteration"] for r in a] == [r["iteration"] for r in b]
     assert [r["gaussians"] for r in a] == [r["gaussians"] for r in b]
     # Identical up to float rounding in thread-parallel kernels: ~1e-7 in the field after the
-    # split, which Adam turns into up to a few 1e-3 on the few parameters whose gradients are
+    # decomposition, which Adam turns into up to a few 1e-3 on the few parameters whose gradients are
     # near zero (how far depends on the thread interleaving of the whole process), so the
     # parameters are compared by their median difference (measured: <= 2.4e-6; with the
     # importance leak 4e-3, with the kNN graph rebuilt on restore 4e-5). The two causes also
@@ -229,8 +229,8 @@ def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields
     bad["knn"] = graph + len(graph)  # indices past the dynamic set
     with pytest.raises(ValueError, match="'knn'"):
         KinematicsGS.from_state(bad)
-    # Every per-Gaussian field must have one row per Gaussian, and the split mask be boolean.
-    for field, value in [("dynamic", model.dynamic[:-1]), ("variance", model.variance[1:]),
+    # Every per-Gaussian field must have one row per Gaussian, and the decomposition mask be boolean.
+    for field, value in [("dynamic", model.dynamic[:-1]), ("K", model.K[1:]),
                          ("params.opacity_logits", model.params.opacity_logits.detach()[:-2])]:
         bad = model.state()
         if field.startswith("params."):
@@ -246,7 +246,7 @@ def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields
 
 
 def test_log_and_level_snapshot_see_the_trained_model_before_that_counts_events(scene, tmp_path):
-    """An evaluation that falls on an opacity reset, a split and a level change (the paper
+    """An evaluation that falls on an opacity reset, a decomposition and a level change (the paper
     preset's 3,000) scores the model its iterations trained, not the near-transparent one the
     reset leaves (logged after it: ~10 dB lower); the level that ends there is pruned and kept
     as trained (after the reset its snapshot had every opacity at 0.01); the checkpoint of that
@@ -283,7 +283,7 @@ def test_spawning_on_an_opacity_reset_count_renders_the_trained_model(scene, tmp
     cfg = tiny_config(iterations=70, decompose_at=30, spawn_frames=2, **{"densify.opacity_reset_at": (60,),
                                                                           "model.tau": 1e-9})
     train(scene, tmp_path / "run", cfg, progress=False)
-    assert sorted(seen) == [60] and seen[60] > 0.1, seen  # (at 30 the split comes after densification)
+    assert sorted(seen) == [60] and seen[60] > 0.1, seen  # (at 30 the decomposition comes after densification)
     ckpt = load_torch(tmp_path / "run" / "checkpoints" / "ckpt_000060.pt")
     assert torch.sigmoid(ckpt["model"]["params"]["opacity_logits"]).max() <= 0.0101
 
@@ -312,7 +312,7 @@ def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
     from app.bench.equal_time import interleave
 
     cfgs = {"full": tiny_config(iterations=22, checkpoint_every=1000, **{"densify.start": 1000}),
-            "split": tiny_config(iterations=14, checkpoint_every=1000, **{"densify.start": 1000}, ablate=("split",))}
+            "decompose": tiny_config(iterations=14, checkpoint_every=1000, **{"densify.start": 1000}, ablate=("decompose",))}
     for name, cfg in cfgs.items():
         train(scene, tmp_path / f"alone_{name}", cfg, progress=False)
     trainers = [Trainer(scene, tmp_path / f"together_{name}", cfg, progress=False) for name, cfg in cfgs.items()]
@@ -341,7 +341,7 @@ def test_nonfinite_loss_names_tensor_and_iteration(scene, tmp_path, monkeypatch)
 @pytest.mark.slow
 def test_split_finds_the_moving_object(tmp_path):
     """On a scene with one moving object (a textured panel swinging in a static room, severe
-    object-motion blur), the fast preset's static/dynamic split matches the ground-truth
+    object-motion blur), the fast preset's static/dynamic decomposition matches the ground-truth
     dynamic mask (IoU >= 0.8).
 
     The scene is the quality benchmark's smallest reliable size (128², 30 frames, the full
@@ -421,7 +421,7 @@ def test_iteration_override_scales_the_preset_schedule(preset):
 
 def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_path):
     """`camera_blur="learned"`: the per-frame camera motion starts from the poses' differences,
-    moves during training (after the split, when the blur applies), is saved in checkpoints
+    moves during training (after the decomposition, when the blur applies), is saved in checkpoints
     and comes back on resume; `"poses"` keeps it fixed."""
     from kgs_core.train.camera_motion import CameraMotion
 
@@ -591,7 +591,7 @@ def test_flod_levels_decay_and_a_level_change_keeps_each_gaussians_size(scene, t
 @pytest.mark.parametrize("ablate", ["", "reg", "ani"])
 def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(scene, tmp_path, monkeypatch, ablate):
     """What `loss_for` adds to the photometric loss: lambda_reg times L_reg, the *mean* offset
-    norm over the dynamic set (every Gaussian before the split), and lambda_ani times L_ani, the
+    norm over the dynamic set (every Gaussian before the decomposition), and lambda_ani times L_ani, the
     mean max/min scale ratio; `--ablate reg` and `--ablate ani` leave exactly their term out."""
     import kgs_core.train.objective as objective_module
 
@@ -652,7 +652,7 @@ def test_absgrad_densification_reads_the_absolute_pixel_gradients(scene, tmp_pat
 
 @pytest.mark.parametrize("acts", [False, True])
 def test_kr_is_turned_off_mid_run_where_it_does_next_to_nothing(scene, tmp_path, monkeypatch, acts):
-    """At `kr_check_at` (after the split) the trainer measures K.R.'s effect. Where it does next
+    """At `kr_check_at` (after the decomposition) the trainer measures K.R.'s effect. Where it does next
     to nothing, the rest of the run trains without it, `run.json` says when and why, and the
     saved model has K.R. back for viewing; where it acts, it stays, and its effect at the end is
     measured too. (Which clips it does nothing on: `evaluate.kr_effect`'s own test.)"""
@@ -673,23 +673,23 @@ def test_kr_is_turned_off_mid_run_where_it_does_next_to_nothing(scene, tmp_path,
 
 @pytest.mark.parametrize("tau", [1.0, 5e-7])
 def test_a_split_that_calls_almost_nothing_dynamic_says_so(scene, tmp_path, tau):
-    """A run whose split leaves (almost) every Gaussian static says in run.json that a moving
+    """A run whose decomposition leaves (almost) every Gaussian static says in run.json that a moving
     object would then render static, and how to retrain; a run with a dynamic set does not."""
     info = Trainer(scene, tmp_path / "r", tiny_config(**{"model.tau": tau}), progress=False).run()
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
     if tau == 1.0:
         assert info["dynamic_share"] < 0.01
-        assert "renders static" in saved["split_note"] and "decompose_at=N" in saved["split_note"]
+        assert "renders static" in saved["decomposition_note"] and "decompose_at=N" in saved["decomposition_note"]
     else:
-        assert info["dynamic_share"] > 0.01 and "split_note" not in saved
+        assert info["dynamic_share"] > 0.01 and "decomposition_note" not in saved
 
 
 @pytest.mark.parametrize("share", [0.1, 0.0])
 def test_the_first_split_makes_dynamic_what_the_flow_reading_found(scene, tmp_path, monkeypatch, share):
     """With τ so high that K calls nothing dynamic, the Gaussians the flow's reading returns
-    (here: the first 12) are dynamic after the first split, and run.json says so; the flows are
+    (here: the first 12) are dynamic after the first decomposition, and run.json says so; the flows are
     computed for it although the run has no flow term or spawning. With the reading off, it is
-    not called and nothing is dynamic. (What the reading finds: tests/test_flow_split.py.)"""
+    not called and nothing is dynamic. (What the reading finds: tests/test_flow_vote.py.)"""
     import kgs_core.train.events as events_module
 
     calls = []
@@ -701,22 +701,22 @@ def test_the_first_split_makes_dynamic_what_the_flow_reading_found(scene, tmp_pa
         return found
 
     monkeypatch.setattr(events_module, "flow_moving", first_twelve)
-    cfg = tiny_config(flow_split_share=share, **{"model.tau": 1.0})
+    cfg = tiny_config(flow_vote_share=share, **{"model.tau": 1.0})
     assert cfg.lambda_flow == 0 and cfg.spawn_frames == 0
     info = Trainer(scene, tmp_path / "r", cfg, progress=False).run()
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
     if share:
-        assert calls and calls[0] > 0  # flows read for the split alone
-        assert saved["flow_split"]["dynamic_by_k"] == 0 and saved["flow_split"]["gaussians"] == 12
+        assert calls and calls[0] > 0  # flows read for the decomposition alone
+        assert saved["flow_vote"]["dynamic_by_k"] == 0 and saved["flow_vote"]["gaussians"] == 12
         assert 0 < info["dynamic_share"] < 0.5
     else:
-        assert not calls and "flow_split" not in saved and info["dynamic_share"] == 0
+        assert not calls and "flow_vote" not in saved and info["dynamic_share"] == 0
 
 
 def test_the_re_splits_read_the_flow_too(scene, tmp_path, monkeypatch):
-    """With τ so high that K calls nothing dynamic, a re-split would turn everything static
-    again; the reading at each re-split keeps what it finds (here: the first 12) dynamic, and
-    run.json lists what each re-split's reading found."""
+    """With τ so high that K calls nothing dynamic, a re-decomposition would turn everything static
+    again; the reading at each re-decomposition keeps what it finds (here: the first 12) dynamic, and
+    run.json lists what each re-decomposition's reading found."""
     import kgs_core.train.events as events_module
 
     def first_twelve(model, frames, flows, by_k, *args, **kwargs):
@@ -728,13 +728,13 @@ def test_the_re_splits_read_the_flow_too(scene, tmp_path, monkeypatch):
     cfg = tiny_config(decompose_every=30, **{"model.tau": 1.0})
     info = Trainer(scene, tmp_path / "r", cfg, progress=False).run()
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
-    assert saved["flow_split"]["later"] and all(n == 12 for n in saved["flow_split"]["later"])
+    assert saved["flow_vote"]["later"] and all(n == 12 for n in saved["flow_vote"]["later"])
     assert info["dynamic"] >= 12
 
 
-@pytest.mark.parametrize("split_method", ["fused", "dis_full", "dis"])
-def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch, split_method):
-    """With the flow term on (DIS flows for every frame), the splits' reading computes its own
+@pytest.mark.parametrize("vote_method", ["fused", "dis_full", "dis"])
+def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch, vote_method):
+    """With the flow term on (DIS flows for every frame), the decompositions' reading computes its own
     flows of its 16 frames when its method differs (DIS to full resolution, a video ingest's,
     or "fused") and reads the run's flows when it is the same (the default elsewhere)."""
     import kgs_core.train.events as events_module
@@ -748,14 +748,14 @@ def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch
         return real(frames, only=only, method=method)
 
     monkeypatch.setattr(trainer_module, "frame_flows", recording)  # the run's own flows
-    monkeypatch.setattr(events_module, "frame_flows", recording)  # the splits' reading's
-    cfg = tiny_config(lambda_flow=0.003, flow_split_method=split_method)
+    monkeypatch.setattr(events_module, "frame_flows", recording)  # the decompositions' reading's
+    cfg = tiny_config(lambda_flow=0.003, flow_vote_method=vote_method)
     assert cfg.flow_method == "dis"
     Trainer(scene, tmp_path / "r", cfg, progress=False).run()
     assert calls[0] == ("dis", True)
-    assert calls[1:] == ([] if split_method == "dis" else [(split_method, False)])
+    assert calls[1:] == ([] if vote_method == "dis" else [(vote_method, False)])
     saved = json.loads((tmp_path / "r" / "run.json").read_text())
-    assert saved["config"]["flow_split_method"] == split_method
+    assert saved["config"]["flow_vote_method"] == vote_method
 
 
 
@@ -779,3 +779,48 @@ def test_saved_configurations_of_every_version_load_through_one_migration():
     assert (got.model.kr_form, got.model.knn_radius, got.model.spawned_motion) == ("paper", 0.0, "field")
     with pytest.raises(ValueError, match="config.config_version must be a whole number"):
         migrate_config({**d, "config_version": CONFIG_VERSION + 1})
+
+
+def test_a_run_saved_before_the_decompose_names_loads_under_them(scene, tmp_path):
+    """Version 1 called the decomposition "split" and K "variance" (run.json keys, settings, the
+    ablation, model.pt's per-Gaussian field, the model's `variance_times`): a run saved so loads
+    with the same values under the current names, and the old names on the command line say
+    what they are called now."""
+    import torch
+
+    from kgs_core.migrations import DECOMPOSE_RENAMES, MODEL_RENAMES
+    from kgs_core.run import load_run
+    from kgs_core.train.config import make_config
+    from kgs_core.train.settings import parse_setting
+
+    cfg = tiny_config(iterations=30, decompose_at=15, ablate=("reg",), **{"model.tau": 1e-9})
+    train(scene, tmp_path / "r", cfg, progress=False)
+    now = load_run(tmp_path / "r")
+    old_names = {new: old for old, new in DECOMPOSE_RENAMES.items()}
+    old_model = {new: old for old, new in MODEL_RENAMES.items()}
+
+    info = json.loads((tmp_path / "r" / "run.json").read_text())
+    info["format_version"] = 1
+    info["config"] = {old_names.get(k, k): v for k, v in info["config"].items()}
+    info["config"].update(config_version=1, ablate=["reg", "split"])
+    info["config"]["model"] = {old_model.get(k, k): v for k, v in info["config"]["model"].items()}
+    info["config"]["model"]["config_version"] = 1
+    info["flow_split"] = info.pop("flow_vote", {"iteration": 15})
+    (tmp_path / "r" / "run.json").write_text(json.dumps(info))
+    state = torch.load(tmp_path / "r" / "model.pt", weights_only=True)
+    state["model"]["variance"] = state["model"].pop("K")
+    state["model"]["config"] = {old_model.get(k, k): v for k, v in state["model"]["config"].items()}
+    state["model"]["config"]["config_version"] = 1
+    torch.save(state, tmp_path / "r" / "model.pt")
+
+    then = load_run(tmp_path / "r")
+    assert torch.equal(then.model.K, now.model.K) and then.model.config == now.model.config
+    assert then.info["config"]["ablate"] == ["reg", "decompose"] and "flow_vote" in then.info
+    assert {k for k in DECOMPOSE_RENAMES.values()} <= set(then.info["config"])
+    assert then.model.config.K_times == now.model.config.K_times
+    with pytest.raises(ValueError, match="now called flow_vote_share"):
+        parse_setting("flow_split_share=0.2")
+    with pytest.raises(ValueError, match="now called model.K_times"):
+        parse_setting("model.variance_times=8")
+    with pytest.raises(ValueError, match="'split' is now called 'decompose'"):
+        make_config("fast", ablate=("split",))

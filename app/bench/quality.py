@@ -6,11 +6,11 @@ masks). Every configuration is first trained for `--iterations`, all of them ste
 `--budget time` (the default) each one whose time differs from the first configuration's by
 more than 10 % is trained again with its iteration count scaled by that measured cost ratio
 (equal training time; `--budget iterations` stops after the first round). Configurations: the
-full method, each ablation (`split` is the D3DGS-like baseline where every Gaussian deforms,
+full method, each ablation (`decompose` is the D3DGS-like baseline where every Gaussian deforms,
 `deform` a static 3DGS), both velocity estimates and the continuous kinematic basis. Reports held-out PSNR (whole image and
 inside the dynamic mask), deblur PSNR (the training views against their sharp ground truth,
 also inside the dynamic mask), decomposition IoU and training time, plots held-out PSNR
-against training time for all of them, and sweeps τ on the full model (re-split without
+against training time for all of them, and sweeps τ on the full model (re-decomposed without
 retraining). Velocity EPE: the image motion the model's velocities predict (the ones the
 kinematic covariance uses) against the ground-truth motion, inside the dynamic mask of the still
 held-out camera, in pixels per frame interval.
@@ -36,7 +36,7 @@ CONFIGS = {
     "no K.R. (kr)": {"ablate": ("kr",)},
     "no L_reg (reg)": {"ablate": ("reg",)},
     "no L_ani (ani)": {"ablate": ("ani",)},
-    "no split, D3DGS-like (split)": {"ablate": ("split",)},
+    "no decomposition, D3DGS-like (decompose)": {"ablate": ("decompose",)},
     "static 3DGS (deform)": {"ablate": ("deform",)},
     "velocity = paper": {"model.velocity": "paper"},
     "basis = principal": {"model.basis": "principal", "model.kr_form": "paper"},
@@ -52,7 +52,7 @@ def fmt(value: float | None) -> str:
 
 def config_key(name: str) -> str:
     """The short name `--configs` takes: the part in parentheses, else the whole name without
-    spaces (`full`, `cf`, `split`, `velocity=paper`, ...)."""
+    spaces (`full`, `cf`, `decompose`, `velocity=paper`, ...)."""
     return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
 
 
@@ -74,14 +74,14 @@ def mean_row(label: str, ms: list[dict]) -> str:
 
 def config_label(name: str) -> str:
     """A configuration's name for a table row, its `@key=value` overrides kept: `full`,
-    `no split, D3DGS-like`, `no split, D3DGS-like @lambda_flow=0` (rows are keyed by it, so two
+    `no decomposition, D3DGS-like`, `no decomposition, D3DGS-like @lambda_flow=0` (rows are keyed by it, so two
     configurations must never share one)."""
     base, *sets = name.split("@")
     return " @".join([base.split(" (")[0], *sets])
 
 
 def config_slug(name: str) -> str:
-    """A folder name for a configuration's run (`full`, `no_split_D3DGS-like`,
+    """A folder name for a configuration's run (`full`, `no_decomposition_D3DGS-like`,
     `full@model.tau_1e-4`)."""
     return re.sub(r"[^A-Za-z0-9._@-]+", "_", config_label(name).replace(" @", "@"))
 
@@ -98,7 +98,7 @@ def _override(text: str, spec: str) -> tuple[str, object]:
 
 def config_overrides(name: str) -> dict:
     """`make_config` keyword arguments of a configuration: one of CONFIGS, optionally followed
-    by `@key=value` overrides (`full@noise_init_frames=0.1`, `split@model.tau=1e-4`): what an
+    by `@key=value` overrides (`full@noise_init_frames=0.1`, `decompose@model.tau=1e-4`): what an
     experiment varies without a new named configuration."""
     base, *sets = name.split("@")
     over = dict(CONFIGS[base])
@@ -168,16 +168,16 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def tau_sweep(run, scene, taus: list[float]) -> None:
-    """Prints the full model re-split at each τ from its stored K, in place as the viewer's
-    live τ does (`run_view.split_copy`; no retraining)."""
+    """Prints the full model re-decomposed at each τ from its stored K, in place as the viewer's
+    live τ does (`run_view.decomposed_copy`; no retraining)."""
     from kgs_core.evaluate import evaluate_model
-    from kgs_core.run_view import split_copy
+    from kgs_core.run_view import decomposed_copy
 
-    print("\n## tau sweep on the full model (re-split in place from the stored K, no retraining)")
-    print("| tau | dynamic | held-out PSNR | in dynamic mask | split IoU |")
+    print("\n## tau sweep on the full model (re-decomposed in place from the stored K, no retraining)")
+    print("| tau | dynamic | held-out PSNR | in dynamic mask | decomposition IoU |")
     print("| --: | ------: | ------------: | --------------: | --------: |")
     for tau in taus:
-        model = split_copy(run.model, tau)
+        model = decomposed_copy(run.model, tau)
         m = evaluate_model(model, scene)
         share = float(model.dynamic.float().mean())
         print(f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
@@ -230,7 +230,7 @@ def main(argv: list[str]) -> int:
     print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
           f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
           f"{machine()}")
-    columns = ["held-out PSNR", "in dynamic mask", "deblur PSNR", "deblur in mask", "split IoU", "velocity EPE px",
+    columns = ["held-out PSNR", "in dynamic mask", "deblur PSNR", "deblur in mask", "decomposition IoU", "velocity EPE px",
                "dynamic", "iterations", "train s"]
     print("| configuration | " + " | ".join(columns) + " |")
     print("| --- |" + " ---: |" * len(columns))

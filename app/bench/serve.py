@@ -42,9 +42,9 @@ def make_run(root: Path, n: int, dynamic_share: float, seed: int = 0) -> Path:
     pts = rng.uniform(-1, 1, size=(n, 3))
     params = init_from_points(pts, rng.uniform(0, 1, size=(n, 3)), cfg.model.sh_degree, cfg.model.feature_dim, seed=seed)
     model = KinematicsGS(params, cfg.model)
-    variance = torch.from_numpy(rng.uniform(0, 1, n).astype(np.float32)) * 2 * cfg.model.tau
-    cut = torch.quantile(variance, 1 - dynamic_share)
-    model.variance = variance * (cfg.model.tau / float(cut))
+    K = torch.from_numpy(rng.uniform(0, 1, n).astype(np.float32)) * 2 * cfg.model.tau
+    cut = torch.quantile(K, 1 - dynamic_share)
+    model.K = K * (cfg.model.tau / float(cut))
     model.decompose(recompute=False)
     run = root / f"synthetic-{n}"
     run.mkdir(parents=True, exist_ok=True)

@@ -192,7 +192,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--skip-training", action="store_true")
-    ap.add_argument("--tau", type=float, help="override the split threshold (a low one makes most Gaussians "
+    ap.add_argument("--tau", type=float, help="override the decomposition threshold (a low one makes most Gaussians "
                                               "dynamic, so the kinematic path runs everywhere)")
     ap.add_argument("--cases", help="comma-separated case numbers (1-based) to train")
     ap.add_argument("--compare-basis", type=int, metavar="ITERATIONS",

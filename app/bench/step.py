@@ -2,11 +2,11 @@
 
 Where one training step of the whole model goes (`bench raster` times the rasteriser alone):
 synthesize a scene (or read a scene folder, e.g. an ingest at full size, with the preset fitted
-to it), train the fast preset past its split, then time steps of each configuration, split into
+to it), train the fast preset past its decomposition, then time steps of each configuration, split into
 the model's evaluation (deformation field, coarse-to-fine, K.R., covariances), render + loss,
 backward, and the optimisers; `--profile` adds the operations that take the time (torch's
 profiler, self time). Configurations use the `bench quality` short names: `full`, `kr` (no
-K.R.), `split` (the D3DGS-like baseline), ...
+K.R.), `decompose` (the D3DGS-like baseline), ...
 """
 
 from __future__ import annotations
@@ -75,12 +75,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--blur", choices=["none", "mild", "severe"], default="mild",
                     help="exposure of the training camera (none: sharp, where K.R. needs no velocity)")
-    ap.add_argument("--warmup", type=int, default=400, help="iterations trained before timing (past the split at 300)")
+    ap.add_argument("--warmup", type=int, default=400, help="iterations trained before timing (past the decomposition at 300)")
     ap.add_argument("--steps", type=int, default=60, help="steps timed per configuration")
-    ap.add_argument("--configs", default="full,kr,split", help="short names, as in bench quality")
+    ap.add_argument("--configs", default="full,kr,decompose", help="short names, as in bench quality")
     ap.add_argument("--repeats", type=int, default=2, help="timing rounds, configurations interleaved")
-    ap.add_argument("--decompose-at", type=int, help="the split's iteration (default: the preset's; set it below "
-                    "--warmup to time a large scene after its split without training to it)")
+    ap.add_argument("--decompose-at", type=int, help="the decomposition's iteration (default: the preset's; set it below "
+                    "--warmup to time a large scene after its decomposition without training to it)")
     ap.add_argument("--profile", action="store_true", help="also list the operations of the first configuration's "
                     "steps by self time")
     ap.add_argument("--levels", help="comma-separated image divisors, e.g. 1,2,4: also time the first configuration's "

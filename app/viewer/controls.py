@@ -30,7 +30,7 @@ def draw_controls(model: ViewerModel) -> bool:
     imgui.set_next_window_pos(imgui.ImVec2(0, 0), imgui.Cond_.first_use_ever)
     imgui.set_next_window_size(imgui.ImVec2(300, 520), imgui.Cond_.first_use_ever)
     imgui.begin("Kinematics-GS")
-    imgui.text(f"{m['name']}: {m['split']['gaussians']:,} Gaussians")
+    imgui.text(f"{m['name']}: {m['decomposition']['gaussians']:,} Gaussians")
     c, t = imgui.slider_float("time", s.t, 0.0, 1.0, "%.3f")
     _track("time", frame_only=True)
     if c:
@@ -53,8 +53,8 @@ def draw_controls(model: ViewerModel) -> bool:
     imgui.same_line()
     c2, s.show_dynamic = imgui.checkbox("dynamic", s.show_dynamic)
     _track("dynamic")
-    split = m["split"]
-    imgui.text(f"static {split['static_kept']:,}  dynamic {split['dynamic_kept']:,}")
+    decomposition = m["decomposition"]
+    imgui.text(f"static {decomposition['static_kept']:,}  dynamic {decomposition['dynamic_kept']:,}")
     c3, s.overlay = imgui.combo("overlay", s.overlay, ["colours", "static/dynamic tint", "velocity ellipses"])
     c4, s.arrows = imgui.checkbox("velocity arrows", s.arrows)
     _track("arrows")

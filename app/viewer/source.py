@@ -47,7 +47,7 @@ class LocalSource:
         run = self.view.run
         self.meta = {"name": run.path.name, "dt": self.view.dt, "exposure": float(run.info.get("exposure", 0.0)),
                      "lod_levels": run.n_levels, "tau": self.view.tau, "histogram": self.view.histogram(),
-                     "split": self.view.split(), "sh_degree": run.model.config.sh_degree}
+                     "decomposition": self.view.decomposition(), "sh_degree": run.model.config.sh_degree}
 
     def static(self, lod: int | None) -> SplatSet:
         return SplatSet.parse(self.view.static_buffer(lod))
@@ -56,9 +56,9 @@ class LocalSource:
         return SplatSet.parse(self.view.dynamic_buffer(t, exposure, lod))
 
     def set_tau(self, tau: float) -> dict:
-        split = self.view.set_tau(tau)
-        self.meta.update(tau=tau, split=split)
-        return split
+        decomposition = self.view.set_tau(tau)
+        self.meta.update(tau=tau, decomposition=decomposition)
+        return decomposition
 
 
 class RemoteSource:
@@ -77,7 +77,7 @@ class RemoteSource:
         self.frames = meta["frames"]
         self.meta = {"name": meta["name"], "dt": meta["dt"], "exposure": meta["exposure"],
                      "lod_levels": meta["lod_levels"], "tau": meta["tau"], "histogram": meta["histogram"],
-                     "split": meta["split"], "sh_degree": meta["sh_degree"]}
+                     "decomposition": meta["decomposition"], "sh_degree": meta["sh_degree"]}
         from websockets.sync.client import connect
 
         ws_url = self.url.replace("http", "ws", 1) + f"/api/runs/{run_id}/stream"
@@ -123,6 +123,6 @@ class RemoteSource:
                 return s
 
     def set_tau(self, tau: float) -> dict:
-        split = self._get(f"/api/runs/{self.run_id}/tau", {"tau": tau})
-        self.meta.update(tau=tau, split=split)
-        return split
+        decomposition = self._get(f"/api/runs/{self.run_id}/tau", {"tau": tau})
+        self.meta.update(tau=tau, decomposition=decomposition)
+        return decomposition

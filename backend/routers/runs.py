@@ -17,7 +17,7 @@ from kgs_core.train.config import TrainConfig, make_config
 from ..deps import get_or_404, jobs, run_view, workspace
 from ..jobs import JobRunner, last_checkpoint
 from ..registry import ACTIVE, JobStatus, Workspace, new_id
-from ..responses import Edits, LogRow, ObjectSelection, RunDetail, RunSummary, Split
+from ..responses import Decomposition, Edits, LogRow, ObjectSelection, RunDetail, RunSummary
 from ..schemas import StrictRequest
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
@@ -38,7 +38,7 @@ class TauRequest(StrictRequest):
 
 
 class FinetuneRequest(StrictRequest):
-    tau: float | None = Field(None, gt=0, description="split threshold (default: the viewer's live τ)")
+    tau: float | None = Field(None, gt=0, description="decomposition threshold (default: the viewer's live τ)")
     iterations: int = Field(300, ge=1, le=100_000)
 
 
@@ -135,7 +135,7 @@ def get_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)) -
         return out
     view = run_view(request.app, run_id)
     out["tau"] = view.tau
-    out["split"] = view.split()
+    out["decomposition"] = view.decomposition()
     out["histogram"] = view.histogram()
     out["lod_levels"] = view.run.n_levels
     out["levels"] = [{"level": lvl, "gaussians": len(view.run.level(lvl))} for lvl in range(1, view.run.n_levels + 1)]
@@ -198,20 +198,20 @@ def delete_run(run_id: str, request: Request, ws: Workspace = Depends(workspace)
     ws.remove([*(("exports", e["id"]) for e in exports), ("runs", run_id)], [*folders, Path(row["path"])])
 
 
-@router.post("/{run_id}/tau", response_model=Split)
+@router.post("/{run_id}/tau", response_model=Decomposition)
 async def set_tau(run_id: str, req: TauRequest, request: Request) -> dict:
-    """Recomputes the static/dynamic split from the stored K (no retraining) and pushes the new
+    """Recomputes the static/dynamic decomposition from the stored K (no retraining) and pushes the new
     sets to every viewer subscribed to the run."""
     view = run_view(request.app, run_id)
-    split = view.set_tau(req.tau)
-    await request.app.state.hub.broadcast(run_id, {"type": "split", **split})
-    return split
+    decomposition = view.set_tau(req.tau)
+    await request.app.state.hub.broadcast(run_id, {"type": "decomposition", **decomposition})
+    return decomposition
 
 
 @router.post("/{run_id}/finetune", status_code=202, response_model=RunSummary)
 def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace = Depends(workspace),
              jr: JobRunner = Depends(jobs)) -> dict:
-    """A new run that continues this one's model with the split at `tau` (the live τ when not
+    """A new run that continues this one's model with the decomposition at `tau` (the live τ when not
     given): the decomposition chosen in the viewer, then trained further."""
     from kgs_core.train.config import finetune_config
 
@@ -244,15 +244,15 @@ def get_edits(run_id: str, request: Request) -> dict:
     return run_view(request.app, run_id).edits.to_dict()
 
 
-@router.post("/{run_id}/edits", response_model=Split)
+@router.post("/{run_id}/edits", response_model=Decomposition)
 async def edit(run_id: str, req: EditRequest, request: Request) -> dict:
     view = run_view(request.app, run_id)
     try:
-        split = view.apply_edit(req.op, req.lod, req.indices, req.crop)
+        decomposition = view.apply_edit(req.op, req.lod, req.indices, req.crop)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
-    await request.app.state.hub.broadcast(run_id, {"type": "split", **split})
-    return split
+    await request.app.state.hub.broadcast(run_id, {"type": "decomposition", **decomposition})
+    return decomposition
 
 
 @router.post("/{run_id}/select-object", response_model=ObjectSelection)

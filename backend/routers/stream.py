@@ -6,12 +6,12 @@ Client → server (JSON text; the models, with their bounds, in `backend/message
   requests with dynamic sets.
 * `{"type": "time", "t": 0.42, "exposure": 0, "seq": 17}`: the dynamic set at `t`. Requests that
   arrive while one is being computed coalesce: only the latest is answered (its `seq` is echoed).
-* `{"type": "tau", "tau": 2e-5}`: recompute the split (every subscriber gets the new sets).
+* `{"type": "tau", "tau": 2e-5}`: recompute the decomposition (every subscriber gets the new sets).
 * `{"type": "ping"}`: answered with `{"type": "pong"}`.
 
 Server → client: binary buffers (layout in `kgs_core.splat_buffer`), and JSON text messages
 `{"type": "progress", …}` (while the run trains, once a second), `{"type": "status", …}`,
-`{"type": "split", …}` (after τ changes and edits) and `{"type": "error", "message": …}`.
+`{"type": "decomposition", …}` (after τ changes and edits) and `{"type": "error", "message": …}`.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ class Connection:
             self.wake.set()
             return
         self.notes.append(msg)
-        if msg.get("type") == "split" and self.last_time is not None and self.pending is None:
+        if msg.get("type") == "decomposition" and self.last_time is not None and self.pending is None:
             self.pending = dict(self.last_time)  # the dynamic set changed: resend it
         self.wake.set()
 
@@ -121,8 +121,8 @@ async def receiver(conn: Connection, app) -> None:
                 from ..deps import run_view
 
                 view = run_view(app, conn.run_id)
-                split = await run_in_threadpool(view.set_tau, msg.tau)
-                await app.state.hub.broadcast(conn.run_id, {"type": "split", **split})
+                decomposition = await run_in_threadpool(view.set_tau, msg.tau)
+                await app.state.hub.broadcast(conn.run_id, {"type": "decomposition", **decomposition})
             elif isinstance(msg, Ping):
                 conn.notify({"type": "pong"})
         except (KeyError, TypeError, ValueError) as exc:

@@ -33,7 +33,7 @@ export function drawChart(canvas, series, { xLabel = "", title = "" } = {}) {
   });
 }
 
-// The distribution of log10 K (the temporal variance each split compares with τ): bars on a
+// The distribution of log10 K (the temporal variance each decomposition compares with τ): bars on a
 // log count scale, static (K <= τ) blue and dynamic orange, τ the white line; the axis is
 // labelled with its ends and τ, the legend says which colour is which.
 export function drawHistogram(canvas, hist, tau) {

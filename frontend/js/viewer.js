@@ -163,13 +163,13 @@ export class Viewer {
   }
 
   onJSON(msg) {
-    if (msg.type === "split") {
-      this.meta.split = msg;
+    if (msg.type === "decomposition") {
+      this.meta.decomposition = msg;
       this.meta.tau = msg.tau;
       this.updateCounts();
-      const waiting = this.waiters.filter((w) => w.kind === "split");
+      const waiting = this.waiters.filter((w) => w.kind === "decomposition");
       waiting.forEach((w) => w.resolve(msg));
-      this.waiters = this.waiters.filter((w) => w.kind !== "split");
+      this.waiters = this.waiters.filter((w) => w.kind !== "decomposition");
     } else if (msg.type === "error") {
       this.status(`server: ${msg.message}`);
     }
@@ -367,7 +367,7 @@ export class Viewer {
     $("tau-label").textContent = `τ = ${m.tau.toExponential(2)}`;
     $("finetune").onclick = async () => {
       const iterations = 300;  // FinetuneRequest's default
-      if (!window.confirm(`Start a new training run: this run's model, split at τ = ${this.meta.tau.toExponential(2)}, `
+      if (!window.confirm(`Start a new training run: this run's model, decomposed at τ = ${this.meta.tau.toExponential(2)}, `
                           + `trained ${iterations} more iterations?`)) return;
       const run = await api(`/api/runs/${this.runId}/finetune`, { method: "POST", body: { tau: this.meta.tau } });
       $("finetune-status").innerHTML = `training <a href="#/">${esc(run.name)}</a> (runs page)`;
@@ -388,15 +388,15 @@ export class Viewer {
 
   setTau(value) {
     return new Promise((resolve) => {
-      this.waiters.push({ kind: "split", resolve });
+      this.waiters.push({ kind: "decomposition", resolve });
       this.ws.send(JSON.stringify({ type: "tau", tau: value }));
     });
   }
 
   // The title, the set counts and the LoD menu all show what is kept now: after a delete or a
-  // restore (the server's "split" message) they change together.
+  // restore (the server's "decomposition" message) they change together.
   updateCounts() {
-    const s = this.meta.split;
+    const s = this.meta.decomposition;
     $("run-title").textContent = `${this.meta.name} · ${s.kept.toLocaleString()} Gaussians`;
     $("run-title").dataset.kept = s.kept;
     $("counts").textContent = `static ${s.static_kept.toLocaleString()} · dynamic ${s.dynamic_kept.toLocaleString()}`;

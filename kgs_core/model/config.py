@@ -1,4 +1,4 @@
-"""The model's settings (`ModelConfig`): the paper's parts (C.F., K.R., the split's τ), the
+"""The model's settings (`ModelConfig`): the paper's parts (C.F., K.R., the decomposition's τ), the
 deformation field's size and the product's additions, each with why it is set as it is."""
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ class ModelConfig:
     # unrelated object's motion. 0: no bound.
     knn_radius: float = 3.0
     tau: float = 2e-5  # dynamic when the temporal variance K of dx exceeds tau
-    variance_times: int = 16  # T, times at which K is evaluated
+    K_times: int = 16  # T, times at which K is evaluated
     coarse_to_fine: bool = True  # C.F.
-    # After the split, each dynamic Gaussian the field moves gets an opacity that varies in
+    # After the decomposition, each dynamic Gaussian the field moves gets an opacity that varies in
     # time (`TimeOpacity`, from its fine-residual feature), so the loss can fade it at the
     # times the field puts it wrong. Off in the paper; fit_to_scene turns it on for video
     # ingests (docs/real-footage.md, "Opacity that varies in time").

@@ -1,4 +1,4 @@
-"""The static/dynamic split by the temporal variance K of the field's offsets, as methods of
+"""The static/dynamic decomposition by the temporal variance K of the field's offsets, as methods of
 `KinematicsGS` (a mixin), and the statistics read off it (τ by Otsu, counts, a histogram)."""
 
 from __future__ import annotations
@@ -17,14 +17,14 @@ if TYPE_CHECKING:
 
 
 class Decomposition:
-    """K, the split and what it does to the canonical Gaussians (`KinematicsGS`'s `variance`,
+    """K, the decomposition and what it does to the canonical Gaussians (`KinematicsGS`'s `K`,
     `dynamic`, `decomposed`)."""
 
     @torch.no_grad()
-    def temporal_variance(self, chunk: int = 8192) -> Tensor:
-        """K_i = mean_t |dx_t - mean_t dx_t|^2 over `variance_times` evenly spaced times, from the
+    def compute_K(self, chunk: int = 8192) -> Tensor:
+        """K_i = mean_t |dx_t - mean_t dx_t|^2 over `K_times` evenly spaced times, from the
         deformation field itself (no time noise, no coarse-to-fine averaging)."""
-        T = self.config.variance_times
+        T = self.config.K_times
         times = torch.linspace(0, 1, T)
         means = self.params.means.detach()
         out = torch.empty(len(means))
@@ -36,9 +36,9 @@ class Decomposition:
         return out
 
     def dynamic_by_k(self, tau: float) -> Tensor:
-        """`(N,)` bool: the Gaussians the split calls dynamic by their stored K alone, K > `tau`,
+        """`(N,)` bool: the Gaussians the decomposition calls dynamic by their stored K alone, K > `tau`,
         and those present for part of the clip, which change over time whatever their motion."""
-        return (self.variance > tau) | self.lifespan[:, 1].isfinite()
+        return (self.K > tau) | self.lifespan[:, 1].isfinite()
 
     @torch.no_grad()
     def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
@@ -47,21 +47,21 @@ class Decomposition:
         training's splits read off the optical flow); returns the dynamic mask.
 
         `keep_static`: a Gaussian already static stays static whatever its K (training's
-        re-splits on a video ingest, `TrainConfig.resplit_to_dynamic`): a static Gaussian's K
+        re-decompositions on a video ingest, `TrainConfig.redecompose_to_dynamic`): a static Gaussian's K
         is the field's motion where it sits, which was never fitted to it, and turning such
-        Gaussians dynamic loses at once what they rendered (docs/method.md, "Splits in place").
+        Gaussians dynamic loses at once what they rendered (docs/method.md, "Decompositions in place").
 
-        `in_place`: each Gaussian whose rendered offsets the split changes (it changes sides,
+        `in_place`: each Gaussian whose rendered offsets the decomposition changes (it changes sides,
         or its kNN neighbours do) has its canonical mean, rotation and scale moved by the
         difference of its time-averaged offsets, so that on average over the clip it renders
         where it did. Without it a dynamic Gaussian that turns static jumps by its mean offset:
         K measures how much the offset varies, not how large it is, and on real footage the
         field's mean offsets (median 0.14 scene units on walk, about 90 px) are larger than
-        their variation (docs/method.md, "Splits in place")."""
+        their variation (docs/method.md, "Decompositions in place")."""
         if tau is not None:
             self.config.tau = tau
         if recompute:
-            self.variance = self.temporal_variance()
+            self.K = self.compute_K()
         dynamic = self.dynamic_by_k(self.config.tau)
         if also_dynamic is not None:
             dynamic = dynamic | also_dynamic
@@ -74,7 +74,7 @@ class Decomposition:
             # stay dynamic keep their neighbours (those who turned static replaced by the row's
             # own Gaussian), and only those that turn dynamic get the nearest ones: a graph
             # rebuilt whole gives fitted Gaussians new neighbours (docs/method.md, "Resume").
-            self._knn = self._graph_after_resplit(dynamic) if self.decomposed else None
+            self._knn = self._graph_after_redecompose(dynamic) if self.decomposed else None
         self.dynamic = dynamic
         self.decomposed = True
         if before is not None:
@@ -85,12 +85,12 @@ class Decomposition:
     @torch.no_grad()
     def mean_offsets(self) -> Tensor:
         """`(N, 9)`: each Gaussian's rendered offsets (dx, dr, ds) averaged over
-        `variance_times` evenly spaced times; zeros for the static ones."""
+        `K_times` evenly spaced times; zeros for the static ones."""
         n = len(self.params)
         out = torch.zeros(n, 9)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         if len(idx):
-            T = self.config.variance_times
+            T = self.config.K_times
             acc = torch.zeros(len(idx), 9)
             for t in torch.linspace(0, 1, T).tolist():
                 acc += self.offsets_at(idx, [t])[0].cat()
@@ -124,14 +124,14 @@ class Decomposition:
         return self.deform.at_times(x, [torch.full((len(x),), float(t))])[0].dx
 
 
-def otsu_tau(variance: Tensor, floor: float, bins: int = 128) -> float:
-    """A split threshold picked from the distribution of K: Otsu's threshold on log10 K (the
+def otsu_tau(K: Tensor, floor: float, bins: int = 128) -> float:
+    """A decomposition threshold picked from the distribution of K: Otsu's threshold on log10 K (the
     cut that best separates the still mode from the moving tail), never below `floor` (the
     fixed τ, which says what "still" means for a clean scene). On real footage the field also
     absorbs residual pose error and noise, so every Gaussian's K sits well above a fixed τ
     (walk: a mode at an RMS image motion of 2.6 px) and a fixed τ calls 93-99 % of them
     dynamic; the moving objects are the tail above that mode."""
-    lk = torch.log10(variance.double().clamp_min(1e-12))
+    lk = torch.log10(K.double().clamp_min(1e-12))
     if len(lk) < 2 or float(lk.max() - lk.min()) < 1e-9:
         return floor
     hist = torch.histc(lk, bins=bins, min=float(lk.min()), max=float(lk.max()))
@@ -145,8 +145,8 @@ def otsu_tau(variance: Tensor, floor: float, bins: int = 128) -> float:
     return max(floor, float(10 ** (0.5 * (centers[k] + centers[k + 1]))))
 
 
-def split_counts(model: KinematicsGS, static_only: bool = False) -> dict:
-    """Gaussian counts; before the first split every Gaussian deforms (all dynamic), and in a
+def decomposition_counts(model: KinematicsGS, static_only: bool = False) -> dict:
+    """Gaussian counts; before the first decomposition every Gaussian deforms (all dynamic), and in a
     static run (`--ablate deform`) none does. "spawned": those present for part of the clip
     (train/spawn.py, and their clones)."""
     n = len(model)
@@ -155,8 +155,8 @@ def split_counts(model: KinematicsGS, static_only: bool = False) -> dict:
             "spawned": int(model.lifespan[:, 1].isfinite().sum())}  # present for part of the clip
 
 
-def variance_histogram(variance: np.ndarray, bins: int = 64) -> dict:
+def K_histogram(K: np.ndarray, bins: int = 64) -> dict:
     """Histogram of log10 K (what the tau slider of the viewers shows)."""
-    lv = np.log10(np.clip(variance, 1e-12, None))
+    lv = np.log10(np.clip(K, 1e-12, None))
     counts, edges = np.histogram(lv, bins=bins, range=(-12, 0))
     return {"log10_edges": edges.tolist(), "counts": counts.tolist()}

@@ -113,7 +113,7 @@ class Offsets:
         return torch.cat([self.dx, self.dr, self.ds], -1)
 
     @staticmethod
-    def split(x: Tensor) -> "Offsets":
+    def from_cat(x: Tensor) -> "Offsets":
         return Offsets(x[..., :3], x[..., 3:6], x[..., 6:9])
 
 
@@ -125,12 +125,12 @@ class DeformationField(nn.Module):
         self.mlp = _mlp(self.planes.out_dim, width, 9, depth)
 
     def forward(self, x: Tensor, t: Tensor) -> Offsets:
-        return Offsets.split(self.mlp(self.planes(x, t)))
+        return Offsets.from_cat(self.mlp(self.planes(x, t)))
 
     def at_times(self, x: Tensor, times: list[Tensor]) -> list[Offsets]:
         """Offsets of `x (N, 3)` at each of `times` (M tensors `(N,)`): one batched evaluation."""
         out = self.mlp(self.planes.at_times(x, times))
-        return [Offsets.split(chunk) for chunk in out.split(len(x))]
+        return [Offsets.from_cat(chunk) for chunk in out.split(len(x))]
 
 
 def fourier_time(t: Tensor, n_freqs: int = 6) -> Tensor:
@@ -149,7 +149,7 @@ class FineResidual(nn.Module):
         self.mlp = _mlp(feature_dim + 1 + 2 * n_freqs, width, 9, depth=1)
 
     def forward(self, features: Tensor, t: Tensor) -> Offsets:
-        return Offsets.split(self.mlp(torch.cat([features, fourier_time(t, self.n_freqs)], -1)))
+        return Offsets.from_cat(self.mlp(torch.cat([features, fourier_time(t, self.n_freqs)], -1)))
 
 
 class TimeOpacity(nn.Module):

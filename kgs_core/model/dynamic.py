@@ -1,4 +1,4 @@
-"""The Kinematics-GS model: canonical Gaussians + deformation field + static/dynamic split +
+"""The Kinematics-GS model: canonical Gaussians + deformation field + static/dynamic decomposition +
 coarse-to-fine offsets + kinematic covariance, evaluated at any time `t`.
 
 `KinematicsGS.at(t, ...)` returns the Gaussians to rasterize; it is what training, the server,
@@ -70,8 +70,8 @@ class Deformed(NamedTuple):
 
 
 class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
-    """Canonical Gaussians, the deformation field and the split, evaluated at any time (`at`).
-    C.F.'s neighbour graph is `NeighbourGraph`'s (model/neighbours.py), the split by K
+    """Canonical Gaussians, the deformation field and the decomposition, evaluated at any time (`at`).
+    C.F.'s neighbour graph is `NeighbourGraph`'s (model/neighbours.py), the decomposition by K
     `Decomposition`'s (model/decomposition.py)."""
 
     def __init__(self, params: GaussianParams, config: ModelConfig):
@@ -85,7 +85,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         self.time_opacity = TimeOpacity(c.feature_dim) if c.time_opacity else None
         self.kappa = nn.Parameter(torch.tensor(float(c.kappa_init)))
         n = len(params)
-        self.decomposed = False  # before the split every Gaussian deforms
+        self.decomposed = False  # before the decomposition every Gaussian deforms
         # Flags, K, lifespans and own velocities, one row per Gaussian (model/per_gaussian.py).
         self.per_gaussian = PerGaussian.empty(n)
         self.min_scale = 0.0  # FLoD level-dependent lower bound of the scales
@@ -107,12 +107,12 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
     # velocities, a strategy's statistics) is resized in lock-step by `keep_gaussians` and
     # `add_gaussians` only, C.F.'s graph included: carried, not rebuilt, since each fine residual
     # is fitted to its neighbours' offsets (docs/real-footage.md, "The paper preset on walk").
-    # The per-Gaussian state, read and written by name (the split sets `dynamic`, spawning
+    # The per-Gaussian state, read and written by name (the decomposition sets `dynamic`, spawning
     # `lifespan`); resized only through `set_params`, `keep_gaussians`, `add_gaussians`. Setting
     # a field makes a new container, so that a shallow copy of the model (the server's τ copies)
     # never writes into the container it shares with the original.
     dynamic = property(lambda self: self.per_gaussian.dynamic, lambda self, v: self._set_state(dynamic=v))
-    variance = property(lambda self: self.per_gaussian.variance, lambda self, v: self._set_state(variance=v))
+    K = property(lambda self: self.per_gaussian.K, lambda self, v: self._set_state(K=v))
     lifespan = property(lambda self: self.per_gaussian.lifespan, lambda self, v: self._set_state(lifespan=v))
     own_velocity = property(lambda self: self.per_gaussian.own_velocity, lambda self, v: self._set_state(own_velocity=v))
 
@@ -136,7 +136,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         moments, the per-Gaussian state, the kNN graph, and the (N, ...) tensors of `state` (a
         strategy's statistics, replaced in the dict).
 
-        In the graph a removed neighbour is replaced by its heir, `heirs (N,)` (a split parent's
+        In the graph a removed neighbour is replaced by its heir, `heirs (N,)` (a densification split parent's
         child; -1: none), or else by the row's own Gaussian (as `knn_radius` does)."""
         self.set_params(select(self.params, optimizer, keep), self.per_gaussian.select(keep),
                         self._graph_after_keep(keep, heirs))
@@ -190,16 +190,16 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         raws = [_scatter_rows(r.cat(), rows, n)
                 for r in self.deform.at_times(self.params.means.index_select(0, field_idx), field_tt)]
         if not (self.decomposed and self.config.coarse_to_fine):
-            return self._spawned_offsets(idx, tt, [Offsets.split(r) for r in raws])
+            return self._spawned_offsets(idx, tt, [Offsets.from_cat(r) for r in raws])
         # One sparse product for all times: (D, 9 M) offsets side by side.
         coarse = self.neighbour_mean(torch.cat(raws, 1)).split(9, 1)
         features = self.params.features.index_select(0, field_idx)
         if shared_fine:
             fine = _scatter_rows(self.fine(features, field_tt[0]).cat(), rows, n)
-            return self._spawned_offsets(idx, tt, [Offsets.split(c + fine) for c in coarse])
+            return self._spawned_offsets(idx, tt, [Offsets.from_cat(c + fine) for c in coarse])
         fine = self.fine(features.repeat(len(times), 1), torch.cat(field_tt)).cat().split(len(field_idx))
         fine = [_scatter_rows(f, rows, n) for f in fine]
-        return self._spawned_offsets(idx, tt, [Offsets.split(c + f) for c, f in zip(coarse, fine)])
+        return self._spawned_offsets(idx, tt, [Offsets.from_cat(c + f) for c, f in zip(coarse, fine)])
 
     def _spawned_offsets(self, idx: Tensor, times: list[Tensor], offsets: list[Offsets]) -> list[Offsets]:
         """The field's `offsets` of the Gaussians `idx` at `times` ((D,) each), with the rows of
@@ -219,10 +219,10 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             return offsets
         rows = bounded[:, None]
         if self.config.spawned_motion == "field":
-            return [Offsets.split(torch.where(rows, o.cat().detach(), o.cat())) for o in offsets]
+            return [Offsets.from_cat(torch.where(rows, o.cat().detach(), o.cat())) for o in offsets]
         centre, velocity = self.lifespan[idx, 0], self.own_velocity.index_select(0, idx)
         still = torch.zeros(len(idx), 6)
-        return [Offsets.split(torch.where(rows, torch.cat([velocity * (t - centre)[:, None], still], 1), o.cat()))
+        return [Offsets.from_cat(torch.where(rows, torch.cat([velocity * (t - centre)[:, None], still], 1), o.cat()))
                 for o, t in zip(offsets, times)]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
@@ -246,7 +246,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         velocities = torch.zeros(n, 3)
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
-        # (Before the split every Gaussian deforms without K.R., so nothing is blurred then.)
+        # (Before the decomposition every Gaussian deforms without K.R., so nothing is blurred then.)
         blur_camera = (camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
                        and self.decomposed)
         cov6_canonical, sweep_all = cov6, None
@@ -304,8 +304,8 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
 
     def _time_faded(self, idx: Tensor) -> Tensor:
         """Positions in `idx` (dynamic Gaussians) of those the time opacity acts on: the ones the
-        field moves after the split, not the spawned ones on their own line (their `lifespan`
-        does that job); none without a time opacity or before the split."""
+        field moves after the decomposition, not the spawned ones on their own line (their `lifespan`
+        does that job); none without a time opacity or before the decomposition."""
         if self.time_opacity is None or not self.decomposed or not len(idx):
             return idx.new_zeros(0)
         return torch.nonzero(~self.lifespan[idx, 1].isfinite()).squeeze(1)
@@ -361,7 +361,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         the canonical mean plus the field's offset, coarse kNN mean + fine residual under C.F.,
         `coarse_to_fine`, the field's own offset without it):
 
-        - Before the split, or `kinematic=False` (`--ablate kr`, `split`): velocity zeros (None
+        - Before the decomposition, or `kinematic=False` (`--ablate kr`, `decompose`): velocity zeros (None
           with `velocity=False`); covariance residual, `R(q) exp(dr)` and `s exp(lambda_s ds)`; no blur sweep.
         - K.R., `kr_form="convolve"` (the default): velocity `"physical"`, the central
           difference over `t +- h` with `h = dt max(e, 1/2) / 2` and C.F.'s fine residual shared
@@ -376,7 +376,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
 
         `velocity_grad=False` takes the two extra samples without gradients (same values). Static
         Gaussians never reach here: `at` gives them their canonical covariance, blurred along
-        the camera's motion alone under `camera_motion` (convolve form, `e > 0`, after the split)."""
+        the camera's motion alone under `camera_motion` (convolve form, `e > 0`, after the decomposition)."""
         p, cfg = self.params, self.config
         skip_velocity = not velocity and exposure == 0 and cfg.kr_form == "convolve"
         kinematic = cfg.kinematic and self.decomposed and not skip_velocity
@@ -438,6 +438,9 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
 
     @classmethod
     def from_state(cls, state: dict) -> "KinematicsGS":
+        from ..migrations import migrate_model_state
+
+        state = migrate_model_state(state)  # a model saved by an older version
         params = GaussianParams(**{k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
         n = len(params)
         _check_per_gaussian(params.items(), n, "params.")

@@ -1,6 +1,6 @@
 """C.F.'s neighbour graph over the dynamic Gaussians, as methods of `KinematicsGS` (a mixin):
-each dynamic Gaussian's k nearest dynamic neighbours, built at the first split and carried
-through densification, pruning and re-splits, and the neighbour mean (the coarse deformation)
+each dynamic Gaussian's k nearest dynamic neighbours, built at the first decomposition and carried
+through densification, pruning and re-decompositions, and the neighbour mean (the coarse deformation)
 as a sparse product."""
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ class NeighbourGraph:
 
     def knn_index(self) -> Tensor:
         """`(D, k)` indices into the dynamic subset: each dynamic Gaussian's nearest dynamic
-        neighbours (itself included), built at the first split and carried from then on."""
+        neighbours (itself included), built at the first decomposition and carried from then on."""
         if self._knn is None:
             self._knn = self._nearest_graph(self.dynamic)
         return self._knn
@@ -64,7 +64,7 @@ class NeighbourGraph:
             idx = np.where(far, np.arange(len(pts))[:, None], idx)  # itself in their place
         return torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
 
-    def _graph_after_resplit(self, dynamic: Tensor) -> Tensor | None:
+    def _graph_after_redecompose(self, dynamic: Tensor) -> Tensor | None:
         if self._knn is None:
             return None
         carried = self._carried_rows(_row_numbers(dynamic), dynamic & self.dynamic)

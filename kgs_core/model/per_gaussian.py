@@ -43,7 +43,7 @@ class Field:
 
 FIELDS: dict[str, Field] = {
     "dynamic": Field((), lambda n: torch.zeros(n, dtype=torch.bool), lambda t: t.dtype == torch.bool, "a bool mask"),
-    "variance": Field((), lambda n: torch.zeros(n), lambda t: t.dtype.is_floating_point, "floats (K)"),
+    "K": Field((), lambda n: torch.zeros(n), lambda t: t.dtype.is_floating_point, "floats (K)"),
     "lifespan": Field((2,), unbounded_lifespan, _lifespan_ok,
                       "floats, finite centres and widths > 0 (inf: always present)", since_start=False),
     "own_velocity": Field((3,), lambda n: torch.zeros(n, 3), lambda t: t.dtype.is_floating_point and _finite(t),
@@ -53,14 +53,14 @@ FIELDS: dict[str, Field] = {
 
 @dataclass
 class PerGaussian:
-    """`dynamic (N,) bool`: deformed by the field (the split by K); `variance (N,)`: K, the
+    """`dynamic (N,) bool`: deformed by the field (the decomposition by K); `K (N,)`: the
     temporal variance of its offsets; `lifespan (N, 2)`: time of presence (centre, width in
     normalised time; width inf, the paper's Gaussians: present at every time; spawned ones live
     around their frame); `own_velocity (N, 3)`: the world velocity of a Gaussian with a bounded
     lifespan under `spawned_motion="own"` (zeros, and unread, for the others)."""
 
     dynamic: Tensor
-    variance: Tensor
+    K: Tensor
     lifespan: Tensor
     own_velocity: Tensor
 

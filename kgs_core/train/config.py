@@ -22,7 +22,7 @@ ABLATIONS = {
     "kr": "no kinematic covariance refinement",
     "reg": "no L_reg",
     "ani": "no L_ani",
-    "split": "no static/dynamic split: every Gaussian deforms (also disables C.F. and K.R.)",
+    "decompose": "no static/dynamic decomposition: every Gaussian deforms (also disables C.F. and K.R.)",
     "deform": "no deformation at all: a static 3DGS",
 }
 
@@ -54,17 +54,17 @@ class TrainConfig:
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
     # static/dynamic decomposition
     decompose_at: int = 3000  # end of the warm-up in which every Gaussian deforms
-    decompose_every: int = 2000  # re-run the split on this schedule (0 = never)
-    # Each split keeps every Gaussian where it renders on average (`KinematicsGS.decompose`,
+    decompose_every: int = 2000  # re-run the decomposition on this schedule (0 = never)
+    # Each decomposition keeps every Gaussian where it renders on average (`KinematicsGS.decompose`,
     # in_place); False: Gaussians that change sides jump by their mean offset.
-    split_in_place: bool = True
-    # A re-split may turn static Gaussians dynamic (True, the paper's re-split), or only
+    decompose_in_place: bool = True
+    # A re-decomposition may turn static Gaussians dynamic (True, the paper's re-decomposition), or only
     # dynamic ones static (False, fitted for video ingests: there the field's motion where a
     # static Gaussian sits, never fitted to it, is as often the unobservable motion of an
-    # untextured wall as a moving object's; docs/method.md, "Splits in place").
-    resplit_to_dynamic: bool = True
-    # True: each split in training picks τ from the distribution of K (`otsu_tau`), never below
-    # model.tau; False: model.tau as it is (given with --tau, the split uses it).
+    # untextured wall as a moving object's; docs/method.md, "Decompositions in place").
+    redecompose_to_dynamic: bool = True
+    # True: each decomposition in training picks τ from the distribution of K (`otsu_tau`), never below
+    # model.tau; False: model.tau as it is (given with --tau, the decomposition uses it).
     tau_auto: bool = True
     # losses
     lambda_dssim: float = 0.2
@@ -86,10 +86,10 @@ class TrainConfig:
     # (its medium preset, which stops at half resolution); "dis_full", the same down to full
     # resolution; "fused", per pixel DIS or Farneback, whichever warps the next frame closer.
     # DIS gives a small object (a few of its 8 px patches) the motion around it; the other two
-    # see it, but measured worse for the flow term and spawning, so DIS stays here; the splits'
+    # see it, but measured worse for the flow term and spawning, so DIS stays here; the decompositions'
     # reading has its own setting below (docs/real-footage.md, "A flow that sees small objects").
     flow_method: FlowMethod = "dis"
-    # At each densification after the split, the `spawn_frames` training frames with the highest
+    # At each densification after the decomposition, the `spawn_frames` training frames with the highest
     # running loss (above 1.5x the median frame's) get up to `spawn_max` new dynamic Gaussians,
     # present for about `spawn_life` frames around their frame's time, at the pixels the render
     # still gets wrong where something moves on its own (train/spawn.py; 0: off). They bring
@@ -101,7 +101,7 @@ class TrainConfig:
     # move on their own line (model.spawned_motion="own") and so stay right a frame or two away;
     # one measured better while they followed the field (docs/real-footage.md).
     spawn_life: float = 2.0
-    spawn_from: float = 0.0  # no spawning before this fraction of the iterations (nor before the split)
+    spawn_from: float = 0.0  # no spawning before this fraction of the iterations (nor before the decomposition)
     lambda_ani: float = 1e-4
     eps_ani: float = 1e-6
     lambda_tv: float = 1e-4  # K-Planes smoothness
@@ -154,37 +154,37 @@ class TrainConfig:
     # The training camera's exposure (fraction of the frame interval); None: the scene's own.
     exposure: float | None = None
     # Learn the exposure from the footage, starting from the one above (train/exposure.py):
-    # one scalar fitted with the rest once K.R. acts (after the split), at lr_exposure.
+    # one scalar fitted with the rest once K.R. acts (after the decomposition), at lr_exposure.
     fit_exposure: bool = False
     lr_exposure: float = 2e-2
-    # At this fraction of the iterations (after the split, so that K.R. has trained a while)
+    # At this fraction of the iterations (after the decomposition, so that K.R. has trained a while)
     # K.R.'s effect on the training renders is measured (`evaluate.kr_effect`), and K.R. is
     # turned off for the rest of the run when its blur does next to nothing: then its velocity
     # samples are pure cost (walk: the same scores in 16 % less time; docs/real-footage.md,
     # "What K.R.'s blur does on real footage"). 0 never checks.
     kr_check_at: float = 0.4
-    # At every split, a Gaussian that K calls static but that sits on pixels the optical flow
+    # At every decomposition, a Gaussian that K calls static but that sits on pixels the optical flow
     # shows moving on their own, where no K-dynamic Gaussian draws, in at least this share of
-    # the sampled training frames where it is visible, is called dynamic (train/flow_split.py).
-    # The field may not have learned a moving object's motion by the first split (the synthetic
+    # the sampled training frames where it is visible, is called dynamic (train/flow_vote.py).
+    # The field may not have learned a moving object's motion by the first decomposition (the synthetic
     # spinning top's arrives between 30 and 35 % of the run), and a Gaussian called static is
-    # never moved by the field again. 0 turns it off (docs/real-footage.md, "The splits read
+    # never moved by the field again. 0 turns it off (docs/real-footage.md, "The decompositions read
     # the flow").
-    flow_split_share: float = 0.1
-    # The flow the splits' reading reads (the choices of `flow_method`). "dis_full" (DIS down
+    flow_vote_share: float = 0.1
+    # The flow the decompositions' reading reads (the choices of `flow_method`). "dis_full" (DIS down
     # to full resolution, fitted on a video ingest) finds a small, fast object that DIS's
     # half-resolution search gives the motion around it (the synthetic `smallpanel`); it cost
     # the synthetic demo, so DIS stays for the rest. It computes 16
     # flows of its own when the run's differ (docs/real-footage.md, "A flow that sees small objects").
-    flow_split_method: FlowMethod = "dis"
+    flow_vote_method: FlowMethod = "dis"
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).
     fitted: dict = field(default_factory=dict)
 
     def __post_init__(self):
         check_choices(self)
-        if not 0 <= self.flow_split_share <= 1:
-            raise ValueError(f"flow_split_share must be a fraction in [0, 1], got {self.flow_split_share}")
+        if not 0 <= self.flow_vote_share <= 1:
+            raise ValueError(f"flow_vote_share must be a fraction in [0, 1], got {self.flow_vote_share}")
         if not 0 <= self.kr_check_at <= 1:
             raise ValueError(f"kr_check_at must be a fraction in [0, 1], got {self.kr_check_at}")
         if self.spawn_frames < 0 or self.spawn_max < 1 or not self.spawn_life > 0 or not 0 <= self.spawn_from <= 1:
@@ -278,8 +278,8 @@ PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 
 def finetune_config(parent: TrainConfig, iterations: int, tau: float | None = None) -> "TrainConfig":
-    """Fine-tuning a finished run (its configuration) for `iterations` more, keeping its split
-    (at `tau` when given): no densification, no re-split, no opacity reset, one LoD level, the
+    """Fine-tuning a finished run (its configuration) for `iterations` more, keeping its decomposition
+    (at `tau` when given): no densification, no re-decomposition, no opacity reset, one LoD level, the
     position learning rate at its final value."""
     return replace(parent, iterations=iterations,
                    densify=replace(parent.densify, start=iterations + 1, stop=0, opacity_reset_at=()),
@@ -349,7 +349,7 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
       loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
       the field still loses (docs/real-footage.md, "Spawned Gaussians");
-    * resplit_to_dynamic: False on a video ingest (docs/method.md, "Splits in place");
+    * redecompose_to_dynamic: False on a video ingest (docs/method.md, "Decompositions in place");
     * camera_blur: "learned" on a video ingest whose camera's own streak during the exposure
       (`camera_blur_px`) reaches CAMERA_BLUR_MIN_PX: the render is blurred along the camera's
       motion as the footage is, and the model stays sharp;
@@ -395,18 +395,18 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         fitted["spawn_frames"] = (f"{VIDEO_SPAWN_FRAMES}: a video ingest; the worst-fitted frames get new dynamic "
                                   "Gaussians where something moving is still missing (--set spawn_frames=0 turns "
                                   "it off)")
-    if "flow_split_method" not in explicit and cfg.flow_split_method == "dis" and video:
-        cfg.flow_split_method = "dis_full"
-        fitted["flow_split_method"] = ("dis_full: a video ingest; the splits read DIS's flow down to full resolution, "
+    if "flow_vote_method" not in explicit and cfg.flow_vote_method == "dis" and video:
+        cfg.flow_vote_method = "dis_full"
+        fitted["flow_vote_method"] = ("dis_full: a video ingest; the decompositions read DIS's flow down to full resolution, "
                                        "which sees a small, fast object that its half-resolution search misses "
-                                       "(--set flow_split_method=dis keeps DIS's medium preset)")
-    if "resplit_to_dynamic" not in explicit and cfg.resplit_to_dynamic and video:
-        cfg.resplit_to_dynamic = False
-        fitted["resplit_to_dynamic"] = ("False: a video ingest; a re-split turns no static Gaussian dynamic, since "
+                                       "(--set flow_vote_method=dis keeps DIS's medium preset)")
+    if "redecompose_to_dynamic" not in explicit and cfg.redecompose_to_dynamic and video:
+        cfg.redecompose_to_dynamic = False
+        fitted["redecompose_to_dynamic"] = ("False: a video ingest; a re-decomposition turns no static Gaussian dynamic, since "
                                         "the field's motion where it sits was never fitted to it "
-                                        "(--set resplit_to_dynamic=true allows it)")
-    # (Only the convolve form of K.R. carries the camera's blur, and only after a split.)
-    blurs = m.kr_form == "convolve" and not {"split", "deform"} & set(cfg.ablate)
+                                        "(--set redecompose_to_dynamic=true allows it)")
+    # (Only the convolve form of K.R. carries the camera's blur, and only after a decomposition.)
+    blurs = m.kr_form == "convolve" and not {"decompose", "deform"} & set(cfg.ablate)
     streak = camera_blur_px(scene, cfg.exposure) if video and blurs and "camera_blur" not in explicit else None
     if cfg.camera_blur == "off" and streak is not None and streak >= CAMERA_BLUR_MIN_PX:
         cfg.camera_blur = "learned"
@@ -422,6 +422,16 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
     return cfg
 
 
+def check_ablations(ablate) -> None:
+    """ValueError naming the first name that is not an ablation (and its new name if renamed)."""
+    from ..migrations import ABLATION_RENAMES
+
+    for a in ablate:
+        if not isinstance(a, str) or a not in ABLATIONS:
+            hint = f" ({a!r} is now called {ABLATION_RENAMES[a]!r})" if isinstance(a, str) and a in ABLATION_RENAMES else ""
+            raise ValueError(f"unknown ablation {a!r}; one of {', '.join(ABLATIONS)}{hint}")
+
+
 def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budget: bool = True,
                 **overrides) -> TrainConfig:
     """The preset with the ablations and overrides applied, fitted to `scene` when given, and,
@@ -430,9 +440,7 @@ def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budge
     given = dict(overrides)
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
-    bad = [a for a in ablate if a not in ABLATIONS]
-    if bad:
-        raise ValueError(f"unknown ablation {bad[0]!r}; choose from {', '.join(ABLATIONS)}")
+    check_ablations(ablate)
     # The preset lays its schedule out for the iteration count (an explicit override of any
     # schedule point still wins).
     explicit = set(overrides)
@@ -453,9 +461,9 @@ def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budge
     if scene is not None:
         cfg = fit_to_scene(replace(cfg, model=m, fitted=fitted), scene, explicit)
         m = cfg.model
-    if "cf" in ablate or "split" in ablate:
+    if "cf" in ablate or "decompose" in ablate:
         m = replace(m, coarse_to_fine=False)
-    if "kr" in ablate or "split" in ablate:
+    if "kr" in ablate or "decompose" in ablate:
         m = replace(m, kinematic=False)
     if "reg" in ablate:
         cfg = replace(cfg, lambda_reg=0.0)

@@ -1,4 +1,4 @@
-"""The training schedule's events, as methods of `Trainer` (a mixin): the static/dynamic splits
+"""The training schedule's events, as methods of `Trainer` (a mixin): the static/dynamic decompositions
 and their reading of the optical flow, spawning where the render misses something that moves,
 K.R.'s mid-run check, and the end of a FLoD level (importance prune, snapshot, next level)."""
 
@@ -15,7 +15,7 @@ from ..model.decomposition import otsu_tau
 from ..model.gaussians import set_param
 from ..model.render import camera_tensors, render_model
 from .flow import frame_flows
-from .flow_split import flow_moving, read_frames
+from .flow_vote import flow_moving, read_frames
 from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
 
 
@@ -24,16 +24,16 @@ class ScheduleEvents:
     (`model`, `opt`, `strategy`, `scene`, `cfg`, `flows`, ...) and changes the model in place."""
 
     def kr_acts(self) -> bool:
-        """Whether K.R. shapes the renders now: on, after a split with dynamic Gaussians, and
+        """Whether K.R. shapes the renders now: on, after a decomposition with dynamic Gaussians, and
         the training exposure above 0."""
         m = self.model
-        return (m.config.kinematic and m.decomposed and not self.static_only and not self.no_split
+        return (m.config.kinematic and m.decomposed and not self.static_only and not self.no_decompose
                 and self.exposure > 0 and bool(m.dynamic.any()))
 
     def check_kr(self, it: int) -> None:
         """Measures what K.R.'s blur does to the training renders now and, when it does next to
         nothing (`evaluate.kr_effect_note`), turns K.R. off for the rest of the run. Left alone:
-        runs without a split yet, the paper's K.R. form (whose basis would have to be
+        runs without a decomposition yet, the paper's K.R. form (whose basis would have to be
         re-interpreted), a fitted exposure or camera blur (both ride on K.R.'s blur)."""
         from ..evaluate import kr_effect, kr_effect_note
 
@@ -110,41 +110,41 @@ class ScheduleEvents:
         at_next[idx] = self.posed(self.model.positions(idx, nxt.time)[0], nxt)
         return NextFrame(*camera_tensors(nxt.camera), flow, at_next, nxt.time)
 
-    def split(self) -> None:
-        """A static/dynamic split in training: K recomputed, then τ the configured one or
+    def decompose(self) -> None:
+        """A static/dynamic decomposition in training: K recomputed, then τ the configured one or
         (tau_auto) the one picked from the distribution of K, never below the configured one.
-        Every split also calls dynamic what the optical flow shows moving where K sees no
-        motion (train/flow_split.py; `flow_split_share` 0 turns that off)."""
+        Every decomposition also calls dynamic what the optical flow shows moving where K sees no
+        motion (train/flow_vote.py; `flow_vote_share` 0 turns that off)."""
         model = self.model
-        model.variance = model.temporal_variance()
-        tau = otsu_tau(model.variance, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
+        model.K = model.compute_K()
+        tau = otsu_tau(model.K, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
         moving = None
-        if self.cfg.flow_split_share > 0:
+        if self.cfg.flow_vote_share > 0:
             start = time.perf_counter()
             by_k = model.dynamic_by_k(tau)
-            moving = flow_moving(model, self.scene.train_frames, self.split_flows(), by_k, self.cfg.flow_split_share,
+            moving = flow_moving(model, self.scene.train_frames, self.vote_flows(), by_k, self.cfg.flow_vote_share,
                                  self.exposure, self.scene.dt, self.world_transform)
             seconds = time.perf_counter() - start
-            if self.flow_split is None:
-                self.flow_split = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
+            if self.flow_vote is None:
+                self.flow_vote = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
                                    "dynamic_by_k": int(by_k.sum()), "later": [], "seconds": 0.0}
             else:
-                self.flow_split["later"].append(int(moving.sum()))
-            self.flow_split["seconds"] = round(self.flow_split["seconds"] + seconds, 2)
-        model.decompose(tau, recompute=False, in_place=self.cfg.split_in_place,
-                        keep_static=not self.cfg.resplit_to_dynamic, also_dynamic=moving)
+                self.flow_vote["later"].append(int(moving.sum()))
+            self.flow_vote["seconds"] = round(self.flow_vote["seconds"] + seconds, 2)
+        model.decompose(tau, recompute=False, in_place=self.cfg.decompose_in_place,
+                        keep_static=not self.cfg.redecompose_to_dynamic, also_dynamic=moving)
 
-    def split_flows(self) -> dict:
-        """The flows the splits' reading reads: the run's own (flow term or spawning) where they
-        are of its method (`flow_split_method`), else the 16 it reads computed once (whatever
-        the clip's length) and kept for the re-splits."""
-        if self.flows and self.cfg.flow_split_method == self.cfg.flow_method:
+    def vote_flows(self) -> dict:
+        """The flows the decompositions' reading reads: the run's own (flow term or spawning) where they
+        are of its method (`flow_vote_method`), else the 16 it reads computed once (whatever
+        the clip's length) and kept for the re-decompositions."""
+        if self.flows and self.cfg.flow_vote_method == self.cfg.flow_method:
             return self.flows
-        if self._split_flows is None:
+        if self._vote_flows is None:
             frames = self.scene.train_frames
-            self._split_flows = frame_flows(frames, only={f.id for f in read_frames(frames)},
-                                            method=self.cfg.flow_split_method)
-        return self._split_flows
+            self._vote_flows = frame_flows(frames, only={f.id for f in read_frames(frames)},
+                                            method=self.cfg.flow_vote_method)
+        return self._vote_flows
 
     @torch.no_grad()
     def importance(self) -> torch.Tensor:

@@ -4,7 +4,7 @@ A video rarely says how long its shutter stayed open (the shared clips carry no 
 and ingest assumes 0.5 of the frame interval), yet K.R. blurs each dynamic Gaussian over
 `|v| dt exposure`. Here the exposure is one scalar, `sigmoid(logit)` so that it stays inside
 (0, 1), fitted by the photometric loss with everything else. It has a gradient only where
-something is blurred: the dynamic set after the split (and every Gaussian under
+something is blurred: the dynamic set after the decomposition (and every Gaussian under
 `camera_blur`). What it measures is the blur length the model needs per unit of its own
 velocity, so when the learned velocities fall short of the true motion the fitted exposure
 rises to make up the blur (docs/real-footage.md, "Exposure")."""

@@ -10,7 +10,7 @@ Flow is classical (OpenCV, computed once per run): nothing to download. By defau
 (medium preset), smooth on large surfaces. DIS stops at half resolution and matches 8 px
 patches, so it gives a small object the motion around it (a 16 px patch moving 3 px over a
 background moving 1 px the other way: 2.2-2.4 px). The options (`flow_method` for the flow term
-and spawning, `flow_split_method` for the splits' reading) are "dis_full", DIS down to full
+and spawning, `flow_vote_method` for the decompositions' reading) are "dis_full", DIS down to full
 resolution, and "fused", DIS and Farneback (5 px windows) per pixel, whichever warps the next
 frame closer (`fused_flow`). Both see such objects. A video ingest's splits read "dis_full"
 (`fit_to_scene`); the flow term and spawning keep DIS (docs/real-footage.md, "A flow that sees
@@ -78,9 +78,9 @@ def frame_flows(frames: list, only: set[str] | None = None, method: FlowMethod =
     try:
         import cv2
     except ImportError as exc:  # a dependency of the package; a hand-made environment may lack it
-        raise RuntimeError("the optical flow (the flow term, spawning and the splits' reading) needs OpenCV: "
+        raise RuntimeError("the optical flow (the flow term, spawning and the decompositions' reading) needs OpenCV: "
                            "pip install opencv-python-headless (or train with --set lambda_flow=0 "
-                           "--set spawn_frames=0 --set flow_split_share=0)") from exc
+                           "--set spawn_frames=0 --set flow_vote_share=0)") from exc
     dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
                                      "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                                      "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])

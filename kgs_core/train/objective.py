@@ -59,11 +59,11 @@ class Objective:
         over the frame interval by a velocity the step already has; the field is not evaluated
         again (a second evaluation cost 15-39 % of a step):
 
-        - where K.R. computed the dynamic Gaussians' velocity (after the split, exposure > 0),
+        - where K.R. computed the dynamic Gaussians' velocity (after the decomposition, exposure > 0),
           that velocity: the term supervises what K.R.'s blur reads, and it does not see the
           time noise (the rendered position is at a jittered time; the velocity hardly changes
           over one);
-        - elsewhere (before the split, after K.R.'s mid-run check turned it off, the D3DGS-like
+        - elsewhere (before the decomposition, after K.R.'s mid-run check turned it off, the D3DGS-like
           baseline throughout), a Gaussian on its own line (`spawned_motion="own"`) moves by its
           `own_velocity`, and every other one is read as standing still, so that the flow
           asks for the depth whose parallax explains it. Reading the field at the next time

@@ -1,6 +1,6 @@
 """What a training run writes about itself, as methods of `Trainer` (a mixin): checkpoints and
 resuming from them, the final model and run.json with the notes a user reads there (why K.R. or
-the split did nothing), and the held-out PSNR logged against time with its plot."""
+the decomposition did nothing), and the held-out PSNR logged against time with its plot."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ import torch
 
 from ..data.scene import Frame, Scene
 from ..losses import psnr
-from ..model.decomposition import split_counts
+from ..migrations import migrate_saved_model
+from ..model.decomposition import decomposition_counts
 from ..model.dynamic import KinematicsGS
 from ..model.render import render_model
 from ..run import load_torch, save_decomposition, save_torch, write_run_json
@@ -79,20 +80,20 @@ def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
 # static: a scene whose moving object neither K nor the flow's reading found ends with almost
 # nothing dynamic, far under what scenes with a followed object end with (docs/method.md,
 # "The motion probe").
-SPLIT_NOTE_SHARE = 0.01
+DECOMPOSITION_NOTE_SHARE = 0.01
 
 
-def split_note(dynamic_share: float, tau: float, decompose_at: int) -> str | None:
-    """What to tell the user when the split called (almost) nothing dynamic: right for a static
-    scene, and the way a moving object whose motion neither the field (by the first split) nor
+def decomposition_note(dynamic_share: float, tau: float, decompose_at: int) -> str | None:
+    """What to tell the user when the decomposition called (almost) nothing dynamic: right for a static
+    scene, and the way a moving object whose motion neither the field (by the first decomposition) nor
     the flow's reading showed gets lost (it then renders static, a ghost or nothing)."""
-    if dynamic_share >= SPLIT_NOTE_SHARE:
+    if dynamic_share >= DECOMPOSITION_NOTE_SHARE:
         return None
-    return (f"the split called {dynamic_share:.2%} of the Gaussians dynamic (K under tau {tau:.3g} almost everywhere). "
+    return (f"the decomposition called {dynamic_share:.2%} of the Gaussians dynamic (K under tau {tau:.3g} almost everywhere). "
             f"In a static scene that is right; if something moves, the field had not learned its motion by the "
-            f"first split (iteration {decompose_at}), the optical flow did not show it either, and it renders "
-            f"static: retrain with a later split "
-            f"(--set decompose_at=N) or --ablate split")
+            f"first decomposition (iteration {decompose_at}), the optical flow did not show it either, and it renders "
+            f"static: retrain with a later decomposition "
+            f"(--set decompose_at=N) or --ablate decompose")
 
 
 def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str = "held-out PSNR") -> None:
@@ -140,13 +141,13 @@ class RunRecord:
             "frame_loss": self.frame_loss.clone(),
             "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
             "kr_check": self.kr_check,
-            "flow_split": self.flow_split,
+            "flow_vote": self.flow_vote,
             "spawn_record": self.spawn_record,
         })
         return path
 
     def restore(self, path: Path) -> None:
-        state = load_torch(path)
+        state = migrate_saved_model(load_torch(path))
         self.model = KinematicsGS.from_state(state["model"])
         if self.camera_motion is not None and state.get("camera_motion") is not None:
             self.camera_motion.load_state_dict(state["camera_motion"])
@@ -170,7 +171,7 @@ class RunRecord:
         if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
-        self.flow_split = state.get("flow_split")  # (absent from older checkpoints)
+        self.flow_vote = state.get("flow_vote")  # (absent from older checkpoints)
         self.spawn_record = {"attempts": 0, "added": {}, "without_parent": 0,  # (older checkpoints lack some)
                              **(state.get("spawn_record") or {})}
         torch.set_rng_state(state["rng"]["torch"])
@@ -182,22 +183,22 @@ class RunRecord:
             # Trained without K.R. since the check, saved with it: at exposure 0 it renders the
             # same, and the viewers read its velocities (ellipsoids, the exposure slider).
             self.model.config.kinematic = True
-        counts = split_counts(self.model, self.static_only)
+        counts = decomposition_counts(self.model, self.static_only)
         save_torch(self.run_dir / "model.pt", {"model": self.model.state(), "levels": self.levels})
-        save_decomposition(self.run_dir, self.model.variance)
+        save_decomposition(self.run_dir, self.model.K)
         plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)
         if info["status"] == "training":
             info["status"] = "done"
         info.update(iteration=self.iteration, train_seconds=round(self.train_seconds, 2), lod_levels=len(self.levels) + 1,
                     final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None, **counts)
-        if self.model.decomposed and not self.static_only and not self.no_split:
+        if self.model.decomposed and not self.static_only and not self.no_decompose:
             tau = self.model.config.tau
             info["tau"] = tau
             info["tau_choice"] = (f"picked from the distribution of K (Otsu on log10 K), not below {self.tau_floor:.3g}"
                                   if self.cfg.tau_auto and tau > self.tau_floor else f"the configured {tau:.3g}")
-            note = split_note(counts["dynamic_share"], tau, self.cfg.decompose_at)
+            note = decomposition_note(counts["dynamic_share"], tau, self.cfg.decompose_at)
             if note:
-                info["split_note"] = note
+                info["decomposition_note"] = note
                 if self.progress:
                     print(f"note: {note}")
         if self.pose_correction is not None:
@@ -209,8 +210,8 @@ class RunRecord:
             info["guard_events"] = self.events
         if self.cfg.spawn_frames > 0 and not self.static_only:
             info["spawn"] = self.spawn_summary()
-        if self.flow_split is not None:
-            info["flow_split"] = self.flow_split
+        if self.flow_vote is not None:
+            info["flow_vote"] = self.flow_vote
         self.measure_kr(info, dropped_kr)
         write_run_json(self.run_dir, info)
 

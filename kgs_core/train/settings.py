@@ -71,13 +71,13 @@ BOUNDS: dict[str, Bound] = {
     "nonfinite_lr_factor": Bound(0, 1, above=True), "reg_static_samples": Bound(0, 1_000_000),
     "densify.opacity_reset_at": Bound(0, 2**31 - 1, length=100), "densify.every": Bound(1, 2**31 - 1),
     "model.sh_degree": Bound(0, 3), "model.feature_dim": Bound(1, 256), "model.knn": Bound(1, 64),
-    "model.variance_times": Bound(2, 256), "model.deform_spatial": Bound(2, 512), "model.deform_temporal": Bound(1, 1024),
+    "model.K_times": Bound(2, 256), "model.deform_spatial": Bound(2, 512), "model.deform_temporal": Bound(1, 1024),
     "model.deform_features": Bound(1, 256), "model.deform_multires": Bound(1, 16, length=4),
     "model.deform_width": Bound(1, 1024), "model.deform_depth": Bound(0, 8), "model.tau": Bound(0, 1e6, above=True),
     "model.kappa_init": Bound(-1e3, 1e3), "model.bound": Bound(0, 1e6, above=True),
     **{key: FRACTION for key in ("exposure", "spawn_from", "noise_until", "noise_delay", "noise_w_delay",
                                  "frame_sampling_mix", "time_window_start", "lod_prune_importance", "kr_check_at",
-                                 "flow_split_share", "densify.prune_opacity", "densify.percent_dense")},
+                                 "flow_vote_share", "densify.prune_opacity", "densify.percent_dense")},
 }
 
 
@@ -186,7 +186,10 @@ def parse_setting(text: str) -> tuple[str, object]:
     key, eq, raw = text.partition("=")
     known = schema()
     if not eq or key not in known:
-        raise ValueError(f"{text!r} is not KEY=VALUE with KEY a training setting (e.g. noise_init_frames, model.tau)")
+        from ..migrations import renamed_setting
+
+        hint = f" ({key} is now called {renamed_setting(key)})" if eq and renamed_setting(key) else ""
+        raise ValueError(f"{text!r} is not KEY=VALUE with KEY a training setting (e.g. noise_init_frames, model.tau){hint}")
     try:
         value = json.loads(raw)
     except json.JSONDecodeError:

@@ -85,7 +85,7 @@ def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: 
     (`depth` (H, W, 1), 0 where nothing was drawn) would make if it stood still: something moves
     there on its own. With `relative` > 0, also by more than that fraction of the still motion,
     and only where the still motion keeps the pixel BORDER_PX inside the next frame (the
-    splits' reading, train/flow_split.py). Where the flow is NaN or nothing was drawn, False."""
+    splits' reading, train/flow_vote.py). Where the flow is NaN or nothing was drawn, False."""
     H, W = depth.shape[:2]
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
     z = depth[..., 0]

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from ..data.scene import Frame, Scene
 from ..io import atomic_write_text
-from ..model.decomposition import split_counts
+from ..model.decomposition import decomposition_counts
 from ..model.deformation import TimeNoise
 from ..model.dynamic import KinematicsGS
 from ..model.gaussians import init_from_points, make_optimizer, random_points
@@ -51,7 +51,7 @@ def check_finite(it: int, **tensors) -> None:
 
 # The time window (`time_window_start`) covers the whole clip at this fraction of the warm-up,
 # so that the field sees every frame for the warm-up's last quarter before K is computed: with
-# the window ending at the split itself, the sheet's split IoU fell from 0.95 to 0.8.
+# the window ending at the decomposition itself, the sheet's decomposition IoU fell from 0.95 to 0.8.
 WINDOW_FULL_AT = 0.75
 
 
@@ -93,10 +93,10 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.fitted_exposure = FittedExposure(self.exposure) if cfg.fit_exposure else None
         if self.fitted_exposure is not None:
             self.exposure = float(self.fitted_exposure)  # (a start of 0 or 1 is clipped: START_RANGE)
-        # The configured τ, before any split writes its own into the model's config.
+        # The configured τ, before any decomposition writes its own into the model's config.
         self.tau_floor = cfg.model.tau
         self.static_only = "deform" in cfg.ablate
-        self.no_split = "split" in cfg.ablate
+        self.no_decompose = "decompose" in cfg.ablate
         self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
                               if cfg.camera_blur != "off" else None)
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
@@ -108,10 +108,10 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
-        # What the splits' reading of the flow added to the dynamic set (`split`); None until the
-        # first split. `_split_flows`: the flows it reads where the run has none of its own.
-        self.flow_split: dict | None = None
-        self._split_flows: dict | None = None
+        # What the decompositions' reading of the flow added to the dynamic set (`split`); None until the
+        # first decomposition. `_vote_flows`: the flows it reads where the run has none of its own.
+        self.flow_vote: dict | None = None
+        self._vote_flows: dict | None = None
         # Spawning's record for run.json (`spawn_summary`): the frames it tried, the Gaussians
         # it added to each training frame (by frame id), and how many of them had no parent.
         self.spawn_record: dict = {"attempts": 0, "added": {}, "without_parent": 0}
@@ -135,14 +135,14 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.strategy = self.make_strategy()
 
     def init_from_run(self, parent: Path) -> None:
-        """Fine-tuning: the parent run's final model, split at this config's τ, then trained as
+        """Fine-tuning: the parent run's final model, decomposed at this config's τ, then trained as
         it is."""
         from ..run import load_run
 
         model = load_run(parent).model
-        # Split at this config's τ: from the stored K, or (a parent stopped before its split)
+        # Decomposed at this config's τ: from the stored K, or (a parent stopped before its decomposition)
         # from K computed now.
-        model.decompose(self.cfg.model.tau, recompute=not model.decomposed, in_place=self.cfg.split_in_place)
+        model.decompose(self.cfg.model.tau, recompute=not model.decomposed, in_place=self.cfg.decompose_in_place)
         model.params.requires_grad_(True)
         model.train()
         self.model = model
@@ -274,10 +274,10 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         if (changed and c.spawn_frames > 0 and model.decomposed and not self.static_only
                 and nxt >= c.spawn_from * c.iterations):
             self.spawn(nxt)
-        if not self.static_only and not self.no_split:
+        if not self.static_only and not self.no_decompose:
             if nxt == c.decompose_at or (model.decomposed and c.decompose_every and nxt > c.decompose_at
                                          and (nxt - c.decompose_at) % c.decompose_every == 0):
-                self.split()
+                self.decompose()
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
         self.strategy.reset_opacities(model, self.opt, nxt)
@@ -290,7 +290,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
 
     def log(self, it: int, loss: float) -> dict:
         p, p_dyn = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
-        counts = split_counts(self.model, self.static_only)
+        counts = decomposition_counts(self.model, self.static_only)
         row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(self.wall_seconds(), 3),
                "loss": loss, "psnr_heldout": p, "psnr_heldout_dynamic": p_dyn, "gaussians": counts["gaussians"],
                "dynamic_share": counts["dynamic_share"], "exposure": round(self.exposure, 5)}
@@ -405,7 +405,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
                 self.iteration += 1
                 self.train_seconds += time.perf_counter() - t0
                 # Logged before the events scheduled at this count (densification, an opacity
-                # reset, a split, a FLoD level change), so that the row scores what the
+                # reset, a decomposition, a FLoD level change), so that the row scores what the
                 # iterations trained: after them, the paper preset's opacity reset at 3,000
                 # (every opacity capped at 0.01) logged a near-empty render. The
                 # last row comes after them: it scores the model that is saved.

@@ -1,4 +1,4 @@
-"""The splits' reading of the optical flow (train/flow_split.py): what moves on its own,
+"""The decompositions' reading of the optical flow (train/flow_vote.py): what moves on its own,
 where K sees no motion, becomes dynamic."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from kgs_core.data.scene import Camera, Frame
 from kgs_core.model.render import camera_tensors
 from kgs_core.render import intrinsics, look_at
 from kgs_core.train.flow import frame_flows, project
-from kgs_core.train.flow_split import MIN_GAUSSIANS, flow_moving, read_frames
+from kgs_core.train.flow_vote import MIN_GAUSSIANS, flow_moving, read_frames
 
 W = H = 64
 PATCH = (slice(20, 44), slice(20, 44))  # rows, columns of the pixels that move on their own
@@ -75,7 +75,7 @@ def test_scattered_moving_pixels_are_not_an_object():
 
 def test_the_reading_reads_at_most_its_views_and_never_a_cameras_last_frame():
     """`read_frames`: two cameras of 40 frames each, read 16 of the 78 with a next frame, spread
-    over both; the flows the split computes for a run without them are those 16 alone."""
+    over both; the flows the decomposition computes for a run without them are those 16 alone."""
     cam = still_clip()[1][0].camera
     frames = [Frame(id=f"c{c}f{i}", image_path=Path("x.png"), time=i / 39, camera=cam, camera_id=c)
               for c in (0, 1) for i in range(40)]
@@ -86,9 +86,9 @@ def test_the_reading_reads_at_most_its_views_and_never_a_cameras_last_frame():
 
 
 def test_without_opencv_the_flow_says_what_to_install_or_turn_off(monkeypatch):
-    """OpenCV is a dependency, but a hand-made environment may lack it: the flows the splits
+    """OpenCV is a dependency, but a hand-made environment may lack it: the flows the decompositions
     read then fail with what to install and which settings do without them."""
     monkeypatch.setitem(sys.modules, "cv2", None)  # makes `import cv2` raise ImportError
     _, frames, _ = still_clip()
-    with pytest.raises(RuntimeError, match="opencv-python-headless.*flow_split_share=0"):
+    with pytest.raises(RuntimeError, match="opencv-python-headless.*flow_vote_share=0"):
         frame_flows(frames)

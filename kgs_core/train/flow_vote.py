@@ -1,24 +1,24 @@
-"""The splits' reading of the optical flow: what moves that K has not seen move.
+"""The decompositions' reading of the optical flow: what moves that K has not seen move.
 
-The split (paper Sec. 3.2) calls a Gaussian dynamic when the temporal variance K of its
-predicted offsets exceeds τ. At the first split, 20 % into the run, the deformation field may
+The decomposition (paper Sec. 3.2) calls a Gaussian dynamic when the temporal variance K of its
+predicted offsets exceeds τ. At the first decomposition, 20 % into the run, the deformation field may
 not yet have learned a moving object's motion: on the synthetic spinning top it arrives all at
 once between 30 and 35 % of the run, so every Gaussian of the top has K under τ and is called
 static. A static Gaussian renders without the field, so the field gets no gradient there again
 and the object stays where it was, a ghost (the real clips' "coloured blob where it turns").
 
-So at every split the optical flow between consecutive training frames votes too. A pixel
+So at every decomposition the optical flow between consecutive training frames votes too. A pixel
 moves on its own where the flow differs from the motion the rendered scene would make if it
-stood still (`spawn.independent_motion`) by more than FLOW_SPLIT_PX and by more than
-FLOW_SPLIT_RELATIVE of that still motion. The relative test is what makes it usable on real
+stood still (`spawn.independent_motion`) by more than FLOW_VOTE_PX and by more than
+FLOW_VOTE_RELATIVE of that still motion. The relative test is what makes it usable on real
 footage: a hand-held pan's depth errors move the predicted still motion in proportion to it,
 and at an absolute pixel the test marked 10-30 % of kitchen's pixels as moving (the person is
 5 %). Of those pixels it keeps the ones that the Gaussians K already calls dynamic cover under
 half, in solid regions (`spawn.large_regions`); a Gaussian that K leaves static and that sits on
 such pixels in at least `share` of the sampled frames where it is visible becomes dynamic (at
-a re-split: stays dynamic, and on the synthetic scenes' two-way re-splits also turns dynamic,
-where K would have turned it static: the field may learn a motion later than the first split,
-or never, as on the tumbling die). docs/real-footage.md, "The splits read the flow", has the
+a re-decomposition: stays dynamic, and on the synthetic scenes' two-way re-decompositions also turns dynamic,
+where K would have turned it static: the field may learn a motion later than the first decomposition,
+or never, as on the tumbling die). docs/real-footage.md, "The decompositions read the flow", has the
 measurements.
 """
 
@@ -34,9 +34,9 @@ from ..model.render import camera_tensors, render_model
 from .flow import DEPTH_SLACK, project
 from .spawn import independent_motion, large_regions
 
-FLOW_SPLIT_PX = 1.0  # the flow this far off the still scene's motion ...
-FLOW_SPLIT_RELATIVE = 0.5  # ... and this far in proportion to that motion: moving on its own
-FLOW_SPLIT_VIEWS = 16  # training frames read, spread over the clip
+FLOW_VOTE_PX = 1.0  # the flow this far off the still scene's motion ...
+FLOW_VOTE_RELATIVE = 0.5  # ... and this far in proportion to that motion: moving on its own
+FLOW_VOTE_VIEWS = 16  # training frames read, spread over the clip
 COVERED = 0.5  # a pixel the K-dynamic Gaussians draw this much of already has its motion
 # Fewer Gaussians than this found and the reading changes nothing: a few on the edge of a region
 # the K-dynamic ones cover are not an object the field missed (the demo's sheet gets 0-1; the
@@ -44,7 +44,7 @@ COVERED = 0.5  # a pixel the K-dynamic Gaussians draw this much of already has i
 MIN_GAUSSIANS = 10
 
 
-def read_frames(frames: list[Frame], views: int = FLOW_SPLIT_VIEWS) -> list[Frame]:
+def read_frames(frames: list[Frame], views: int = FLOW_VOTE_VIEWS) -> list[Frame]:
     """The frames the reading reads: `views` of those with a later frame of the same camera (a
     flow to read), spread evenly over them in `frames`' order."""
     last = {}
@@ -60,7 +60,7 @@ def read_frames(frames: list[Frame], views: int = FLOW_SPLIT_VIEWS) -> list[Fram
 @torch.no_grad()
 def flow_moving(model: KinematicsGS, frames: list[Frame], flows: dict[str, tuple[int, Tensor]], by_k: Tensor,
                 share: float, exposure: float, dt: float, world_transform=None,
-                views: int = FLOW_SPLIT_VIEWS) -> Tensor:
+                views: int = FLOW_VOTE_VIEWS) -> Tensor:
     """`(N,)` bool: the Gaussians K leaves static (`by_k (N,)`: what K calls dynamic) that sit on
     uncovered independent motion in at least `share` of the read frames where they are visible
     (no deeper than DEPTH_SLACK x the rendered depth at their pixel), and are visible in two or
@@ -78,7 +78,7 @@ def flow_moving(model: KinematicsGS, frames: list[Frame], flows: dict[str, tuple
         viewmat, K = camera_tensors(f.camera)
         j, flow = flows[f.id]
         moving = independent_motion(out.depth, viewmat, K, *camera_tensors(frames[j].camera), flow,
-                                    threshold=FLOW_SPLIT_PX, relative=FLOW_SPLIT_RELATIVE)
+                                    threshold=FLOW_VOTE_PX, relative=FLOW_VOTE_RELATIVE)
         moving = torch.from_numpy(large_regions(moving & (out.image[..., 0] < COVERED).numpy()))
         H, W = moving.shape
         uv, z = project(g.means, viewmat, K)
