@@ -14,9 +14,11 @@ test: setup
 	@if command -v node >/dev/null; then node --test frontend/tests/; else echo "node not found: JS unit tests skipped"; fi
 	$(PY) -m pytest -q tests
 
-# Style and import order, and types of the modules listed in pyproject.toml's [tool.mypy]; run by .ci/run.
+# Style, import order and formatting (ruff), and types of the modules listed in pyproject.toml's
+# [tool.mypy]; run by .ci/run. `ruff format .` fixes what the format check finds.
 lint: setup
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
 # The built wheel, installed into a fresh venv, trains the demo and serves the viewer.

@@ -68,19 +68,38 @@ def cmd_ingest(args: argparse.Namespace) -> int:
     from kgs_core.job_options import IngestOptions
 
     o = options_from(args, IngestOptions)
-    rep = ingest(args.video, args.out, eval_video=args.eval_video, cache_dir=False if args.no_cache else True,
-                 overwrite=args.overwrite, **o.ingest_arguments())
-    print(f"{rep.mapper} mapper: posed {rep.registered}/{rep.frames} training frames"
-          + (f", {rep.eval_registered}/{rep.eval_frames} frames of the second camera" if rep.eval_video else "")
-          + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points")
+    rep = ingest(
+        args.video,
+        args.out,
+        eval_video=args.eval_video,
+        cache_dir=False if args.no_cache else True,
+        overwrite=args.overwrite,
+        **o.ingest_arguments(),
+    )
+    print(
+        f"{rep.mapper} mapper: posed {rep.registered}/{rep.frames} training frames"
+        + (f", {rep.eval_registered}/{rep.eval_frames} frames of the second camera" if rep.eval_video else "")
+        + f"; mean reprojection error {rep.mean_reprojection_error_px:.2f} px; {rep.points} points"
+    )
     if rep.lens:
         lens = rep.lens
-        print(f"lens: {lens['model']} refit " + (f"kept, reprojection error {lens['before_px']:.2f} -> {lens['after_px']:.2f} px"
-                                                  if lens["kept"] else f"not kept ({lens.get('reason', '')})"))
+        print(
+            f"lens: {lens['model']} refit "
+            + (
+                f"kept, reprojection error {lens['before_px']:.2f} -> {lens['after_px']:.2f} px"
+                if lens["kept"]
+                else f"not kept ({lens.get('reason', '')})"
+            )
+        )
     for a in rep.attempts:
         print(f"  tried {a['mapper']}: {a['outcome']}, {a['registered_fraction']:.0%} posed in {a['seconds']:.1f} s")
-    reuse = (f"; poses reused from the cache ({rep.poses_from}; --mapper NAME maps anew)" if rep.poses_from else
-             "; decoded frames, features and matches reused from the cache" if rep.cached else "")
+    reuse = (
+        f"; poses reused from the cache ({rep.poses_from}; --mapper NAME maps anew)"
+        if rep.poses_from
+        else "; decoded frames, features and matches reused from the cache"
+        if rep.cached
+        else ""
+    )
     print(f"held out: {rep.holdout}; stride {rep.stride} ({rep.stride_reason})" + reuse)
     print(f"seconds {rep.seconds} -> {args.out}")
     return 0
@@ -109,9 +128,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     if out.exists() and any(out.iterdir()) and not args.resume:
         raise FileExistsError(f"{out} exists: pass --resume to continue it, or choose another --out")
     info = train(scene, out, cfg, resume=args.resume, threads=tuner_for_process())
-    print(f"{info['status']}: {info['iteration']} iterations in {info['train_seconds']:.0f} s, "
-          f"{info['gaussians']:,} Gaussians ({info['dynamic_share']:.0%} dynamic), held-out PSNR "
-          f"{info['final_psnr_heldout']:.2f} dB -> {out}")
+    print(
+        f"{info['status']}: {info['iteration']} iterations in {info['train_seconds']:.0f} s, "
+        f"{info['gaussians']:,} Gaussians ({info['dynamic_share']:.0%} dynamic), held-out PSNR "
+        f"{info['final_psnr_heldout']:.2f} dB -> {out}"
+    )
     return 0
 
 
@@ -151,8 +172,10 @@ def cmd_train_many(args: argparse.Namespace) -> int:
                     ablate = over.pop("ablate", ())
                     cfg = make_config(preset, ablate=ablate, scene=scene, seed=seed, **over)
                     trainers.append(Trainer(scene, run_dir, cfg, progress=args.ray is None))
-    print(f"{len(trainers)} trainings: {len(args.scenes)} scenes x {len(presets)} presets x {len(configs)} "
-          f"configurations x {len(seeds)} seeds -> {out / 'runs'}")
+    print(
+        f"{len(trainers)} trainings: {len(args.scenes)} scenes x {len(presets)} presets x {len(configs)} "
+        f"configurations x {len(seeds)} seeds -> {out / 'runs'}"
+    )
     if args.ray is None:
         nodes = []
         for i, t in enumerate(trainers, 1):
@@ -161,17 +184,27 @@ def cmd_train_many(args: argparse.Namespace) -> int:
             t.run()
     else:
         nodes = run_trainers(trainers, args.ray, args.task_cpus)
-    rows = [{"run": str(t.run_dir), "iterations": t.info["iteration"], "train_seconds": round(t.train_seconds, 1),
-             "psnr_heldout": t.info.get("final_psnr_heldout"), "gaussians": t.info["gaussians"],
-             "dynamic_share": t.info["dynamic_share"], **({"node": n} if n else {})}
-            for t, n in zip(trainers, nodes or [None] * len(trainers))]
+    rows = [
+        {
+            "run": str(t.run_dir),
+            "iterations": t.info["iteration"],
+            "train_seconds": round(t.train_seconds, 1),
+            "psnr_heldout": t.info.get("final_psnr_heldout"),
+            "gaussians": t.info["gaussians"],
+            "dynamic_share": t.info["dynamic_share"],
+            **({"node": n} if n else {}),
+        }
+        for t, n in zip(trainers, nodes or [None] * len(trainers))
+    ]
     atomic_write_text(out / "train-many.json", json.dumps(rows, indent=1))
     print("| run | iterations | train s | held-out PSNR | Gaussians | dynamic |")
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         psnr = "n/a" if r["psnr_heldout"] is None else f"{r['psnr_heldout']:.2f}"
-        print(f"| {Path(r['run']).name} | {r['iterations']} | {r['train_seconds']:.0f} | {psnr} | "
-              f"{r['gaussians']:,} | {r['dynamic_share']:.0%} |")
+        print(
+            f"| {Path(r['run']).name} | {r['iterations']} | {r['train_seconds']:.0f} | {psnr} | "
+            f"{r['gaussians']:,} | {r['dynamic_share']:.0%} |"
+        )
     return 0
 
 
@@ -192,15 +225,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     o = options_from(args, ExportOptions)
     res = export_run(args.run, out=args.out, overwrite=args.force, keyframes=args.keyframes, **o.export_arguments())
     rep = res.report
-    print(f"wrote {res.path} ({len(res.files)} file{'s' if len(res.files) != 1 else ''}, "
-          f"{rep['gaussians']:,} Gaussians, LoD {rep['lod']})")
+    print(f"wrote {res.path} ({len(res.files)} file{'s' if len(res.files) != 1 else ''}, {rep['gaussians']:,} Gaussians, LoD {rep['lod']})")
     if "note" in rep:
         print(rep["note"])
     if "fit" in rep:
         f = rep["fit"]
-        print(f"splatv motion fit over {f['dynamic']:,} dynamic Gaussians: position RMS {f['position_rms']:.2e} "
-              f"({f['position_rms_rel']:.2%} of the scene extent), max {f['position_max']:.2e}; covariance "
-              f"relative error mean {f['covariance_rel_mean']:.3f}, max {f['covariance_rel_max']:.3f}")
+        print(
+            f"splatv motion fit over {f['dynamic']:,} dynamic Gaussians: position RMS {f['position_rms']:.2e} "
+            f"({f['position_rms_rel']:.2%} of the scene extent), max {f['position_max']:.2e}; covariance "
+            f"relative error mean {f['covariance_rel_mean']:.3f}, max {f['covariance_rel_max']:.3f}"
+        )
     return 0
 
 
@@ -211,9 +245,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from kgs_backend.main import serve
     from kgs_backend.settings import Settings
 
-    settings = Settings(workspace=Path(args.workspace), host=args.host, port=args.port, token=args.token,
-                        cors_origins=args.cors or [], allowed_hosts=args.allow_host or [], max_upload_mb=args.max_upload_mb,
-                        register=[Path(p) for p in args.paths])
+    settings = Settings(
+        workspace=Path(args.workspace),
+        host=args.host,
+        port=args.port,
+        token=args.token,
+        cors_origins=args.cors or [],
+        allowed_hosts=args.allow_host or [],
+        max_upload_mb=args.max_upload_mb,
+        register=[Path(p) for p in args.paths],
+    )
     if not settings.loopback and not settings.token:
         settings.token = secrets.token_urlsafe(24)
         print(f"binding {args.host} (not loopback): access token required, generated: {settings.token}")
@@ -259,8 +300,9 @@ def cmd_view(args: argparse.Namespace) -> int:
 
         model.sync()
         s = model.state
-        img = render_offscreen(model.static, model.dynamic, s.viewmat, s.K, model.width, model.height,
-                               show=s.show_mask, overlay=args.overlay)
+        img = render_offscreen(
+            model.static, model.dynamic, s.viewmat, s.K, model.width, model.height, show=s.show_mask, overlay=args.overlay
+        )
         print(f"screenshot: {save_png(args.screenshot, img)}")
         return 0
     from kgs_app.viewer.window import run_window
@@ -318,9 +360,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-video", help="a synchronised second video: registered as held-out test views")
     p.add_argument("--out", required=True)
     add_options(p, IngestOptions)
-    p.add_argument("--no-cache", action="store_true",
-                   help="do not reuse or keep decoded frames, features, matches and poses (cache: $KGS_CACHE_DIR "
-                        "or ~/.cache/kinematics-gs)")
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not reuse or keep decoded frames, features, matches and poses (cache: $KGS_CACHE_DIR or ~/.cache/kinematics-gs)",
+    )
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_ingest)
 
@@ -329,23 +373,38 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train Kinematics-GS on a scene folder")
     p.add_argument("scene", help="dataset folder (Nerfies, D-NeRF or COLMAP layout)")
     p.add_argument("--out", required=True, help="run directory")
-    add_options(p, TrainOptions, flags={"settings": "--set"}, metavars={"settings": "KEY=VALUE", "ablate": "PART"},
-                extra_help={"preset": f" (one of {', '.join(sorted(PRESETS))})",
-                            "ablate": ": " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()),
-                            "settings": "; e.g. --set lambda_reg=0.02 --set model.knn=16"})
+    add_options(
+        p,
+        TrainOptions,
+        flags={"settings": "--set"},
+        metavars={"settings": "KEY=VALUE", "ablate": "PART"},
+        extra_help={
+            "preset": f" (one of {', '.join(sorted(PRESETS))})",
+            "ablate": ": " + ", ".join(f"{k} ({v})" for k, v in ABLATIONS.items()),
+            "settings": "; e.g. --set lambda_reg=0.02 --set model.knn=16",
+        },
+    )
     p.add_argument("--resume", action="store_true", help="continue from the run's last checkpoint")
-    p.add_argument("--init-from", metavar="RUN", help="start from this run directory's final model (fine-tuning), "
-                   "decomposed at this run's τ, instead of from points")
+    p.add_argument(
+        "--init-from",
+        metavar="RUN",
+        help="start from this run directory's final model (fine-tuning), decomposed at this run's τ, instead of from points",
+    )
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("train-many", help="train scenes x presets x configurations x seeds, in turn or as Ray tasks "
-                       "(--ray)")
+    p = sub.add_parser("train-many", help="train scenes x presets x configurations x seeds, in turn or as Ray tasks (--ray)")
     p.add_argument("scenes", nargs="+", help="scene folders")
-    p.add_argument("--out", required=True, help="workspace folder: runs go to OUT/runs/SCENE-PRESET-CONFIG-sSEED (with --ray "
-                   "on a cluster, a folder every node mounts)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="workspace folder: runs go to OUT/runs/SCENE-PRESET-CONFIG-sSEED (with --ray on a cluster, a folder every node mounts)",
+    )
     p.add_argument("--presets", default="fast", help="comma-separated, of: " + ", ".join(sorted(PRESETS)))
-    p.add_argument("--configs", default="full", help="comma-separated configurations, as for bench quality (full, "
-                   "decompose, deform, cf, ..., NAME@KEY=VALUE)")
+    p.add_argument(
+        "--configs",
+        default="full",
+        help="comma-separated configurations, as for bench quality (full, decompose, deform, cf, ..., NAME@KEY=VALUE)",
+    )
     p.add_argument("--seeds", default="0", help="comma-separated training seeds")
     p.add_argument("--iterations", type=positive_int, help="override every preset's iteration count")
     from .cluster import add_ray_options
@@ -361,8 +420,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="export a run: per-frame .ply/.splat, .splatv, mp4 video, .glb ellipsoids")
     p.add_argument("run", help="run directory")
     add_options(p, ExportOptions)
-    p.add_argument("--keyframes", metavar="FILE", help="mp4: a camera path of JSON keyframes (kgs_core/export/"
-                   "camera_path.py documents the format), instead of --camera-path")
+    p.add_argument(
+        "--keyframes",
+        metavar="FILE",
+        help="mp4: a camera path of JSON keyframes (kgs_core/export/camera_path.py documents the format), instead of --camera-path",
+    )
     p.add_argument("--out", help="output file or folder (default: RUN/exports/...)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_export)
@@ -374,8 +436,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--token", help="access token for the API (generated when binding beyond loopback)")
     p.add_argument("--cors", action="append", metavar="ORIGIN", help="allow this browser origin (CORS is off by default)")
-    p.add_argument("--allow-host", action="append", metavar="NAME",
-                   help="also answer requests whose Host is NAME (behind a reverse proxy; default: the bound address and loopback names)")
+    p.add_argument(
+        "--allow-host",
+        action="append",
+        metavar="NAME",
+        help="also answer requests whose Host is NAME (behind a reverse proxy; default: the bound address and loopback names)",
+    )
     p.add_argument("--max-upload-mb", type=int, default=512)
     p.add_argument("--demo", action="store_true", help="in an empty workspace, make and train the demo scene")
     p.set_defaults(func=cmd_serve)
@@ -398,13 +464,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_build_ext)
 
     p = sub.add_parser("bench", help="benchmarks that print numbers (results: docs/results.md)")
-    p.add_argument("what", choices=BENCHMARKS,
-                   help="raster: rasteriser timings and a raster-only training step; step: the whole model's "
-                        "training step at the demo scale, by phase; serve: scrubbing latency, 50 clients; "
-                        "stability: float32 vs float64 and training on extreme sequences; quality: each "
-                        "ablation and baseline on the same time budget, tau sweep; real: the shared real clips "
-                        "against the baselines; threads: training alone, two at once and beside a busy "
-                        "process under each OpenMP setting")
+    p.add_argument(
+        "what",
+        choices=BENCHMARKS,
+        help="raster: rasteriser timings and a raster-only training step; step: the whole model's "
+        "training step at the demo scale, by phase; serve: scrubbing latency, 50 clients; "
+        "stability: float32 vs float64 and training on extreme sequences; quality: each "
+        "ablation and baseline on the same time budget, tau sweep; real: the shared real clips "
+        "against the baselines; threads: training alone, two at once and beside a busy "
+        "process under each OpenMP setting",
+    )
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options of the benchmark (--help for them)")
     p.set_defaults(func=cmd_bench)
     return ap

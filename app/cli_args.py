@@ -37,9 +37,14 @@ def _optional(annotation):
     return args[0] if len(args) == 1 and type(None) in typing.get_args(annotation) else annotation
 
 
-def add_options(p: argparse.ArgumentParser, model: type[BaseModel], positional: tuple[str, ...] = (),
-                flags: dict[str, str] | None = None, extra_help: dict[str, str] | None = None,
-                metavars: dict[str, str] | None = None) -> None:
+def add_options(
+    p: argparse.ArgumentParser,
+    model: type[BaseModel],
+    positional: tuple[str, ...] = (),
+    flags: dict[str, str] | None = None,
+    extra_help: dict[str, str] | None = None,
+    metavars: dict[str, str] | None = None,
+) -> None:
     """An argument per field of `model`: `--field-name` (or a positional, or the flag `flags`
     names), with its description as help. Values go to the model unconverted, so that the model,
     not argparse, refuses a bad one, in the words the server uses (`options_from`). An option
@@ -51,9 +56,11 @@ def add_options(p: argparse.ArgumentParser, model: type[BaseModel], positional: 
     for name, field in model.model_fields.items():
         kind = _optional(field.annotation)
         allowed = choices(kind)
-        help_ = (field.description or "") + (extra_help or {}).get(name, "") + (
-            "" if field.is_required() or field.default in (None, False) or field.default == []
-            else f" (default {field.default})")
+        help_ = (
+            (field.description or "")
+            + (extra_help or {}).get(name, "")
+            + ("" if field.is_required() or field.default in (None, False) or field.default == [] else f" (default {field.default})")
+        )
         listed = "{" + ",".join(map(str, allowed)) + "}" if allowed else None
         if name in positional:
             p.add_argument(name, nargs="?", default=argparse.SUPPRESS, help=help_, metavar=listed or name.upper())
@@ -64,12 +71,24 @@ def add_options(p: argparse.ArgumentParser, model: type[BaseModel], positional: 
         elif kind is bool:
             p.add_argument(flag, dest=name, default=argparse.SUPPRESS, metavar="{on,off}", help=help_)
         elif typing.get_origin(kind) is list:
-            p.add_argument(flag, dest=name, action="append", default=argparse.SUPPRESS, help=help_ + " (repeatable)",
-                           metavar=(metavars or {}).get(name))
+            p.add_argument(
+                flag,
+                dest=name,
+                action="append",
+                default=argparse.SUPPRESS,
+                help=help_ + " (repeatable)",
+                metavar=(metavars or {}).get(name),
+            )
         else:
             nested = isinstance(kind, type) and issubclass(kind, BaseModel)
-            p.add_argument(flag, dest=name, default=argparse.SUPPRESS, required=field.is_required(),
-                           metavar=listed or ("JSON" if nested else None), help=help_)
+            p.add_argument(
+                flag,
+                dest=name,
+                default=argparse.SUPPRESS,
+                required=field.is_required(),
+                metavar=listed or ("JSON" if nested else None),
+                help=help_,
+            )
 
 
 def options_from(args: argparse.Namespace, model: type[BaseModel]):

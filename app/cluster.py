@@ -28,8 +28,7 @@ def _ray():
     try:
         import ray
     except ImportError:
-        raise ClusterError("--ray needs Ray, an optional extra: pip install 'kinematics-gs[cluster]' "
-                           "(or pip install 'ray>=2.9')") from None
+        raise ClusterError("--ray needs Ray, an optional extra: pip install 'kinematics-gs[cluster]' (or pip install 'ray>=2.9')") from None
     return ray
 
 
@@ -68,10 +67,8 @@ def run_trainers(trainers: list[Trainer], address: str | None, task_cpus: int = 
     from tqdm import tqdm
 
     ray = connect(address)
-    task = ray.remote(train_remote).options(num_cpus=task_cpus,
-                                            runtime_env={"env_vars": _placement(task_cpus)})
-    refs = [task.remote(str(Path(t.scene.root).resolve()), str(Path(t.run_dir).resolve()), t.cfg.to_dict(), task_cpus)
-            for t in trainers]
+    task = ray.remote(train_remote).options(num_cpus=task_cpus, runtime_env={"env_vars": _placement(task_cpus)})
+    refs = [task.remote(str(Path(t.scene.root).resolve()), str(Path(t.run_dir).resolve()), t.cfg.to_dict(), task_cpus) for t in trainers]
     index = {ref: i for i, ref in enumerate(refs)}
     results: list[dict | None] = [None] * len(refs)
     pending = list(refs)
@@ -94,9 +91,14 @@ def _placement(cpus: int) -> dict[str, str]:
 
 def add_ray_options(ap) -> None:
     """`--ray [ADDRESS]` and `--task-cpus N`, as every command that can use Ray spells them."""
-    ap.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
-                    help="train as Ray tasks: alone, a local Ray on this machine; 'auto' or ray://HOST:PORT, a "
-                         "cluster (pip install 'kinematics-gs[cluster]'; docs/cluster.md)")
+    ap.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        metavar="ADDRESS",
+        help="train as Ray tasks: alone, a local Ray on this machine; 'auto' or ray://HOST:PORT, a "
+        "cluster (pip install 'kinematics-gs[cluster]'; docs/cluster.md)",
+    )
     ap.add_argument("--task-cpus", type=int, default=1, help="CPUs each Ray task reserves and uses (default 1)")
 
 
@@ -114,9 +116,13 @@ def ray_runner(args, nodes: list[str]) -> dict:
 def timing_note(nodes: list[str], task_cpus: int) -> str:
     """What the times of a Ray run mean: each configuration's rate comes from its own task."""
     kinds = sorted(set(nodes))
-    note = (f"times: each configuration's own Ray task ({task_cpus} CPU{'s' if task_cpus > 1 else ''} each, not stepped "
-            f"in turn) on {len(kinds)} node kind{'s' if len(kinds) > 1 else ''}: " + "; ".join(kinds))
+    note = (
+        f"times: each configuration's own Ray task ({task_cpus} CPU{'s' if task_cpus > 1 else ''} each, not stepped "
+        f"in turn) on {len(kinds)} node kind{'s' if len(kinds) > 1 else ''}: " + "; ".join(kinds)
+    )
     if len(kinds) > 1:
-        note += (" -- WARNING: the equal-time budget compares rates measured on different kinds of node; "
-                 "pin the sweep to one kind (a Ray custom resource) for a fair budget")
+        note += (
+            " -- WARNING: the equal-time budget compares rates measured on different kinds of node; "
+            "pin the sweep to one kind (a Ray custom resource) for a fair budget"
+        )
     return note

@@ -120,8 +120,13 @@ class JobRunner:
         # A job never compiles the C++ rasteriser (the server started with it built).
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "KGS_EXT_BUILD": "0", "TMPDIR": str(tmp), **placement}
         # The job id on the command line is what `job_process` recognises the process by.
-        proc = subprocess.Popen([sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec), id_],
-                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "kgs_backend.worker", kind, json.dumps(spec), id_],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=env,
+        )
         log.close()
         self.procs[id_] = proc
         self.ws.update(table, id_, status=JobStatus.RUNNING, pid=proc.pid, error=None)
@@ -220,13 +225,17 @@ class JobRunner:
             for row in self.ws.list(table):
                 if row["status"] in ACTIVE:
                     if job_process(row["pid"], row["id"]):
-                        threading.Thread(target=self._poll_foreign, args=(table, row["id"], row["pid"]),
-                                         daemon=True).start()
+                        threading.Thread(target=self._poll_foreign, args=(table, row["id"], row["pid"]), daemon=True).start()
                     else:
                         kept = table == "runs" and last_checkpoint(Path(row["path"])) is not None
-                        self.ws.update(table, row["id"], status=JobStatus.INTERRUPTED, pid=None,
-                                       error="the server stopped while this job ran"
-                                       + ("; its last checkpoint is kept" if kept else "; it left no checkpoint"))
+                        self.ws.update(
+                            table,
+                            row["id"],
+                            status=JobStatus.INTERRUPTED,
+                            pid=None,
+                            error="the server stopped while this job ran"
+                            + ("; its last checkpoint is kept" if kept else "; it left no checkpoint"),
+                        )
 
     def _poll_foreign(self, table: str, id_: str, pid: int) -> None:
         import time

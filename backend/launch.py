@@ -25,9 +25,23 @@ class ServerProcess:
     def __init__(self, paths: list[Path], workspace: Path, timeout: float = 60.0, token: str | None = None):
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
-        self.proc = subprocess.Popen([sys.executable, "-m", "kgs_app.cli", "serve", *map(str, paths), "--workspace",
-                                      str(workspace), "--port", str(self.port), *(["--token", token] if token else [])],
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "kgs_app.cli",
+                "serve",
+                *map(str, paths),
+                "--workspace",
+                str(workspace),
+                "--port",
+                str(self.port),
+                *(["--token", token] if token else []),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         runs = urllib.request.Request(self.base + "/api/runs", headers={"X-KGS-Token": token} if token else {})
         deadline = time.time() + timeout
         while True:

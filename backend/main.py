@@ -49,8 +49,7 @@ def register_existing(ws: Workspace, extra: list[Path]) -> list[str]:
             scene = load_scene(path)
         except ValueError:
             return None
-        return ws.insert("scenes", name=scene.name or path.name, path=str(path.resolve()), source="path",
-                         status=JobStatus.DONE)["id"]
+        return ws.insert("scenes", name=scene.name or path.name, path=str(path.resolve()), source="path", status=JobStatus.DONE)["id"]
 
     def add_run(path: Path) -> str | None:
         row = ws.find_path("runs", path)
@@ -64,8 +63,9 @@ def register_existing(ws: Workspace, extra: list[Path]) -> list[str]:
         except (RunError, ValueError):
             run, scene_id = None, None
         status = run.info.get("status", "done") if run else "failed"
-        return ws.insert("runs", scene_id=scene_id, name=path.name, path=str(path.resolve()), status=status,
-                         error=None if run else "cannot load the run")["id"]
+        return ws.insert(
+            "runs", scene_id=scene_id, name=path.name, path=str(path.resolve()), status=status, error=None if run else "cannot load the run"
+        )["id"]
 
     for p in sorted((ws.root / "scenes").iterdir()):
         if p.is_dir() and not p.name.startswith("."):
@@ -113,8 +113,8 @@ def create_app(settings: Settings) -> FastAPI:
         yield
         job_runner.shutdown()
 
-    app = FastAPI(title="Kinematics-GS", summary="Dynamic Gaussians from blurry video: runs, renders, streams.",
-                  lifespan=lifespan)
+    app = FastAPI(title="Kinematics-GS", summary="Dynamic Gaussians from blurry video: runs, renders, streams.", lifespan=lifespan)
+
     @app.exception_handler(RequestValidationError)
     async def validation_error(request, exc: RequestValidationError):
         # FastAPI's own handler quotes the input back and fails on a NaN it cannot encode.
@@ -150,8 +150,7 @@ def create_app(settings: Settings) -> FastAPI:
     if settings.cors_origins:
         from fastapi.middleware.cors import CORSMiddleware
 
-        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"],
-                           allow_headers=["*"])
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins, allow_methods=["*"], allow_headers=["*"])
     # Added last, so it runs first: nothing answers a foreign Host or a cross-site write.
     app.add_middleware(BodyLimit)
     app.add_middleware(HostOriginGuard, settings=settings)
@@ -187,8 +186,6 @@ def serve(settings: Settings) -> None:
     url = f"http://{host}:{settings.port}/"
     if settings.token:
         url += f"?token={settings.token}"
-    print(f"Kinematics-GS serving workspace {app.state.ws.root}\n  open {url}\n  API docs http://{host}:{settings.port}/docs",
-          flush=True)
+    print(f"Kinematics-GS serving workspace {app.state.ws.root}\n  open {url}\n  API docs http://{host}:{settings.port}/docs", flush=True)
     # No permessage-deflate: splat buffers barely compress and zlib would cost more than the scrub itself.
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets-sansio",
-                ws_per_message_deflate=False)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws="websockets-sansio", ws_per_message_deflate=False)

@@ -158,8 +158,7 @@ class Workspace:
         if "path" in fields:
             fields["path"] = self._stored(fields["path"])
         with self._lock, self._connect() as db:
-            db.execute(f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?",
-                       (*fields.values(), id_))
+            db.execute(f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?", (*fields.values(), id_))
 
     def delete(self, table: str, id_: str) -> None:
         self.remove([(table, id_)])
@@ -170,8 +169,10 @@ class Workspace:
         assert table in TABLES
         allowed = [str(a) for a in allowed]
         with self._lock, self._connect() as db:
-            cur = db.execute(f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ? AND status IN "
-                             f"({', '.join('?' * len(allowed))})", (*map(str, fields.values()), id_, *allowed))
+            cur = db.execute(
+                f"UPDATE {table} SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ? AND status IN ({', '.join('?' * len(allowed))})",
+                (*map(str, fields.values()), id_, *allowed),
+            )
             return cur.rowcount == 1
 
     def remove(self, rows: list[tuple[str, str]], files: list[Path] = ()) -> None:

@@ -22,8 +22,9 @@ class JobRow(Response):
     status: JobStatus
     error: str | None
     created: float = Field(description="Unix time")
-    queue_position: int | None = Field(None, description="while queued behind other jobs (the server runs as many "
-                                       "at once as it has cores): 1 for the next to start")
+    queue_position: int | None = Field(
+        None, description="while queued behind other jobs (the server runs as many at once as it has cores): 1 for the next to start"
+    )
 
 
 # ------------------------------------------------------------------ system
@@ -117,8 +118,10 @@ class EditHistory(Response):
 class ObjectSelection(Response):
     indices: list[int] = Field(description="the object's Gaussians (indices within the LoD level)")
     lod: int
-    reach: float = Field(description="two Gaussians joined when their centres were at most this many times the "
-                         "sum of their largest standard deviations apart")
+    reach: float = Field(
+        description="two Gaussians joined when their centres were at most this many times the "
+        "sum of their largest standard deviations apart"
+    )
 
 
 class Decomposition(Response):
@@ -175,8 +178,7 @@ class Edits(Response):
     format_version: int
     levels: dict[str, EditLevel]
     crop: Crop | None
-    history: dict | None = Field(None, description="earlier and undone layers, oldest first: "
-                                 "{undo: [{label, layer}], redo: [...]}")
+    history: dict | None = Field(None, description="earlier and undone layers, oldest first: {undo: [{label, layer}], redo: [...]}")
 
 
 class LearnedBlur(Response):

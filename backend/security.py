@@ -27,8 +27,7 @@ def token_ok(expected: str | None, presented: str | None) -> bool:
 def require_token(request: Request) -> None:
     expected = request.app.state.settings.token
     if not token_ok(expected, _presented(request.headers, request.query_params)):
-        raise HTTPException(status_code=401, detail="missing or wrong access token",
-                            headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(status_code=401, detail="missing or wrong access token", headers={"WWW-Authenticate": "Bearer"})
 
 
 async def websocket_token_ok(ws: WebSocket) -> bool:
@@ -46,7 +45,7 @@ def _hostname(host_header: str) -> str:
     """`example.org:8000` -> `example.org`, `[::1]:8000` -> `::1` (lower case)."""
     h = host_header.strip().lower()
     if h.startswith("["):
-        return h[1:h.find("]")] if "]" in h else h
+        return h[1 : h.find("]")] if "]" in h else h
     return h.rsplit(":", 1)[0] if h.count(":") == 1 else h
 
 
@@ -81,8 +80,13 @@ async def send_error(send, status: int, detail: str) -> None:
     import json
 
     body = json.dumps({"detail": detail}).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 
@@ -103,12 +107,11 @@ class HostOriginGuard:
         s = self.settings
         problem = None
         if not host_allowed(host, s.host, s.allowed_hosts):
-            problem = (400, f"unknown Host {host!r}: this server answers to {s.host} and loopback names "
-                            "(add others with --allow-host)")
-        elif ((scope["type"] == "websocket" or scope.get("method", "GET") not in SAFE_METHODS)
-              and not origin_allowed(headers.get("origin"), host, s.cors_origins)):
-            problem = (403, f"cross-origin request from {headers.get('origin')!r} refused "
-                            "(allow an origin with --cors)")
+            problem = (400, f"unknown Host {host!r}: this server answers to {s.host} and loopback names (add others with --allow-host)")
+        elif (scope["type"] == "websocket" or scope.get("method", "GET") not in SAFE_METHODS) and not origin_allowed(
+            headers.get("origin"), host, s.cors_origins
+        ):
+            problem = (403, f"cross-origin request from {headers.get('origin')!r} refused (allow an origin with --cors)")
         if problem is None:
             return await self.app(scope, receive, send)
         if scope["type"] == "websocket":

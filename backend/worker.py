@@ -57,14 +57,24 @@ def run_train(spec: dict) -> None:
             return
         state["last"] = now
         counts = decomposition_counts(trainer.model, trainer.static_only)
-        atomic_write_text(run_dir / "progress.json", json.dumps({
-            "iteration": it, "iterations": cfg.iterations, "loss": loss, "psnr_heldout": state["psnr"],
-            "elapsed": now - t0, "gaussians": counts["gaussians"], "dynamic_share": counts["dynamic_share"]}))
+        atomic_write_text(
+            run_dir / "progress.json",
+            json.dumps(
+                {
+                    "iteration": it,
+                    "iterations": cfg.iterations,
+                    "loss": loss,
+                    "psnr_heldout": state["psnr"],
+                    "elapsed": now - t0,
+                    "gaussians": counts["gaussians"],
+                    "dynamic_share": counts["dynamic_share"],
+                }
+            ),
+        )
 
     # The job runner's share of the cores to start with, then whatever the load leaves free.
     threads = tuner_for_process(start=omp_threads())
-    trainer = Trainer(scene, run_dir, cfg, progress=False, on_log=on_log, should_stop=lambda: STOP, on_step=on_step,
-                      threads=threads)
+    trainer = Trainer(scene, run_dir, cfg, progress=False, on_log=on_log, should_stop=lambda: STOP, on_step=on_step, threads=threads)
     trainer.run(resume=bool(spec.get("resume")))
 
 
@@ -102,8 +112,9 @@ def stage_writer(path: Path, min_interval: float = 0.5):
         elif now - state["last"] < min_interval and done != total:
             return
         state["last"] = now
-        atomic_write_text(path, json.dumps({"stage": stage, "done": done, "total": total,
-                                            "elapsed": round(now - t0, 2), "stages": state["done_stages"]}))
+        atomic_write_text(
+            path, json.dumps({"stage": stage, "done": done, "total": total, "elapsed": round(now - t0, 2), "stages": state["done_stages"]})
+        )
 
     return on_progress
 
@@ -128,8 +139,14 @@ def run_ingest(spec: dict) -> None:
         try:
             with listen(listener):
                 # no cache: the uploaded video is deleted afterwards, so its frame set would never be reused
-                ingest(spec["video"], spec["out"], eval_video=spec.get("eval_video"), cache_dir=False, overwrite=True,
-                       **options.ingest_arguments())
+                ingest(
+                    spec["video"],
+                    spec["out"],
+                    eval_video=spec.get("eval_video"),
+                    cache_dir=False,
+                    overwrite=True,
+                    **options.ingest_arguments(),
+                )
         finally:
             signal.signal(signal.SIGTERM, previous)
         if asked or STOP:

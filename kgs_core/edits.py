@@ -69,8 +69,9 @@ class EditLayer:
             drop = set(e.deleted) | (set() if include_hidden else set(e.hidden))
             bad = [i for i in drop if not 0 <= i < n]
             if bad:
-                raise EditsError(f"{EDITS_FILE}: level {level} names Gaussians {sorted(bad)[:5]} "
-                                 f"outside 0..{n - 1} (edits made for another model?)")
+                raise EditsError(
+                    f"{EDITS_FILE}: level {level} names Gaussians {sorted(bad)[:5]} outside 0..{n - 1} (edits made for another model?)"
+                )
             if drop:
                 keep[np.fromiter(drop, dtype=np.int64)] = False
         if self.crop_min is not None:
@@ -79,9 +80,14 @@ class EditLayer:
         return keep
 
     def to_dict(self) -> dict:
-        d: dict = {"format_version": EDITS_FORMAT_VERSION,
-                   "levels": {str(k): {"deleted": sorted(v.deleted), "hidden": sorted(v.hidden)}
-                              for k, v in sorted(self.levels.items()) if v.deleted or v.hidden}}
+        d: dict = {
+            "format_version": EDITS_FORMAT_VERSION,
+            "levels": {
+                str(k): {"deleted": sorted(v.deleted), "hidden": sorted(v.hidden)}
+                for k, v in sorted(self.levels.items())
+                if v.deleted or v.hidden
+            },
+        }
         d["crop"] = None if self.crop_min is None else {"min": self.crop_min.tolist(), "max": self.crop_max.tolist()}
         if self.undo or self.redo:
             d["history"] = {"undo": self.undo, "redo": self.redo}
@@ -114,8 +120,12 @@ class EditLayer:
 
     def history_labels(self) -> dict:
         """{"undo": label of the step an undo reverts or None, "redo": likewise, counts}."""
-        return {"undo": self.undo[-1]["label"] if self.undo else None, "undo_steps": len(self.undo),
-                "redo": self.redo[-1]["label"] if self.redo else None, "redo_steps": len(self.redo)}
+        return {
+            "undo": self.undo[-1]["label"] if self.undo else None,
+            "undo_steps": len(self.undo),
+            "redo": self.redo[-1]["label"] if self.redo else None,
+            "redo_steps": len(self.redo),
+        }
 
     @classmethod
     def from_dict(cls, d: dict, source: str = EDITS_FILE) -> "EditLayer":
@@ -158,11 +168,20 @@ class EditLayer:
                 raise EditsError(f"{source}: history must be {{'undo': [...], 'redo': [...]}}")
             for name in ("undo", "redo"):
                 steps = history.get(name, [])
-                if not isinstance(steps, list) or len(steps) > HISTORY_LIMIT or not all(
-                        isinstance(st, dict) and isinstance(st.get("label"), str) and isinstance(st.get("layer"), dict)
-                        and "history" not in st["layer"] for st in steps):
-                    raise EditsError(f"{source}: history.{name} must be at most {HISTORY_LIMIT} "
-                                     "{'label': text, 'layer': edits without history} steps")
+                if (
+                    not isinstance(steps, list)
+                    or len(steps) > HISTORY_LIMIT
+                    or not all(
+                        isinstance(st, dict)
+                        and isinstance(st.get("label"), str)
+                        and isinstance(st.get("layer"), dict)
+                        and "history" not in st["layer"]
+                        for st in steps
+                    )
+                ):
+                    raise EditsError(
+                        f"{source}: history.{name} must be at most {HISTORY_LIMIT} {{'label': text, 'layer': edits without history}} steps"
+                    )
                 for k, st in enumerate(steps):  # each step must itself be a valid layer
                     cls.from_dict(st["layer"], f"{source}: history.{name}[{k}]")
                 setattr(layer, name, [{"label": st["label"][:200], "layer": st["layer"]} for st in steps])

@@ -38,11 +38,17 @@ def lpips_status() -> tuple[object | None, str]:
         return None, f"not computed: LPIPS weights are not available locally ({type(exc).__name__})"
 
 
-def render_at(model: KinematicsGS, frame: Frame, exposure: float = 0.0, dt: float = 1.0, background=None,
-              colors: torch.Tensor | None = None, static: bool = False):
+def render_at(
+    model: KinematicsGS,
+    frame: Frame,
+    exposure: float = 0.0,
+    dt: float = 1.0,
+    background=None,
+    colors: torch.Tensor | None = None,
+    static: bool = False,
+):
     """The rendered image only (its Gaussians' velocities are not computed where not needed)."""
-    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static,
-                        velocity=False)
+    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static, velocity=False)
 
 
 # One 8-bit level: a render difference below it does not show in a frame the model was trained on.
@@ -54,8 +60,14 @@ KR_MIN_GAIN_DB = 0.05
 
 
 @torch.no_grad()
-def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: float, count: int = 8,
-              camera_motion: Callable[[Frame], tuple] | None = None) -> dict:
+def kr_effect(
+    model: KinematicsGS,
+    frames: list[Frame],
+    exposure: float,
+    dt: float,
+    count: int = 8,
+    camera_motion: Callable[[Frame], tuple] | None = None,
+) -> dict:
     """What the kinematic blur (K.R.) does to the training renders: `count` frames spread over
     the clip, each rendered at `exposure` and at 0. `camera_motion(frame)`: the camera's own
     motion at a frame, `(A, b)` as `KinematicsGS.at` takes it, when training models the
@@ -71,18 +83,25 @@ def kr_effect(model: KinematicsGS, frames: list[Frame], exposure: float, dt: flo
         gt = torch.from_numpy(f.image())
         sharp = render_at(model, f, 0.0, dt)[0].image.clamp(0, 1)
         motion = None if camera_motion is None else camera_motion(f)
-        blurred = render_model(model, f.camera, f.time, exposure, dt, camera_motion=motion,
-                               velocity=False)[0].image.clamp(0, 1)
+        blurred = render_model(model, f.camera, f.time, exposure, dt, camera_motion=motion, velocity=False)[0].image.clamp(0, 1)
         diff = (blurred - sharp).abs().amax(-1)
         changed += int((diff > KR_VISIBLE).sum())
         pixels += diff.numel()
         err_blur += float(((blurred - gt) ** 2).mean()) / len(picks)
         err_sharp += float(((sharp - gt) ** 2).mean()) / len(picks)
     to_db = lambda mse: -10 * math.log10(max(mse, 1e-12))  # noqa: E731
-    measured = {"changed_share": changed / max(pixels, 1), "psnr_blurred": to_db(err_blur),
-                "psnr_sharp": to_db(err_sharp), "gain_db": to_db(err_blur) - to_db(err_sharp)}
-    return {"frames": len(picks), "exposure": exposure, "camera_blur": camera_motion is not None,
-            **{k: round(v, 4) for k, v in measured.items()}}
+    measured = {
+        "changed_share": changed / max(pixels, 1),
+        "psnr_blurred": to_db(err_blur),
+        "psnr_sharp": to_db(err_sharp),
+        "gain_db": to_db(err_blur) - to_db(err_sharp),
+    }
+    return {
+        "frames": len(picks),
+        "exposure": exposure,
+        "camera_blur": camera_motion is not None,
+        **{k: round(v, 4) for k, v in measured.items()},
+    }
 
 
 def kr_effect_note(effect: dict) -> str | None:
@@ -90,14 +109,17 @@ def kr_effect_note(effect: dict) -> str | None:
     if effect["gain_db"] >= KR_MIN_GAIN_DB:
         return None
     if effect.get("camera_blur"):
-        what = ("the blur it models, the motion of the Gaussians and of the camera within the exposure "
-                "(--camera-blur), hardly shows")
+        what = "the blur it models, the motion of the Gaussians and of the camera within the exposure (--camera-blur), hardly shows"
     else:
-        what = ("the blur it models, each moving Gaussian's own motion within the exposure, hardly shows (a "
-                "hand-held camera's blur is mostly its own motion, which --camera-blur models)")
-    return (f"K.R.'s blur (exposure {effect['exposure']:g}) changes {effect['changed_share']:.2%} of the training "
-            f"pixels visibly and moves their PSNR against the blurry frames by {round(effect['gain_db'], 3) or 0.0:+.3f} "
-            f"dB, so K.R. does next to nothing on this clip: {what}; --ablate kr trains without it")
+        what = (
+            "the blur it models, each moving Gaussian's own motion within the exposure, hardly shows (a "
+            "hand-held camera's blur is mostly its own motion, which --camera-blur models)"
+        )
+    return (
+        f"K.R.'s blur (exposure {effect['exposure']:g}) changes {effect['changed_share']:.2%} of the training "
+        f"pixels visibly and moves their PSNR against the blurry frames by {round(effect['gain_db'], 3) or 0.0:+.3f} "
+        f"dB, so K.R. does next to nothing on this clip: {what}; --ablate kr trains without it"
+    )
 
 
 def dynamic_mask_render(model: KinematicsGS, frame: Frame, dt: float) -> np.ndarray:
@@ -123,8 +145,7 @@ def velocity_flow(model: KinematicsGS, frame: Frame, dt: float) -> tuple[np.ndar
     du = fx * (V[:, 0] / z - X[:, 0] * V[:, 2] / z**2)
     dv = fy * (V[:, 1] / z - X[:, 1] * V[:, 2] / z**2)
     viewmat, K = torch.tensor(cam.viewmat, dtype=torch.float32), torch.tensor(cam.K, dtype=torch.float32)
-    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars6,
-                    colors=torch.stack([du, dv], 1))
+    out = rasterize(g.means, g.opacities, viewmat, K, cam.width, cam.height, covars=g.covars6, colors=torch.stack([du, dv], 1))
     alpha = out.alpha[..., 0]
     return (out.image / alpha.clamp_min(1e-6)[..., None]).numpy(), alpha.numpy()
 
@@ -195,7 +216,7 @@ def gradient_energy(img: np.ndarray, mask: np.ndarray) -> float:
     gy = np.zeros_like(grey)
     gx[:, 1:] = grey[:, 1:] - grey[:, :-1]
     gy[1:] = grey[1:] - grey[:-1]
-    return float((gx ** 2 + gy ** 2)[mask].mean())
+    return float((gx**2 + gy**2)[mask].mean())
 
 
 def detail_crop(target: np.ndarray, size: int = 160, exclude: np.ndarray | None = None) -> tuple[int, int]:
@@ -208,9 +229,9 @@ def detail_crop(target: np.ndarray, size: int = 160, exclude: np.ndarray | None 
     best, corner = -1.0, (0, 0)
     for y in range(0, h - size + 1, max(1, size // 2)):
         for x in range(0, w - size + 1, max(1, size // 2)):
-            if exclude is not None and exclude[y:y + size, x:x + size].mean() > 0.25:
+            if exclude is not None and exclude[y : y + size, x : x + size].mean() > 0.25:
                 continue
-            e = gradient_energy(target[y:y + size, x:x + size], everywhere)
+            e = gradient_energy(target[y : y + size, x : x + size], everywhere)
             if e > best:
                 best, corner = e, (y, x)
     return corner
@@ -240,8 +261,7 @@ class DetailShare:
     def result(self) -> dict:
         """{detail, detail_input, detail_dynamic, detail_input_dynamic}: None where nothing was added."""
         share = lambda row, col: float(self.sums[row, col] / self.sums[row, col + 1]) if self.sums[row, col + 1] > 0 else None  # noqa: E731
-        return {"detail": share(0, 0), "detail_input": share(0, 2), "detail_dynamic": share(1, 0),
-                "detail_input_dynamic": share(1, 2)}
+        return {"detail": share(0, 0), "detail_input": share(0, 2), "detail_dynamic": share(1, 0), "detail_input_dynamic": share(1, 2)}
 
 
 def nearest_input(scene: Scene, frame: Frame) -> np.ndarray:
@@ -302,8 +322,15 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: 
                 to = lambda x: x.permute(2, 0, 1)[None] * 2 - 1
                 lp.append(float(lpips_model(to(img), to(gt))))
         mean = lambda v: float(np.mean(v)) if v else None
-        result[name] = {"frames": len(items), "psnr": mean(ps), "ssim": mean(ss), "psnr_dynamic": mean(mps),
-                        "ssim_dynamic": mean(mss), "lpips": mean(lp), **detail.result()}
+        result[name] = {
+            "frames": len(items),
+            "psnr": mean(ps),
+            "ssim": mean(ss),
+            "psnr_dynamic": mean(mps),
+            "ssim_dynamic": mean(mss),
+            "lpips": mean(lp),
+            **detail.result(),
+        }
     if scene.test_frames:
         result["heldout"]["kind"] = heldout_kind(scene)
     result["decomposition_iou"] = float(np.nanmean(ious)) if ious and not all(math.isnan(v) for v in ious) else None
@@ -342,29 +369,44 @@ def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> di
 
 def metrics_markdown(m: dict, info: dict) -> str:
     f = lambda v, d=2: "—" if v is None else f"{v:.{d}f}"
-    lines = [f"# Evaluation of {info.get('scene_name', '')}", "",
-             f"Preset/ablations: {info['config'].get('ablate') or 'full method'}; training time {f(m.get('train_seconds'), 1)} s; "
-             f"{m['gaussians']:,} Gaussians, {m['dynamic_share']:.1%} dynamic.", "",
-             "| views | frames | PSNR | SSIM | PSNR (dynamic mask) | SSIM (dynamic mask) | detail (input) | "
-             "detail in mask (input) | LPIPS |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Evaluation of {info.get('scene_name', '')}",
+        "",
+        f"Preset/ablations: {info['config'].get('ablate') or 'full method'}; training time {f(m.get('train_seconds'), 1)} s; "
+        f"{m['gaussians']:,} Gaussians, {m['dynamic_share']:.1%} dynamic.",
+        "",
+        "| views | frames | PSNR | SSIM | PSNR (dynamic mask) | SSIM (dynamic mask) | detail (input) | detail in mask (input) | LPIPS |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name in ("heldout", "train_view_deblur"):
         if name in m:
             r = m[name]
-            lines.append(f"| {name} | {r['frames']} | {f(r['psnr'])} | {f(r['ssim'], 3)} | {f(r['psnr_dynamic'])} | "
-                         f"{f(r['ssim_dynamic'], 3)} | {f(r.get('detail'))} ({f(r.get('detail_input'))}) | "
-                         f"{f(r.get('detail_dynamic'))} ({f(r.get('detail_input_dynamic'))}) | {f(r['lpips'], 3)} |")
-    lines += ["", "Detail: the render's fine detail as a share of the sharp target's (1: as sharp; "
-              "`evaluate.gradient_energy`), beside the blurry input's share; read it with PSNR, since noise raises it."]
+            lines.append(
+                f"| {name} | {r['frames']} | {f(r['psnr'])} | {f(r['ssim'], 3)} | {f(r['psnr_dynamic'])} | "
+                f"{f(r['ssim_dynamic'], 3)} | {f(r.get('detail'))} ({f(r.get('detail_input'))}) | "
+                f"{f(r.get('detail_dynamic'))} ({f(r.get('detail_input_dynamic'))}) | {f(r['lpips'], 3)} |"
+            )
+    lines += [
+        "",
+        "Detail: the render's fine detail as a share of the sharp target's (1: as sharp; "
+        "`evaluate.gradient_energy`), beside the blurry input's share; read it with PSNR, since noise raises it.",
+    ]
     if m.get("heldout", {}).get("kind"):
         lines += ["", f"Held-out views: {m['heldout']['kind']}."]
     if info.get("kr_note"):
         lines += ["", f"Kinematic refinement: {info['kr_note']}."]
     if info.get("decomposition_note"):
         lines += ["", f"Static/dynamic decomposition: {info['decomposition_note']}."]
-    lines += ["", f"LPIPS: {m['lpips_note']}.", f"Decomposition IoU against the ground-truth dynamic masks: {f(m['decomposition_iou'], 3)}",
-              f"Velocity end-point error against ground-truth motion (still held-out camera, dynamic mask): "
-              f"{f(m.get('velocity_epe_px'), 3)} px per frame interval", "",
-              "| LoD level | Gaussians | render FPS (CPU) |", "|---|---|---|"]
+    lines += [
+        "",
+        f"LPIPS: {m['lpips_note']}.",
+        f"Decomposition IoU against the ground-truth dynamic masks: {f(m['decomposition_iou'], 3)}",
+        f"Velocity end-point error against ground-truth motion (still held-out camera, dynamic mask): "
+        f"{f(m.get('velocity_epe_px'), 3)} px per frame interval",
+        "",
+        "| LoD level | Gaussians | render FPS (CPU) |",
+        "|---|---|---|",
+    ]
     for lv in m["levels"]:
         lines.append(f"| {lv['level']} | {lv['gaussians']:,} | {lv['render_fps']:.1f} |")
     return "\n".join(lines) + "\n"

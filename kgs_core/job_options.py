@@ -58,8 +58,7 @@ class SynthOptions(JobOptions):
             raise ValueError(f"size² x frames is {stored:,}, above {MAX_SYNTH_FRAME_PIXELS:,} (lower one of them)")
         renders = stored * self.subframes
         if renders > MAX_SYNTH_PIXELS:
-            raise ValueError(f"size² x frames x subframes is {renders:,}, above {MAX_SYNTH_PIXELS:,} "
-                             "(lower one of them)")
+            raise ValueError(f"size² x frames x subframes is {renders:,}, above {MAX_SYNTH_PIXELS:,} (lower one of them)")
         return self
 
 
@@ -72,25 +71,30 @@ class IngestOptions(JobOptions):
     """How a video becomes a scene (`kgs_core.data.ingest.ingest`)."""
 
     max_size: int = Field(DEFAULT_MAX_SIZE, ge=64, le=4096, description="long side of the frames, in pixels")
-    every: int | None = Field(None, ge=1, le=1000, description="keep every k-th frame (default: all, or about 300 of "
-                              "a longer video)")
+    every: int | None = Field(None, ge=1, le=1000, description="keep every k-th frame (default: all, or about 300 of a longer video)")
     max_frames: int | None = Field(None, ge=2, le=100_000, description="keep at most this many frames from the start")
     mapper: Literal[MAPPERS] = Field(  # type: ignore[valid-type]
-        "auto", description="SfM mapper: keyframes (fast), global (GLOMAP), incremental (slowest, most robust); auto "
+        "auto",
+        description="SfM mapper: keyframes (fast), global (GLOMAP), incremental (slowest, most robust); auto "
         "reuses the poses of an earlier ingest of the same frames at any max_size, else tries keyframes, then "
-        "incremental; a named mapper always maps anew")
+        "incremental; a named mapper always maps anew",
+    )
     lens: Literal[LENSES] = Field(  # type: ignore[valid-type]
-        "opencv", description="lens model: opencv refits each camera after mapping with two focal lengths, two radial "
+        "opencv",
+        description="lens model: opencv refits each camera after mapping with two focal lengths, two radial "
         "and two tangential terms, kept where it lowers the reprojection error; simple keeps SfM's one focal length "
-        "and one radial term (docs/data.md)")
-    holdout_every: int | None = Field(None, ge=0, le=1000, description="with one video, every n-th frame is a test "
-                                      "view (0: none; default 8)")
-    fixed_camera: bool = Field(False, description="the camera does not move (a tripod): skip SfM, one pose for "
-                               "every frame")
-    keep_distortion: bool = Field(False, description="keep the SfM camera's lens distortion instead of undistorting "
-                                  "frames to pinhole (the rasteriser is pinhole: only for export to other tools)")
-    exposure: float = Field(0.5, ge=0, le=1, description="the training video's exposure, a fraction of the frame "
-                            "interval")
+        "and one radial term (docs/data.md)",
+    )
+    holdout_every: int | None = Field(
+        None, ge=0, le=1000, description="with one video, every n-th frame is a test view (0: none; default 8)"
+    )
+    fixed_camera: bool = Field(False, description="the camera does not move (a tripod): skip SfM, one pose for every frame")
+    keep_distortion: bool = Field(
+        False,
+        description="keep the SfM camera's lens distortion instead of undistorting "
+        "frames to pinhole (the rasteriser is pinhole: only for export to other tools)",
+    )
+    exposure: float = Field(0.5, ge=0, le=1, description="the training video's exposure, a fraction of the frame interval")
 
     @field_validator("holdout_every")
     @classmethod
@@ -125,25 +129,32 @@ class ExportOptions(JobOptions):
     """A run as files (`kgs_core.export.export_run`)."""
 
     format: Literal[FORMATS] = Field(description="what to write (docs/exports.md)")  # type: ignore[valid-type]
-    times: str | None = Field(None, max_length=10000, description="T, T1,T2,... or START:STOP:COUNT in [0, 1] "
-                              "(default: the training frames' times)")
+    times: str | None = Field(
+        None, max_length=10000, description="T, T1,T2,... or START:STOP:COUNT in [0, 1] (default: the training frames' times)"
+    )
     camera_path: Literal["training", "orbit", "view"] = Field(
-        "training", description="mp4: along the training cameras, once round the scene, or held at `view`")
+        "training", description="mp4: along the training cameras, once round the scene, or held at `view`"
+    )
     view: ViewCamera | None = Field(None, description="the camera of camera_path view")
     exposure: float = Field(0.0, ge=0, le=1, description="shutter fraction to bake in (0: sharp)")
     lod: int | None = Field(None, ge=1, description="LoD level (default: the finest)")
     side_by_side: bool = Field(False, description="mp4 on the training cameras: the input frame beside each render")
-    size: int | None = Field(None, ge=16, le=4096, description="mp4: the video's long side in pixels (default: the "
-                             "cameras' own)")
+    size: int | None = Field(None, ge=16, le=4096, description="mp4: the video's long side in pixels (default: the cameras' own)")
     fps: float = Field(24.0, gt=0, le=240, description="mp4: frames a second")
-    web_frame: bool | None = Field(None, description="write .ply, .splat or .splatv so that antimatter15/splat or "
-                                   "splaTV opens on the first training camera's view (default: on for splat and "
-                                   "splatv; the transform is in export.json)")
+    web_frame: bool | None = Field(
+        None,
+        description="write .ply, .splat or .splatv so that antimatter15/splat or "
+        "splaTV opens on the first training camera's view (default: on for splat and "
+        "splatv; the transform is in export.json)",
+    )
 
     def export_arguments(self) -> dict:
         """The keyword arguments of `kgs_core.export.export_run` these options are."""
-        return {"fmt": self.format, **self.model_dump(exclude={"format", "view"}),
-                "view": None if self.view is None else self.view.model_dump()}
+        return {
+            "fmt": self.format,
+            **self.model_dump(exclude={"format", "view"}),
+            "view": None if self.view is None else self.view.model_dump(),
+        }
 
     @field_validator("times")
     @classmethod
@@ -173,13 +184,22 @@ class ExportOptions(JobOptions):
 class TrainOptionsBase(JobOptions):
     """How to train (`kgs_core.train.config.make_config`): a preset, ablations, and settings."""
 
-    preset: str = Field("fast", description="fast: minutes on two cores, fitted to the scene; paper: the paper's "
-                        "30k-iteration schedule with five LoD levels")
+    preset: str = Field(
+        "fast",
+        description="fast: minutes on two cores, fitted to the scene; paper: the paper's 30k-iteration schedule with five LoD levels",
+    )
     ablate: list[str] = Field([], max_length=16, description="parts of the method to leave out (or comma-separated)")
-    settings: list[str] = Field([], max_length=64, description="KEY=VALUE of any training setting (a TrainConfig "
-                                "field, model.FIELD or densify.FIELD), checked against the schema and applied last")
-    config: Any = Field(None, description="any training setting, typed: {FIELD: VALUE, model: {FIELD: VALUE}, "
-                        "densify: {FIELD: VALUE}}, applied after the named ones and before `settings`")
+    settings: list[str] = Field(
+        [],
+        max_length=64,
+        description="KEY=VALUE of any training setting (a TrainConfig "
+        "field, model.FIELD or densify.FIELD), checked against the schema and applied last",
+    )
+    config: Any = Field(
+        None,
+        description="any training setting, typed: {FIELD: VALUE, model: {FIELD: VALUE}, "
+        "densify: {FIELD: VALUE}}, applied after the named ones and before `settings`",
+    )
 
     @field_validator("preset")
     @classmethod
@@ -239,8 +259,12 @@ def _named_field(name: str) -> tuple[object, object]:
     limits = bound(named.key)
     if limits is None:
         return kind | None, Field(None, description=named.help)
-    return (kind | None, Field(None, gt=limits.low if limits.above else None, ge=None if limits.above else limits.low,
-                               le=limits.high, description=named.help))
+    return (
+        kind | None,
+        Field(
+            None, gt=limits.low if limits.above else None, ge=None if limits.above else limits.low, le=limits.high, description=named.help
+        ),
+    )
 
 
 def _checked(key: str, value):
@@ -269,9 +293,12 @@ def _train_options() -> type[TrainOptionsBase]:
     from .train.settings import NAMED
 
     settings = _training_settings()
-    return create_model("TrainOptions", __base__=TrainOptionsBase,  # type: ignore[call-overload]
-                        config=(settings | None, Field(None, description=TrainOptionsBase.model_fields["config"].description)),
-                        **{name: _named_field(name) for name in NAMED})
+    return create_model(
+        "TrainOptions",
+        __base__=TrainOptionsBase,  # type: ignore[call-overload]
+        config=(settings | None, Field(None, description=TrainOptionsBase.model_fields["config"].description)),
+        **{name: _named_field(name) for name in NAMED},
+    )
 
 
 # The preset, ablations, settings, and one typed field per setting offered by name.

@@ -15,9 +15,16 @@ CONFIG_VERSION = 2
 RUN_FORMAT_VERSION = 2
 
 # Where the densification settings were before they became `TrainConfig.densify`.
-FLAT_DENSIFY = {"grad_threshold": "grad_threshold", "densify_from": "start", "densify_until": "stop",
-                "densify_every": "every", "prune_opacity": "prune_opacity", "percent_dense": "percent_dense",
-                "opacity_reset_at": "opacity_reset_at", "max_gaussians": "max_gaussians"}
+FLAT_DENSIFY = {
+    "grad_threshold": "grad_threshold",
+    "densify_from": "start",
+    "densify_until": "stop",
+    "densify_every": "every",
+    "prune_opacity": "prune_opacity",
+    "percent_dense": "percent_dense",
+    "opacity_reset_at": "opacity_reset_at",
+    "max_gaussians": "max_gaussians",
+}
 
 
 def _model_v0_to_v1(d: dict) -> dict:
@@ -39,8 +46,12 @@ def _config_v0_to_v1(d: dict) -> dict:
 
 # Version 2 named the static/dynamic split "decompose" and the temporal variance K, as the
 # paper does; old names, new names.
-DECOMPOSE_RENAMES = {"split_in_place": "decompose_in_place", "resplit_to_dynamic": "redecompose_to_dynamic",
-                     "flow_split_share": "flow_vote_share", "flow_split_method": "flow_vote_method"}
+DECOMPOSE_RENAMES = {
+    "split_in_place": "decompose_in_place",
+    "resplit_to_dynamic": "redecompose_to_dynamic",
+    "flow_split_share": "flow_vote_share",
+    "flow_split_method": "flow_vote_method",
+}
 MODEL_RENAMES = {"variance_times": "K_times"}
 ABLATION_RENAMES = {"split": "decompose"}
 STATE_RENAMES = {"variance": "K"}  # per-Gaussian fields of a saved model
@@ -78,7 +89,7 @@ def migrate_model_config(d: dict) -> dict:
     """A model configuration dict (`ModelConfig.to_dict`) of any version, in the current layout
     and without its version number."""
     d = dict(d)
-    for step in MODEL_STEPS[_version(d, "model"):]:
+    for step in MODEL_STEPS[_version(d, "model") :]:
         d = step(d)
     return d
 
@@ -118,9 +129,11 @@ def migrate_saved_model(saved: dict) -> dict:
     levels = saved.get("levels")
     if isinstance(version, int) and version < 2:
         saved = _renamed(saved, RUN_JSON_RENAMES)  # a checkpoint's copy of run.json's records
-    return {**saved, "model": migrate_model_state(model, version),
-            "levels": [migrate_model_state(s, version) if isinstance(s, dict) else s for s in levels]
-            if isinstance(levels, list) else levels}
+    return {
+        **saved,
+        "model": migrate_model_state(model, version),
+        "levels": [migrate_model_state(s, version) if isinstance(s, dict) else s for s in levels] if isinstance(levels, list) else levels,
+    }
 
 
 def migrate_run_json(info: dict, where: str = "run.json") -> dict:

@@ -61,8 +61,15 @@ class ProgressBar:
         self.close()
 
 
-def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str, unit: str = "frame",
-                 show: bool = True, stage: str | None = None) -> ProgressBar:
+def progress_bar(
+    iterable: Iterable | None = None,
+    *,
+    total: int | None = None,
+    desc: str,
+    unit: str = "frame",
+    show: bool = True,
+    stage: str | None = None,
+) -> ProgressBar:
     """`desc` labels the terminal's bar; `stage` (default: `desc`) is what listeners hear, for
     when the bar names something a listener should not see, such as a file path."""
     if total is None and iterable is not None and hasattr(iterable, "__len__"):

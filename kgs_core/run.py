@@ -87,8 +87,10 @@ def learned_blur(info: dict) -> dict:
     measured = check if check is not None else effect
     if check is not None and not check.get("kept", True):
         objects = False
-        why = (f"K.R. was turned off at iteration {check.get('iteration')}: its blur changed "
-               f"{check.get('changed_share', 0):.1%} of the training pixels visibly")
+        why = (
+            f"K.R. was turned off at iteration {check.get('iteration')}: its blur changed "
+            f"{check.get('changed_share', 0):.1%} of the training pixels visibly"
+        )
     elif measured is not None and measured.get("gain_db", 0.0) < KR_MIN_GAIN_DB:
         objects = False
         why = f"K.R.'s blur changes {measured.get('changed_share', 0):.1%} of the training pixels visibly"
@@ -97,8 +99,11 @@ def learned_blur(info: dict) -> dict:
         why = "blur along each moving Gaussian's motion within the exposure (K.R.)"
         if measured is not None:
             why += f", visible in {measured.get('changed_share', 0):.1%} of the training pixels"
-    cam = ("the camera's own shake is not modelled (train with --camera-blur learned)" if camera == "off" else
-           "the camera's own shake was modelled at the training cameras only, so a free view shows the objects' blur")
+    cam = (
+        "the camera's own shake is not modelled (train with --camera-blur learned)"
+        if camera == "off"
+        else "the camera's own shake was modelled at the training cameras only, so a free view shows the objects' blur"
+    )
     lead = f"exposure {exposure:.2f}: " + ("shows the learned " if objects else "next to no learned blur; ")
     return {"objects": objects, "camera": camera, "note": f"{lead}{why}; {cam}"}
 

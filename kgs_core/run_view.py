@@ -113,13 +113,17 @@ class Trajectories:
                 cov6 = cut(self.cov6)
                 scale = float(np.median([cov_scale(c) for c in cov6]))
                 self._kept_samples = {
-                    "means": torch.from_numpy(np.ascontiguousarray(cut(self.means))), "scale": scale,
+                    "means": torch.from_numpy(np.ascontiguousarray(cut(self.means))),
+                    "scale": scale,
                     "cov6": torch.from_numpy(np.clip(cov6 / scale, -F16_MAX, F16_MAX, dtype=np.float32)),
                     "vels": torch.from_numpy(np.clip(cut(self.vels), -F16_MAX, F16_MAX, dtype=np.float32)),
-                    "rgba": self.rgba[sel], "index": self.idx[sel].astype(np.uint32),
-                    "sampled_opacities": (None if self.sampled_opacities is None else
-                                          torch.from_numpy(np.ascontiguousarray(cut(self.sampled_opacities)))),
-                    "lifespan": self.lifespan[sel]}
+                    "rgba": self.rgba[sel],
+                    "index": self.idx[sel].astype(np.uint32),
+                    "sampled_opacities": (
+                        None if self.sampled_opacities is None else torch.from_numpy(np.ascontiguousarray(cut(self.sampled_opacities)))
+                    ),
+                    "lifespan": self.lifespan[sel],
+                }
                 self.means = self.cov6 = self.vels = self.sampled_opacities = None  # only the cut is read from here on
             return self._kept_samples
 
@@ -189,9 +193,14 @@ def decomposed_copy(model, tau: float):
 def edit_label(op: str, count: int) -> str:
     """What an edit did, as the undo history shows it."""
     some = f"{count:,} splat{'s' if count != 1 else ''}"
-    return {"delete": f"delete {some}", "hide": f"hide {some}", "crop": "crop",
-            "unhide": f"unhide {some}" if count else "unhide all", "clear": "clear all edits",
-            "restore": f"restore {some}" if count else "restore deleted"}.get(op, op)
+    return {
+        "delete": f"delete {some}",
+        "hide": f"hide {some}",
+        "crop": "crop",
+        "unhide": f"unhide {some}" if count else "unhide all",
+        "clear": "clear all edits",
+        "restore": f"restore {some}" if count else "restore deleted",
+    }.get(op, op)
 
 
 class RunView:
@@ -234,9 +243,19 @@ class RunView:
                 frames, extras = [], {}
             rate = extras.get("fps", (extras.get("ingest") or {}).get("fps"))
             self.frame_rate = float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
-            self._frames = [{"index": i, "id": f.id, "time": f.time, "split": f.split, "width": f.camera.width,
-                             "height": f.camera.height, "K": f.camera.K.tolist(), "viewmat": f.camera.viewmat.tolist()}
-                            for i, f in enumerate(frames)]
+            self._frames = [
+                {
+                    "index": i,
+                    "id": f.id,
+                    "time": f.time,
+                    "split": f.split,
+                    "width": f.camera.width,
+                    "height": f.camera.height,
+                    "K": f.camera.K.tolist(),
+                    "viewmat": f.camera.viewmat.tolist(),
+                }
+                for i, f in enumerate(frames)
+            ]
         return self._frames
 
     def model(self, lod: int | None):
@@ -289,9 +308,13 @@ class RunView:
             with self.compute:
                 g = m.at_static()
             idx = torch.from_numpy(np.nonzero(sel)[0])
-            buf = pack_buffer({"kind": "static", "lod": lod, "version": version},
-                              g.means[idx].numpy(), g.covars6[idx].double().numpy(),
-                              rgba_of(g.sh[idx], g.opacities[idx]), idx.numpy().astype(np.uint32))
+            buf = pack_buffer(
+                {"kind": "static", "lod": lod, "version": version},
+                g.means[idx].numpy(),
+                g.covars6[idx].double().numpy(),
+                rgba_of(g.sh[idx], g.opacities[idx]),
+                idx.numpy().astype(np.uint32),
+            )
             with self.lock:
                 if version == self.version:
                     self._static[key] = buf
@@ -322,15 +345,15 @@ class RunView:
         return tr if tr.ready.is_set() else None
 
     @torch.no_grad()
-    def dynamic_buffer(self, t: float, exposure: float = 0.0, lod: int | None = None, velocity: bool = True,
-                       exact: bool = False) -> bytes:
+    def dynamic_buffer(self, t: float, exposure: float = 0.0, lod: int | None = None, velocity: bool = True, exact: bool = False) -> bytes:
         """The dynamic set at `t`: interpolated from the trajectory cache when it is ready (and
         `exact` is not asked for), else evaluated exactly."""
         lod, m, keep, version = self.state(lod)
         header = {"kind": "dynamic", "lod": lod, "t": t, "exposure": exposure, "version": version}
         if self.nothing_dynamic(lod, m):
-            return pack_buffer(header, np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 4)), np.zeros(0),
-                               np.zeros((0, 3)) if velocity else None)
+            return pack_buffer(
+                header, np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 4)), np.zeros(0), np.zeros((0, 3)) if velocity else None
+            )
         tr = None if (exact or not self.use_trajectories) else self.trajectories(lod, exposure)
         if tr is not None and tr.key[1] == version:
             return tr.buffer(float(t), keep, {**header, "interpolated": True}, velocity)
@@ -341,8 +364,7 @@ class RunView:
         rgba = rgba_of(g.sh, g.opacities)
         header["interpolated"] = False
         sel = keep[idx]
-        return pack_buffer(header, means[sel], covs[sel], rgba[sel], idx[sel].astype(np.uint32),
-                           vels[sel] if velocity else None)
+        return pack_buffer(header, means[sel], covs[sel], rgba[sel], idx[sel].astype(np.uint32), vels[sel] if velocity else None)
 
     @torch.no_grad()
     def baked(self, t: float, exposure: float = 0.0, lod: int | None = None, subset: str = "all") -> tuple[Baked, int]:
@@ -361,8 +383,7 @@ class RunView:
         g, lod = self.baked(t, lod=lod, subset="dynamic")
         where = np.nonzero(g.index == index)[0]
         if not len(where):
-            raise ValueError(f"Gaussian {index} is not a kept moving Gaussian of LoD {lod}: "
-                             "the object tool selects moving objects")
+            raise ValueError(f"Gaussian {index} is not a kept moving Gaussian of LoD {lod}: the object tool selects moving objects")
         members = connected_object(g.means, largest_sigma(g.covars), int(where[0]))
         return {"indices": g.index[members].tolist(), "lod": lod, "reach": REACH}
 
@@ -382,15 +403,22 @@ class RunView:
         lod, m, keep, version = self.state(lod)
         counts = decomposition_counts(m, self.run.static_only)
         dyn = self._dynamic_mask(m)
-        return {"tau": self.tau, "lod": lod, **counts, "kept": int(keep.sum()), "dynamic_kept": int((dyn & keep).sum()),
-                "static_kept": int((~dyn & keep).sum()), "version": version, "history": self.edits.history_labels()}
+        return {
+            "tau": self.tau,
+            "lod": lod,
+            **counts,
+            "kept": int(keep.sum()),
+            "dynamic_kept": int((dyn & keep).sum()),
+            "static_kept": int((~dyn & keep).sum()),
+            "version": version,
+            "history": self.edits.history_labels(),
+        }
 
     def histogram(self, lod: int | None = None) -> dict:
         _, m = self.model(lod)
         return K_histogram(m.K.numpy())
 
-    def apply_edit(self, op: str, lod: int | None, indices: list[int] | None = None,
-                   crop: dict | None = None) -> dict:
+    def apply_edit(self, op: str, lod: int | None, indices: list[int] | None = None, crop: dict | None = None) -> dict:
         with self.lock:
             lod, m = self.model(lod)
             n = len(m)

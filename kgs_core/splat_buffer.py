@@ -64,8 +64,15 @@ def new_buffer(header: dict, n: int, velocity: bool, scale: float) -> tuple[byte
     return buf, rec, vel
 
 
-def pack_buffer(header: dict, means: np.ndarray, cov6: np.ndarray, rgba: np.ndarray, index: np.ndarray,
-                velocity: np.ndarray | None = None, scale: float | None = None) -> bytes:
+def pack_buffer(
+    header: dict,
+    means: np.ndarray,
+    cov6: np.ndarray,
+    rgba: np.ndarray,
+    index: np.ndarray,
+    velocity: np.ndarray | None = None,
+    scale: float | None = None,
+) -> bytes:
     """One buffer of the layout above from `means (N, 3)`, `cov6 (N, 6)` (packed upper
     triangles xx, xy, xz, yy, yz, zz), `rgba (N, 4) uint8`, `index (N,)` and optionally
     `velocity (N, 3)`; `scale` is the covariance unit (default `cov_scale(cov6)`)."""
@@ -94,7 +101,7 @@ def unpack_buffer(data: bytes) -> tuple[dict, np.ndarray, np.ndarray | None]:
     if data[:4] != MAGIC:
         raise ValueError("not a KGS1 splat buffer")
     (h,) = struct.unpack_from("<I", data, 4)
-    header = json.loads(data[8:8 + h])
+    header = json.loads(data[8 : 8 + h])
     n = header["count"]
     rec = np.frombuffer(data, dtype=RECORD, count=n, offset=8 + h)
     vel = None

@@ -118,8 +118,9 @@ class ThreadTuner:
 
     `observe()` after each step (the trainer calls it); the clocks are arguments for tests."""
 
-    def __init__(self, cores: int, start: int | None = None, window_s: float = 0.5, machine_busy=machine_busy_seconds,
-                 own_cpu=None, clock=None):
+    def __init__(
+        self, cores: int, start: int | None = None, window_s: float = 0.5, machine_busy=machine_busy_seconds, own_cpu=None, clock=None
+    ):
         import time
 
         import torch

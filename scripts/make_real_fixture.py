@@ -40,10 +40,20 @@ def main() -> None:
                 small.save(path, optimize=True)
                 cam = f.camera.scaled(factor)
                 frames.append(replace(f, image_path=path, camera=replace(cam, height=small.height)))
-        out = Scene(name=Path(args.out).name, root=Path(args.out), frames=frames, points=scene.points,
-                    point_colors=scene.point_colors, normalization=scene.normalization, source_format="nerfies",
-                    extras={**scene.extras, "normalized": True,
-                            "derived_from": {"scene": Path(args.scene).name, "every": args.every, "width": args.width}})
+        out = Scene(
+            name=Path(args.out).name,
+            root=Path(args.out),
+            frames=frames,
+            points=scene.points,
+            point_colors=scene.point_colors,
+            normalization=scene.normalization,
+            source_format="nerfies",
+            extras={
+                **scene.extras,
+                "normalized": True,
+                "derived_from": {"scene": Path(args.scene).name, "every": args.every, "width": args.width},
+            },
+        )
         with atomic_directory(Path(args.out), overwrite=True) as dst:
             write_nerfies(out, dst)
     print(f"wrote {args.out}: {len(frames)} frames at {args.width} px")

@@ -53,8 +53,14 @@ def main() -> None:
     ap.add_argument("--smooth", type=float, default=0.0, help="weight of the per-frame motion's second difference")
     ap.add_argument("--lr", default="3e-2,3e-3", help="learning rates of the rotations and translations")
     ap.add_argument("--iterations", type=int, default=1500)
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", type=setting,
-                    help="a training setting, as kgs-app train --set (repeatable)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        type=setting,
+        help="a training setting, as kgs-app train --set (repeatable)",
+    )
     ap.add_argument("--seed", type=int, default=0, help="training seed, and the seed the scene was synthesized with")
     args = ap.parse_args()
     torch.set_num_threads(2)
@@ -109,8 +115,7 @@ def main() -> None:
             w, b = motion_at(float(t))
             dx = (mu - pivot) @ so3_exp(w[None])[0].T + pivot + b - mu
             dr = torch.einsum("nji,j->ni", Rq, w)  # the object's rotation in each Gaussian's frame
-            out.append(Offsets(o.dx.index_copy(0, rows, dx), o.dr.index_copy(0, rows, dr),
-                               o.ds.index_copy(0, rows, torch.zeros_like(dx))))
+            out.append(Offsets(o.dx.index_copy(0, rows, dx), o.dr.index_copy(0, rows, dr), o.ds.index_copy(0, rows, torch.zeros_like(dx))))
         return out
 
     decompose = KinematicsGS.decompose
@@ -170,14 +175,15 @@ def main() -> None:
         Trainer.loss_for = loss_with_smoothness
 
     settings = dict(args.set)
-    cfg = make_config("fast", iterations=args.iterations, eval_every=max(args.iterations // 10, 1), seed=args.seed,
-                      **settings)
+    cfg = make_config("fast", iterations=args.iterations, eval_every=max(args.iterations // 10, 1), seed=args.seed, **settings)
     info = Trainer(scene, args.run_dir, cfg, progress=False).run()
     run = load_run(args.run_dir)
     m = evaluate_model(run.model, scene)
     h, d = m["heldout"], m["train_view_deblur"]
-    print(f"{args.motion}: held-out {h['psnr']:.2f} / in mask {h['psnr_dynamic']:.2f}; deblurred {d['psnr']:.2f} / "
-          f"{d['psnr_dynamic']:.2f}; velocity error {m['velocity_epe_px']:.2f} px a frame; dynamic {info['dynamic_share']:.0%}")
+    print(
+        f"{args.motion}: held-out {h['psnr']:.2f} / in mask {h['psnr_dynamic']:.2f}; deblurred {d['psnr']:.2f} / "
+        f"{d['psnr_dynamic']:.2f}; velocity error {m['velocity_epe_px']:.2f} px a frame; dynamic {info['dynamic_share']:.0%}"
+    )
     if args.motion == "rigid":
         errors = []
         for j in range(frames):

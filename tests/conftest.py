@@ -34,8 +34,10 @@ def browser():
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path="/usr/bin/chromium",
-                              args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
+        b = p.chromium.launch(
+            executable_path="/usr/bin/chromium",
+            args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
+        )
         yield b
         b.close()
 
@@ -59,12 +61,27 @@ def tiny_run(tmp_path_factory):
     from kgs_core.train.trainer import train
 
     root = tmp_path_factory.mktemp("tiny_run")
-    scene_dir = synthesize("bounce", root / "scenes" / "bounce", blur="mild", size=48, frames=8, subframes=4,
-                           progress=False)
-    cfg = make_config("fast", iterations=150, eval_every=50, checkpoint_every=1000, decompose_at=60, decompose_every=0,
-                      lod_fractions=(0.5, 1.0), lod_levels=2, lod_importance_views=2, init_points=1500,
-                      **{"densify.start": 30, "densify.every": 30, "densify.stop": 120, "densify.opacity_reset_at": (),
-                         "densify.max_gaussians": 4000, "model.tau": 5e-7})
+    scene_dir = synthesize("bounce", root / "scenes" / "bounce", blur="mild", size=48, frames=8, subframes=4, progress=False)
+    cfg = make_config(
+        "fast",
+        iterations=150,
+        eval_every=50,
+        checkpoint_every=1000,
+        decompose_at=60,
+        decompose_every=0,
+        lod_fractions=(0.5, 1.0),
+        lod_levels=2,
+        lod_importance_views=2,
+        init_points=1500,
+        **{
+            "densify.start": 30,
+            "densify.every": 30,
+            "densify.stop": 120,
+            "densify.opacity_reset_at": (),
+            "densify.max_gaussians": 4000,
+            "model.tau": 5e-7,
+        },
+    )
     run_dir = root / "runs" / "bounce-tiny"
     train(load_scene(scene_dir), run_dir, cfg, progress=False)
     return run_dir

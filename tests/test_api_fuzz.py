@@ -34,12 +34,10 @@ def test_no_generated_request_gets_a_server_error(api_schema):
         operation = result.ok()
 
         @given(case=operation.as_strategy())
-        @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
-                  suppress_health_check=list(HealthCheck))
+        @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
         def fuzz(case):
             response = case.call()
-            assert response.status_code < 500, (case.method, case.formatted_path, case.query, case.body,
-                                                 response.text[:500])
+            assert response.status_code < 500, (case.method, case.formatted_path, case.query, case.body, response.text[:500])
 
         fuzz()
         tried.append(operation.label)

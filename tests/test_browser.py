@@ -108,8 +108,10 @@ def test_edit_then_export_drops_deleted_splats(page, server):
     assert page.inner_text("#sel-count").startswith(f"{n_sel:,}")
     total = int(page.get_attribute("#counts", "data-dynamic")) + int(page.get_attribute("#counts", "data-static"))
     page.click("#edit-delete")
-    page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts')"
-                           f".dataset.static == {total - n_sel}", timeout=30_000)
+    page.wait_for_function(
+        f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts').dataset.static == {total - n_sel}",
+        timeout=30_000,
+    )
     # The header and the LoD menu show the new total too.
     assert page.get_attribute("#run-title", "data-kept") == str(total - n_sel)
     assert f"{total - n_sel:,} Gaussians" in page.inner_text("#run-title")
@@ -129,8 +131,9 @@ def test_edit_then_export_drops_deleted_splats(page, server):
     assert sum(len(v["deleted"]) for v in edits["levels"].values()) == n_sel
     # restore for the other tests
     page.click("#edit-restore")
-    page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts')"
-                           f".dataset.static == {total}", timeout=30_000)
+    page.wait_for_function(
+        f"+document.querySelector('#counts').dataset.dynamic + +document.querySelector('#counts').dataset.static == {total}", timeout=30_000
+    )
 
 
 def test_undo_after_a_crop_restores_the_scene_and_a_reload_keeps_it(page, server):
@@ -148,8 +151,7 @@ def test_undo_after_a_crop_restores_the_scene_and_a_reload_keeps_it(page, server
     page.click("#canvas")  # the keyboard to the viewer, not a control
     page.keyboard.press("Control+z")
     page.wait_for_function(f"+document.querySelector('#run-title').dataset.kept == {total}", timeout=30_000)
-    assert page.is_enabled("#edit-redo") and "crop" in page.inner_text("#edit-history") + page.get_attribute(
-        "#edit-redo", "title")
+    assert page.is_enabled("#edit-redo") and "crop" in page.inner_text("#edit-history") + page.get_attribute("#edit-redo", "title")
     page.reload()
     page.wait_for_selector("body[data-ready='1']", timeout=60_000)
     assert kept() == total and page.is_enabled("#edit-redo")

@@ -79,9 +79,16 @@ def test_a_click_with_the_object_tool_takes_its_connected_moving_gaussians_and_d
     assert n >= 1 and count(page) == n
     selected = sorted(page.evaluate("[...kgs.selected]"))
     assert set(selected) <= {h[0] for h in dyn}, "the object tool took a static Gaussian"
-    again = json.loads(urllib.request.urlopen(urllib.request.Request(
-        f"{server['base']}/api/runs/{server['run_id']}/select-object", method="POST",
-        data=json.dumps({"index": selected[-1], "t": 0.5}).encode(), headers={"content-type": "application/json"})).read())
+    again = json.loads(
+        urllib.request.urlopen(
+            urllib.request.Request(
+                f"{server['base']}/api/runs/{server['run_id']}/select-object",
+                method="POST",
+                data=json.dumps({"index": selected[-1], "t": 0.5}).encode(),
+                headers={"content-type": "application/json"},
+            )
+        ).read()
+    )
     assert sorted(again["indices"]) == selected
     # A real click on the canvas, with Alt: the same object taken out of the selection.
     box = page.locator("#canvas").bounding_box()
@@ -93,8 +100,7 @@ def test_a_click_with_the_object_tool_takes_its_connected_moving_gaussians_and_d
     page.evaluate(f"kgs.selectObjectAt({u}, {v})")
     dynamic_before = int(page.get_attribute("#counts", "data-dynamic"))
     page.keyboard.press("Delete")
-    page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic == {dynamic_before - n}",
-                           timeout=30_000)
+    page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic == {dynamic_before - n}", timeout=30_000)
     page.click("#edit-undo")
     page.wait_for_function(f"+document.querySelector('#counts').dataset.dynamic == {dynamic_before}", timeout=30_000)
 
@@ -185,8 +191,7 @@ def test_view_dependent_colour_matches_the_cpu_rasteriser(browser, sh_server):
     ctx, page = open_viewer(browser, base, rid)
     meta = json.loads(urllib.request.urlopen(f"{base}/api/runs/{rid}").read())
     f = meta["frames"][0]
-    page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)",
-                  [sum(f["viewmat"], []), sum(f["K"], []), f["width"], f["height"]])
+    page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)", [sum(f["viewmat"], []), sum(f["K"], []), f["width"], f["height"]])
     page.evaluate("kgs.setTime(0.5)")
     web = read(page)
     png = urllib.request.urlopen(f"{base}/api/runs/{rid}/render?t=0.5&frame=0").read()
@@ -261,12 +266,15 @@ def drop_file(page, path: Path) -> None:
     """What the browser does when a file is dragged from the desktop onto the page."""
     import base64
 
-    page.evaluate("""([name, b64]) => {
+    page.evaluate(
+        """([name, b64]) => {
         const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
         const dt = new DataTransfer();
         dt.items.add(new File([bytes], name));
         window.dispatchEvent(new DragEvent("drop", { dataTransfer: dt, bubbles: true, cancelable: true }));
-    }""", [path.name, base64.b64encode(path.read_bytes()).decode()])
+    }""",
+        [path.name, base64.b64encode(path.read_bytes()).decode()],
+    )
 
 
 @pytest.mark.parametrize("fmt", ["ply-seq", "splat"])
@@ -296,8 +304,7 @@ def test_a_dropped_file_draws_as_the_run_does(browser, server, tiny_run, tmp_pat
     page.goto(f"{server['base']}/")
     page.wait_for_selector("body[data-ready='1']", timeout=60_000)
     drop_file(page, file)
-    page.wait_for_function("document.body.dataset.page === 'viewer' && document.body.dataset.ready === '1'",
-                           timeout=30_000)
+    page.wait_for_function("document.body.dataset.page === 'viewer' && document.body.dataset.ready === '1'", timeout=30_000)
     assert "(a local file)" in page.inner_text("#run-title") and page.is_disabled("#edit-delete")
     page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)", camera)
     local = read(page)
@@ -320,8 +327,10 @@ def test_runs_page_thumbnails_labels_and_a_phone_sized_layout(browser, server):
     page = ctx.new_page()
     page.goto(f"{server['base']}/")
     page.wait_for_selector("body[data-ready='1']", timeout=60_000)
-    page.wait_for_function("(() => { const i = document.querySelector('#run-list img.thumb'); "
-                           "return i && i.complete && i.naturalWidth > 0; })()", timeout=60_000)
+    page.wait_for_function(
+        "(() => { const i = document.querySelector('#run-list img.thumb'); return i && i.complete && i.naturalWidth > 0; })()",
+        timeout=60_000,
+    )
     size = page.eval_on_selector("#run-list img.thumb", "i => [i.naturalWidth, i.naturalHeight]")
     assert max(size) == 48  # the long side at most 160 px, and this run's 48 px frames not upscaled
     item = page.inner_text(f"#run-list li[data-run='{server['run_id']}']")

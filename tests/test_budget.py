@@ -34,8 +34,7 @@ def test_a_run_s_time_follows_the_gaussian_count_through_densification():
     d = cfg.densify
     cost = StepCost(fixed=0.01, per_gaussian=1e-6)
     start = 1000
-    expected = (d.start * cost.at(start) + (d.stop - d.start) * cost.at((start + 5000) / 2)
-                + (1000 - d.stop) * cost.at(5000))
+    expected = d.start * cost.at(start) + (d.stop - d.start) * cost.at((start + 5000) / 2) + (1000 - d.stop) * cost.at(5000)
     assert cost.run_seconds(cfg, start) == pytest.approx(expected)
     assert d.start > 0 and d.stop < 1000  # every part of the path is exercised
 
@@ -81,8 +80,9 @@ def test_a_small_budget_lowers_the_gaussian_budget_before_the_iterations(walk, k
 
 
 def test_an_impossible_budget_or_one_with_iterations_is_refused(walk, known_cost):
-    floor = known_cost.run_seconds(make_config("fast", scene=walk, iterations=MIN_ITERATIONS, plan_budget=False,
-                                               **{"densify.max_gaussians": 1000}), 1000)
+    floor = known_cost.run_seconds(
+        make_config("fast", scene=walk, iterations=MIN_ITERATIONS, plan_budget=False, **{"densify.max_gaussians": 1000}), 1000
+    )
     with pytest.raises(ValueError, match="too short for this scene"):
         make_config("fast", scene=walk, time_budget=0.5 * floor)
     with pytest.raises(ValueError, match="iterations or time_budget"):

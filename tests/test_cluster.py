@@ -19,11 +19,17 @@ def sweep(scene_dir, root, seeds=(0, 1), iterations=40):
     from kgs_core.train.trainer import Trainer
 
     scene = load_scene(scene_dir)
-    return [Trainer(scene, root / f"s{seed}", make_config("fast", iterations=iterations, eval_every=20, seed=seed,
-                                                          checkpoint_every=1000, decompose_at=20,
-                                                          **{"densify.start": 10}),
-                    progress=False)
-            for seed in seeds]
+    return [
+        Trainer(
+            scene,
+            root / f"s{seed}",
+            make_config(
+                "fast", iterations=iterations, eval_every=20, seed=seed, checkpoint_every=1000, decompose_at=20, **{"densify.start": 10}
+            ),
+            progress=False,
+        )
+        for seed in seeds
+    ]
 
 
 def results(trainers) -> list[str]:
@@ -32,9 +38,12 @@ def results(trainers) -> list[str]:
     from kgs_core.run import read_log
 
     keep = ("iteration", "gaussians", "dynamic_share", "final_psnr_heldout")
-    return [json.dumps({"info": {k: t.info[k] for k in keep},
-                        "log": [{k: v for k, v in r.items() if "seconds" not in k} for r in read_log(t.run_dir)]})
-            for t in trainers]
+    return [
+        json.dumps(
+            {"info": {k: t.info[k] for k in keep}, "log": [{k: v for k, v in r.items() if "seconds" not in k} for r in read_log(t.run_dir)]}
+        )
+        for t in trainers
+    ]
 
 
 def test_a_ray_sweep_equals_the_same_sweep_trained_in_turn(tiny_run, tmp_path):
@@ -65,8 +74,10 @@ def test_a_ray_sweep_equals_the_same_sweep_trained_in_turn(tiny_run, tmp_path):
 
 
 def test_without_ray_flag_nothing_imports_ray(tmp_path):
-    code = ("import sys, kgs_app.cli as c, kgs_app.bench.quality, kgs_app.bench.real, kgs_app.cluster; "
-            "c.build_parser(); print('ray' in sys.modules)")
+    code = (
+        "import sys, kgs_app.cli as c, kgs_app.bench.quality, kgs_app.bench.real, kgs_app.cluster; "
+        "c.build_parser(); print('ray' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -86,15 +97,15 @@ def test_train_many_trains_every_combination_in_turn(tiny_run, tmp_path, capsys)
 
     scene = tiny_run.parent.parent / "scenes" / "bounce"
     out = tmp_path / "many"
-    assert main(["train-many", str(scene), "--out", str(out), "--configs", "full,decompose", "--seeds", "0,1",
-                 "--iterations", "8"]) == 0
+    assert main(["train-many", str(scene), "--out", str(out), "--configs", "full,decompose", "--seeds", "0,1", "--iterations", "8"]) == 0
     rows = json.loads((out / "train-many.json").read_text())
     names = sorted(p.name for p in (out / "runs").iterdir())
     assert names == sorted(f"bounce-fast-{c}-s{s}" for c in ("full", "no_decomposition_D3DGS-like") for s in (0, 1))
     assert len(rows) == 4 and all(r["iterations"] == 8 for r in rows)
     assert all(json.loads((out / "runs" / n / "run.json").read_text())["config"]["seed"] == int(n[-1]) for n in names)
-    assert main(["train-many", str(scene), "--out", str(out), "--iterations", "8", "--seeds", "0",
-                 "--configs", "decompose"]) == 2  # the run exists: refused, nothing overwritten
+    assert (
+        main(["train-many", str(scene), "--out", str(out), "--iterations", "8", "--seeds", "0", "--configs", "decompose"]) == 2
+    )  # the run exists: refused, nothing overwritten
     assert "exists" in capsys.readouterr().err
 
 
@@ -138,20 +149,24 @@ def test_parallel_map_keeps_the_order_on_several_threads(monkeypatch):
 def test_a_fresh_process_gets_the_placement_and_explicit_settings_win():
     """What libgomp will read: the entry points (`kgs-app`, the job worker) call this before
     torch is imported."""
-    code = ("import os; from kgs_core.threads import configure_process; configure_process(); import torch; "
-            "print(os.environ['OMP_NUM_THREADS'], os.environ['GOMP_SPINCOUNT'], torch.get_num_threads())")
+    code = (
+        "import os; from kgs_core.threads import configure_process; configure_process(); import torch; "
+        "print(os.environ['OMP_NUM_THREADS'], os.environ['GOMP_SPINCOUNT'], torch.get_num_threads())"
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "GOMP_SPINCOUNT", "KGS_THREADS")}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env={**env, "KGS_THREADS": "1"})
     assert out.stdout.split() == ["1", str(SPIN_COUNT), "1"]
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={**env, "KGS_THREADS": "1", "GOMP_SPINCOUNT": "5"})
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env={**env, "KGS_THREADS": "1", "GOMP_SPINCOUNT": "5"}
+    )
     assert out.stdout.split() == ["1", "5", "1"]
     # An OMP_NUM_THREADS of the user's is kept, and no tuner changes it.
-    code2 = ("import os; from kgs_core.threads import configure_process, tuner_for_process; configure_process(); "
-             "print(os.environ['OMP_NUM_THREADS'], tuner_for_process())")
+    code2 = (
+        "import os; from kgs_core.threads import configure_process, tuner_for_process; configure_process(); "
+        "print(os.environ['OMP_NUM_THREADS'], tuner_for_process())"
+    )
     env2 = {k: v for k, v in env.items() if k != "KGS_OMP_FROM_USER"}
-    out = subprocess.run([sys.executable, "-c", code2], capture_output=True, text=True, check=True,
-                         env={**env2, "OMP_NUM_THREADS": "1"})
+    out = subprocess.run([sys.executable, "-c", code2], capture_output=True, text=True, check=True, env={**env2, "OMP_NUM_THREADS": "1"})
     assert out.stdout.split() == ["1", "None"]
 
 
@@ -173,8 +188,7 @@ def test_the_thread_tuner_follows_what_the_other_processes_use():
     t = {"wall": 0.0, "busy": 0.0, "own": 0.0}
     before = torch.get_num_threads()
     try:
-        tuner = ThreadTuner(2, window_s=0.5, machine_busy=lambda: t["busy"], own_cpu=lambda: t["own"],
-                            clock=lambda: t["wall"])
+        tuner = ThreadTuner(2, window_s=0.5, machine_busy=lambda: t["busy"], own_cpu=lambda: t["own"], clock=lambda: t["wall"])
         assert tuner.current == 2 and torch.get_num_threads() == 2
 
         def window(ours: float, others: float) -> None:  # cores used during the next 0.5 s

@@ -18,8 +18,7 @@ from kgs_core.data.synth.generate import synthesize
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
     """A small blurry bounce scene: 6 frames, 48 px, 4 sub-frames."""
-    return synthesize("bounce", tmp_path_factory.mktemp("syn") / "bounce", blur="severe", size=48, frames=6,
-                      subframes=4, progress=False)
+    return synthesize("bounce", tmp_path_factory.mktemp("syn") / "bounce", blur="severe", size=48, frames=6, subframes=4, progress=False)
 
 
 def frames_by_id(scene):
@@ -151,8 +150,10 @@ def test_dnerf_round_trip(tiny, tmp_path):
     assert_same_scene(scene, load_scene(tiny, fmt="dnerf"))  # the generator wrote both layouts
     dst = tmp_path / "dnerf"
     shutil.copytree(tiny / "rgb", dst / "rgb")
-    moved = [replace(f, image_path=dst / "rgb" / "1x" / f.image_path.name, sharp_path=None, mask_path=None, motion_path=None)
-             for f in scene.frames]
+    moved = [
+        replace(f, image_path=dst / "rgb" / "1x" / f.image_path.name, sharp_path=None, mask_path=None, motion_path=None)
+        for f in scene.frames
+    ]
     scene.frames = moved
     write_dnerf(scene, dst)
     assert detect_format(dst) == "dnerf"
@@ -224,6 +225,7 @@ def test_bad_rotation_is_rejected(copy):
 def test_non_monotonic_time(copy):
     def swap(js):
         js["c0_00001"]["time"], js["c0_00003"]["time"] = js["c0_00003"]["time"], js["c0_00001"]["time"]
+
     break_json(copy / "metadata.json", swap)
     with pytest.raises(SceneError, match=r"metadata\.json: camera 0: time goes backwards at frame c0_00002"):
         load_scene(copy)
@@ -238,6 +240,7 @@ def test_time_outside_unit_interval(copy):
 def test_non_monotonic_time_in_dnerf(copy):
     def swap(js):
         js["frames"][1]["time"], js["frames"][3]["time"] = 0.9, 0.1
+
     break_json(copy / "transforms_train.json", swap)
     scene = load_scene(copy, fmt="dnerf")  # D-NeRF frames are re-ordered by time: allowed
     assert [f.time for f in scene.train_frames] == sorted(f.time for f in scene.train_frames)

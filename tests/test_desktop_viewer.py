@@ -48,8 +48,19 @@ def draw(model, egl):
 
     model.sync()
     s = model.state
-    return render_offscreen(model.static, model.dynamic, s.viewmat, s.K, model.width, model.height, ctx=egl,
-                            show=s.show_mask, overlay=s.overlay, stride=s.stride, arrows=s.arrows).astype(np.float64)
+    return render_offscreen(
+        model.static,
+        model.dynamic,
+        s.viewmat,
+        s.K,
+        model.width,
+        model.height,
+        ctx=egl,
+        show=s.show_mask,
+        overlay=s.overlay,
+        stride=s.stride,
+        arrows=s.arrows,
+    ).astype(np.float64)
 
 
 def test_gl_frame_matches_cpu_rasteriser(model, egl):
@@ -147,9 +158,28 @@ def test_window_under_xvfb(tiny_run, tmp_path):
             raise RuntimeError("xvfb-run missing (apt-get install xvfb)")
         pytest.skip("xvfb-run not installed")
     shot = tmp_path / "window.png"
-    r = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 800x600x24", sys.executable, "-m", "kgs_app.cli", "view",
-                        str(tiny_run), "--frames", "5", "--screenshot", str(shot), "--time", "0.5"],
-                       capture_output=True, text=True, timeout=180)
+    r = subprocess.run(
+        [
+            "xvfb-run",
+            "-a",
+            "-s",
+            "-screen 0 800x600x24",
+            sys.executable,
+            "-m",
+            "kgs_app.cli",
+            "view",
+            str(tiny_run),
+            "--frames",
+            "5",
+            "--screenshot",
+            str(shot),
+            "--time",
+            "0.5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     from PIL import Image
 
@@ -171,8 +201,9 @@ def test_remote_source_matches_local(tiny_run, tmp_path, egl):
         imgs = []
         for src in (local, remote):
             st, dy = src.static(None), src.dynamic(0.25, 0.0, None)
-            imgs.append(render_offscreen(st, dy, np.array(f["viewmat"]), np.array(f["K"]), f["width"], f["height"],
-                                         ctx=egl).astype(np.float64))
+            imgs.append(
+                render_offscreen(st, dy, np.array(f["viewmat"]), np.array(f["K"]), f["width"], f["height"], ctx=egl).astype(np.float64)
+            )
         assert np.abs(imgs[0] - imgs[1]).max() <= 2
         assert remote.set_tau(1.0)["dynamic"] == 0
         remote.close()

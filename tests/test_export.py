@@ -20,11 +20,10 @@ from kgs_core.export.bake import bake, open_source, parse_times, scales_quats_fr
 
 
 def quat_rotmat(q):
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
+    """An independent reference: scipy's rotation from wxyz quaternions (scipy takes xyzw)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)[:, [1, 2, 3, 0]]).as_matrix()
 
 
 def cov_from(scales, quats):
@@ -58,9 +57,11 @@ def test_ply_sequence_reads_back_with_plyfile(tiny_run, tmp_path):
         v = PlyData.read(str(f))["vertex"]
         names = [p.name for p in v.properties]
         k = (src.sh_degree + 1) ** 2
-        assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-                         + [f"f_rest_{i}" for i in range(3 * (k - 1))]
-                         + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+        assert names == (
+            ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+        )
         g = bake(src, t)
         assert len(v) == len(g)
         xyz = np.stack([v["x"], v["y"], v["z"]], 1)
@@ -109,7 +110,7 @@ def test_splatv_container_and_fit(tiny_run, tmp_path):
     data = out.read_bytes()
     magic, n = struct.unpack_from("<II", data, 0)
     assert magic == 0x674B
-    header = json.loads(data[8:8 + n])
+    header = json.loads(data[8 : 8 + n])
     chunk = header[0]
     assert chunk["type"] == "splat" and chunk["texwidth"] == 4096
     assert chunk["size"] == chunk["texheight"] * 4096 * 4 * 4 == len(data) - 8 - n
@@ -198,6 +199,7 @@ def test_splatv_averages_a_time_opacity_over_the_clip(tiny_run):
     np.testing.assert_allclose(opacity, baked.mean(0), atol=0.01)
     assert np.abs(baked[4] - baked.mean(0)).max() > 0.05  # the centre time alone would differ
 
+
 def test_splatv_cameras_are_display_sized_and_the_suffix_is_added(tiny_run, tmp_path):
     """splaTV reads fx against its window width: the cameras keep the training field of view at
     a display-sized width; `--out NAME` without the suffix writes NAME.splatv."""
@@ -210,7 +212,7 @@ def test_splatv_cameras_are_display_sized_and_the_suffix_is_added(tiny_run, tmp_
     assert res.path == tmp_path / "scene.splatv" and res.path.is_file()
     data = res.path.read_bytes()
     (n,) = struct.unpack_from("<I", data, 4)
-    cams = json.loads(data[8:8 + n])[0]["cameras"]
+    cams = json.loads(data[8 : 8 + n])[0]["cameras"]
     cam = load_scene(tiny_run.parent.parent / "scenes" / "bounce").train_frames[0].camera
     assert cams and cams[0]["width"] == DISPLAY_WIDTH
     fov = lambda f, w: 2 * math.degrees(math.atan(w / (2 * f)))  # noqa: E731
@@ -234,9 +236,19 @@ def test_mp4_training_path_and_side_by_side(tiny_run, tmp_path):
         orbit = [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
     assert len(orbit) == 6 and np.abs(orbit[0].astype(int) - orbit[3].astype(int)).mean() > 3
     keys = tmp_path / "path.json"
-    keys.write_text(json.dumps({"width": 64, "height": 32, "frames": 4, "keyframes": [
-        {"time": 0, "eye": [0, -3, 1], "target": [0, 0, 0], "up": [0, 0, 1]},
-        {"time": 1, "eye": [3, 0, 1], "target": [0, 0, 0], "up": [0, 0, 1]}]}))
+    keys.write_text(
+        json.dumps(
+            {
+                "width": 64,
+                "height": 32,
+                "frames": 4,
+                "keyframes": [
+                    {"time": 0, "eye": [0, -3, 1], "target": [0, 0, 0], "up": [0, 0, 1]},
+                    {"time": 1, "eye": [3, 0, 1], "target": [0, 0, 0], "up": [0, 0, 1]},
+                ],
+            }
+        )
+    )
     res = export_run(tiny_run, "mp4", out=tmp_path / "k.mp4", keyframes=keys, progress=False)
     assert res.report["times"] == [0.0, 1 / 3, 2 / 3, 1.0]
 
@@ -289,17 +301,20 @@ def test_edits_are_honoured_and_static_exports_one_frame(copy_run, tmp_path):
         export_run(copy_run, "splat", out=tmp_path / "d", progress=False)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--format", "obj"], "format: Input should be 'ply-seq'"),
-    (["--format", "splat", "--times", "0,2"], "must lie in [0, 1]"),
-    (["--format", "splat", "--times", "a:b"], "START:STOP:COUNT"),
-    (["--format", "glb", "--times", "0,1"], "one time"),
-    (["--format", "mp4", "--exposure", "3"], "exposure: Input should be less than or equal to 1"),
-    (["--format", "splat", "--lod", "9"], "LoD level must be in"),
-    (["--format", "mp4", "--keyframes", "nope.json"], "not found"),
-    (["--format", "mp4", "--camera-path", "nope.json"], "camera_path: Input should be 'training', 'orbit' or 'view'"),
-    (["--format", "splat", "--size", "256"], "size sets a video's resolution"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--format", "obj"], "format: Input should be 'ply-seq'"),
+        (["--format", "splat", "--times", "0,2"], "must lie in [0, 1]"),
+        (["--format", "splat", "--times", "a:b"], "START:STOP:COUNT"),
+        (["--format", "glb", "--times", "0,1"], "one time"),
+        (["--format", "mp4", "--exposure", "3"], "exposure: Input should be less than or equal to 1"),
+        (["--format", "splat", "--lod", "9"], "LoD level must be in"),
+        (["--format", "mp4", "--keyframes", "nope.json"], "not found"),
+        (["--format", "mp4", "--camera-path", "nope.json"], "camera_path: Input should be 'training', 'orbit' or 'view'"),
+        (["--format", "splat", "--size", "256"], "size sets a video's resolution"),
+    ],
+)
 def test_bad_export_arguments(tiny_run, tmp_path, capsys, argv, message):
     try:
         rc = cli(["export", str(tiny_run), "--out", str(tmp_path / "x"), *argv])
@@ -378,8 +393,7 @@ def test_web_frame_puts_the_opening_view_at_the_viewers_default_camera(tiny_run,
     v = {"antimatter15": ANTIMATTER15, "splatv": SPLATV}[viewer]
     cam, g = first_camera(tiny_run), bake(open_source(tiny_run), 0.5)
     sim = web_frame(v, cam.viewmat, cam.K, cam.width, g.means.astype(np.float64))
-    W, depth = opening_camera(cam.viewmat, cam.K, cam.width, g.means.astype(np.float64),
-                              v.fx or cam.K[0, 0] * REFERENCE_WIDTH / cam.width)
+    W, depth = opening_camera(cam.viewmat, cam.K, cam.width, g.means.astype(np.float64), v.fx or cam.K[0, 0] * REFERENCE_WIDTH / cam.width)
     assert (W[2, 3] > cam.viewmat[2, 3]) == (v.fx is not None and v.fx / REFERENCE_WIDTH > cam.K[0, 0] / cam.width)
     V, moved = viewer_matrix(v), sim.apply(g)
     ours = g.means @ W[:3, :3].T + W[:3, 3]
@@ -408,8 +422,12 @@ def test_web_frame_turns_the_view_dependent_colour_with_the_scene(tiny_run):
     sim = Similarity(1.7, Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix(), np.array([0.3, -2.0, 5.0]))
     moved = sim.apply(g)
     eye = np.array([0.5, -0.8, -3.0])
-    colour = lambda h, eye_: eval_sh_reference(torch.tensor(h.sh[:, :4]), torch.tensor(h.means),  # noqa: E731
-                                               torch.tensor(eye_, dtype=torch.float32), 1).numpy()
+    colour = lambda h, eye_: eval_sh_reference(
+        torch.tensor(h.sh[:, :4]),
+        torch.tensor(h.means),  # noqa: E731
+        torch.tensor(eye_, dtype=torch.float32),
+        1,
+    ).numpy()
     np.testing.assert_allclose(colour(moved, sim.scale * sim.R @ eye + sim.t), colour(g, eye), atol=1e-4)
     assert np.abs(colour(moved, eye) - colour(g, eye)).max() > 0.05  # the eye moved with it matters
 

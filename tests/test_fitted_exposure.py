@@ -23,8 +23,9 @@ def still_scene_and_camera():
     with torch.no_grad():
         p.log_scales.fill_(np.log(0.01))
         p.opacity_logits.fill_(2.0)
-    model = KinematicsGS(p, ModelConfig(sh_degree=0, feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4,
-                                        deform_multires=(1,)))
+    model = KinematicsGS(
+        p, ModelConfig(sh_degree=0, feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4, deform_multires=(1,))
+    )
     model.decompose(tau=1.0)  # a fresh field: every Gaussian static, blurred by the camera alone
     cam = Camera(K=np.array([[60.0, 0, 32], [0, 60.0, 32], [0, 0, 1]]), viewmat=np.eye(4), width=64, height=64)
     motion = (torch.zeros(3, 3), torch.tensor([2.0, 0.0, 0.0]))
@@ -70,8 +71,19 @@ def test_training_fits_the_exposure_and_records_the_choice(tmp_path):
 
     walk = load_scene(Path(__file__).parent / "fixtures" / "walk96")
     # τ ~0 (a τ must be above 0): every Gaussian dynamic from the decomposition on, so that K.R. blurs (and the fit acts) at once.
-    cfg = make_config("fast", scene=walk, iterations=40, decompose_at=10, decompose_every=0, eval_every=20,
-                      checkpoint_every=20, fit_exposure=True, exposure=0.3, tau_auto=False, **{"model.tau": 1e-12})
+    cfg = make_config(
+        "fast",
+        scene=walk,
+        iterations=40,
+        decompose_at=10,
+        decompose_every=0,
+        eval_every=20,
+        checkpoint_every=20,
+        fit_exposure=True,
+        exposure=0.3,
+        tau_auto=False,
+        **{"model.tau": 1e-12},
+    )
     t = Trainer(walk, tmp_path / "r", cfg, progress=False)
     info = t.run()
     assert info["exposure"] != pytest.approx(0.3, abs=1e-4) and 0 < info["exposure"] < 1

@@ -39,7 +39,7 @@ def test_forward_backward_check_keeps_flow_the_way_back_confirms():
     fwd = np.zeros((H, W, 2), np.float32)
     fwd[..., 0] = 3.0
     ok = consistent(fwd, -fwd)
-    assert ok[:, : W - 3].all() and not ok[:, W - 2:].any()
+    assert ok[:, : W - 3].all() and not ok[:, W - 2 :].any()
     bad = -fwd.copy()
     bad[10:, ..., 0] = 3.0
     ok = consistent(fwd, bad)
@@ -96,8 +96,8 @@ def patch_over_background(seed: int, pan: int, move: int) -> list:
     background, patch = texture(96, 148, 1.5), texture(16, 16, 0.8)
 
     def frame(fid, time, pan, x):
-        img = background[:, 10 + pan:138 + pan].copy()
-        img[40:56, x:x + 16] = patch
+        img = background[:, 10 + pan : 138 + pan].copy()
+        img[40:56, x : x + 16] = patch
         return types.SimpleNamespace(id=fid, time=time, camera_id=0, image=lambda img=img: np.stack([img] * 3, -1))
 
     return [frame("a", 0.0, 0, 50), frame("b", 1.0, pan, 50 + move)]
@@ -152,8 +152,9 @@ def test_trainer_flow_term_reaches_the_field_and_trains_with_pose_refinement(tmp
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import Trainer
 
-    scene = load_scene(synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0,
-                                  progress=False, overwrite=True))
+    scene = load_scene(
+        synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0, progress=False, overwrite=True)
+    )
     cfg = make_config("fast", iterations=40)
     cfg.lambda_flow, cfg.pose_refine = 0.01, True
     tr = Trainer(scene, tmp_path / "r", cfg, progress=False)
@@ -192,8 +193,9 @@ def test_without_kr_velocity_the_flow_term_moves_own_line_gaussians_by_their_own
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import Trainer
 
-    scene = load_scene(synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0,
-                                  progress=False, overwrite=True))
+    scene = load_scene(
+        synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0, progress=False, overwrite=True)
+    )
     cfg = make_config("fast", iterations=30)
     cfg.lambda_flow = 0.01
     tr = Trainer(scene, tmp_path / "r", cfg, progress=False)

@@ -26,8 +26,7 @@ def still_clip(n_frames: int = 4):
     m = moving_model(n=600, seed=2)
     m.dynamic[:] = False  # canonical positions at every time: the same pixels in every frame
     cam = Camera(intrinsics(W, H).numpy(), look_at((0.0, 0.0, -2.0), (0.0, 0.0, 0.0)).numpy(), W, H)
-    frames = [Frame(id=f"f{i}", image_path=Path(f"f{i}.png"), time=i / (n_frames - 1), camera=cam)
-              for i in range(n_frames)]
+    frames = [Frame(id=f"f{i}", image_path=Path(f"f{i}.png"), time=i / (n_frames - 1), camera=cam) for i in range(n_frames)]
     flow = torch.zeros(H, W, 2)
     flow[PATCH[0], PATCH[1], 1] = 3.0
     flows = {f.id: (i + 1, flow) for i, f in enumerate(frames[:-1])}
@@ -67,7 +66,7 @@ def test_scattered_moving_pixels_are_not_an_object():
     m, frames, flows = still_clip()
     strips = torch.zeros(H, W, 2)
     for r in range(PATCH[0].start, PATCH[0].stop, 3):
-        strips[r:r + 2, PATCH[1], 1] = 3.0
+        strips[r : r + 2, PATCH[1], 1] = 3.0
     flows = {k: (j, strips) for k, (j, _) in flows.items()}
     none = torch.zeros(len(m), dtype=torch.bool)
     assert not flow_moving(m, frames, flows, none, share=0.1, exposure=0.0, dt=1.0).any()
@@ -77,8 +76,7 @@ def test_the_reading_reads_at_most_its_views_and_never_a_cameras_last_frame():
     """`read_frames`: two cameras of 40 frames each, read 16 of the 78 with a next frame, spread
     over both; the flows the decomposition computes for a run without them are those 16 alone."""
     cam = still_clip()[1][0].camera
-    frames = [Frame(id=f"c{c}f{i}", image_path=Path("x.png"), time=i / 39, camera=cam, camera_id=c)
-              for c in (0, 1) for i in range(40)]
+    frames = [Frame(id=f"c{c}f{i}", image_path=Path("x.png"), time=i / 39, camera=cam, camera_id=c) for c in (0, 1) for i in range(40)]
     read = read_frames(frames, 16)
     assert len(read) == 16 and {f.camera_id for f in read} == {0, 1}
     assert all(f.time < 1.0 for f in read)

@@ -21,19 +21,22 @@ from kgs_core.data.scene import SceneError
 from kgs_core.data.synth.generate import synthesize
 
 JSON = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**20, 10**20) | st.floats(allow_nan=True, allow_infinity=True)
-    | st.text(max_size=6),
+    st.none() | st.booleans() | st.integers(-(10**20), 10**20) | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=6),
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4),
-    max_leaves=10)
+    max_leaves=10,
+)
 # Deterministic in CI; KGS_HYPOTHESIS_EXAMPLES=1000 searches harder by hand.
-SETTINGS = settings(max_examples=int(os.environ.get("KGS_HYPOTHESIS_EXAMPLES", 60)), derandomize=True, deadline=None,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture])
+SETTINGS = settings(
+    max_examples=int(os.environ.get("KGS_HYPOTHESIS_EXAMPLES", 60)),
+    derandomize=True,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory) -> Path:
-    return synthesize("bounce", tmp_path_factory.mktemp("hostile") / "bounce", blur="none", size=32, frames=4,
-                      subframes=1, progress=False)
+    return synthesize("bounce", tmp_path_factory.mktemp("hostile") / "bounce", blur="none", size=32, frames=4, subframes=1, progress=False)
 
 
 def load_edited(scene_dir: Path, rel: str, edit, fmt: str) -> None:
@@ -52,12 +55,15 @@ def load_edited(scene_dir: Path, rel: str, edit, fmt: str) -> None:
 
 
 @SETTINGS
-@given(key=st.sampled_from(["file_path", "time", "exposure", "camera_id", "id", "transform_matrix",
-                            "sharp_file_path", "mask_file_path"]), value=JSON)
+@given(
+    key=st.sampled_from(["file_path", "time", "exposure", "camera_id", "id", "transform_matrix", "sharp_file_path", "mask_file_path"]),
+    value=JSON,
+)
 def test_dnerf_frame_fields(scene_dir, key, value):
     def edit(js):
         js["frames"][1][key] = value
         return js
+
     load_edited(scene_dir, "transforms_train.json", edit, "dnerf")
 
 
@@ -77,12 +83,27 @@ def test_nerfies_metadata_fields(scene_dir, key, value, drop_time):
                 f.pop("time", None)
         frame[key] = value
         return js
+
     load_edited(scene_dir, "metadata.json", edit, "nerfies")
 
 
 @SETTINGS
-@given(key=st.sampled_from(["focal_length", "principal_point", "image_size", "orientation", "position", "skew",
-                            "pixel_aspect_ratio", "radial_distortion", "tangential_distortion"]), value=JSON)
+@given(
+    key=st.sampled_from(
+        [
+            "focal_length",
+            "principal_point",
+            "image_size",
+            "orientation",
+            "position",
+            "skew",
+            "pixel_aspect_ratio",
+            "radial_distortion",
+            "tangential_distortion",
+        ]
+    ),
+    value=JSON,
+)
 def test_nerfies_camera_fields(scene_dir, key, value):
     load_edited(scene_dir, "camera/c0_00001.json", lambda js: {**js, key: value}, "nerfies")
 
@@ -143,6 +164,7 @@ def test_colmap_times_fields(colmap_dir, key, value, whole):
         first = next(iter(js))
         js[first] = value if whole else {**js[first], key: value}
         return js
+
     load_colmap_edited(colmap_dir, "times.json", edit)
 
 

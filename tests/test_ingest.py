@@ -12,6 +12,23 @@ from kgs_core.data.scene import SceneError
 from kgs_core.data.video import decode_video, encode_video
 
 
+def sfm_of_frames(folder, meta, work, mapper: str, keyframe_step: int):
+    """`run_sfm` on a `frame_set` folder's first camera, as ingest calls it."""
+    from kgs_core.data import sfm
+
+    return sfm.run_sfm(
+        folder / "database.db",
+        folder / "images",
+        work,
+        meta["names_a"],
+        [],
+        meta["sharpness"],
+        mapper,
+        keyframe_step=keyframe_step,
+        progress=False,
+    )
+
+
 def test_video_round_trip(room_video):
     video, gt = room_video
     frames = decode_video(video, progress=False)
@@ -93,17 +110,14 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
     shrinking, leaves one keyframe), auto tries keyframes twice as dense, then goes on to the
     incremental mapper, and records every attempt."""
     from kgs_core.data import sfm
-    from kgs_core.data.ingest import frame_set
-    from kgs_core.data.sfm import run_sfm
+    from kgs_core.data.frame_cache import frame_set
 
     monkeypatch.setattr(sfm, "MIN_KEYFRAMES", 0)
     video, _ = room_video
     folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
-    result = run_sfm(folder / "database.db", folder / "images", tmp_path / "work", meta["names_a"], [],
-                     meta["sharpness"], "auto", keyframe_step=64, progress=False)
+    result = sfm_of_frames(folder, meta, tmp_path / "work", "auto", 64)
     assert result.mapper == "incremental"
-    assert [(a["mapper"], a.get("keyframe_step")) for a in result.attempts] == [
-        ("keyframes", 64), ("keyframes", 32), ("incremental", None)]
+    assert [(a["mapper"], a.get("keyframe_step")) for a in result.attempts] == [("keyframes", 64), ("keyframes", 32), ("incremental", None)]
     assert [a["outcome"] for a in result.attempts[:2]] == ["no model", "no model"]
     assert result.attempts[2]["registered_fraction"] >= 0.9
     # A keyframe model that poses too few frames (here: every 4th frame's, made to lose three
@@ -119,18 +133,15 @@ def test_auto_mapper_falls_back_to_incremental(room_video, tmp_path, monkeypatch
         return rec
 
     monkeypatch.setattr(sfm, "map_keyframes", short_at_step_4)
-    result = run_sfm(folder / "database.db", folder / "images", tmp_path / "work2", meta["names_a"], [],
-                     meta["sharpness"], "auto", keyframe_step=4, progress=False)
+    result = sfm_of_frames(folder, meta, tmp_path / "work2", "auto", 4)
     steps = [(a["mapper"], a.get("keyframe_step"), a.get("seed")) for a in result.attempts]
-    assert steps == [("keyframes", 4, 0), ("keyframes", 4, sfm.KEYFRAME_RETRY_SEED), ("keyframes", 2, 0)], \
-        result.attempts
+    assert steps == [("keyframes", 4, 0), ("keyframes", 4, sfm.KEYFRAME_RETRY_SEED), ("keyframes", 2, 0)], result.attempts
     assert max(a["registered_fraction"] for a in result.attempts[:2]) < 0.95 <= result.attempts[2]["registered_fraction"]
     assert result.mapper == "keyframes"
 
 
 @pytest.mark.parametrize("second_camera, first_step", [(True, 8), (False, 4)])
-def test_long_clips_keyframe_every_8th_frame_only_with_a_second_camera(second_camera, first_step, tmp_path,
-                                                                        monkeypatch):
+def test_long_clips_keyframe_every_8th_frame_only_with_a_second_camera(second_camera, first_step, tmp_path, monkeypatch):
     """From 256 frames per camera auto starts from keyframes every 8th frame when a second camera
     gives each keyframe its same-time twin; one video starts from every 4th, where every 8th fell
     apart in most draws (docs/data.md, "Ingest speed")."""
@@ -146,13 +157,11 @@ def test_long_clips_keyframe_every_8th_frame_only_with_a_second_camera(second_ca
     monkeypatch.setattr(sfm, "map_incremental", lambda *args: None)
     names_a = [f"f{i:05d}_a.png" for i in range(300)]
     names_b = [n.replace("_a.", "_b.") for n in names_a] if second_camera else []
-    assert sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a, names_b, {},
-                       "auto", progress=False) is None
+    assert sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a, names_b, {}, "auto", progress=False) is None
     assert steps == [first_step, first_step // 2]
     # A shorter clip starts from every 4th frame either way.
     steps.clear()
-    sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a[:200], names_b[:200], {},
-                "auto", progress=False)
+    sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a[:200], names_b[:200], {}, "auto", progress=False)
     assert steps[0] == 4
 
 
@@ -164,7 +173,7 @@ def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tm
     time) and the pairs of frames 3, 7, 11 and 15 with every keyframe are hidden; their pairs
     with frames 1, 5, 9 and 13, which the first pass poses, are not."""
     from kgs_core.data import sfm
-    from kgs_core.data.ingest import frame_set
+    from kgs_core.data.frame_cache import frame_set
 
     monkeypatch.setattr(sfm, "MIN_KEYFRAMES", 0)
     video, _ = room_video
@@ -182,8 +191,7 @@ def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tm
 
     monkeypatch.setattr(sfm, "_verified_partners", without_keyframe_pairs)
     stages = {}
-    rec = sfm.map_keyframes(folder / "database.db", folder / "images", tmp_path / "work", names, [], 2,
-                            progress=False, stages=stages)
+    rec = sfm.map_keyframes(folder / "database.db", folder / "images", tmp_path / "work", names, [], 2, progress=False, stages=stages)
     assert rec.num_reg_images() == len(names)
     passes = stages["register_passes"]
     assert len(passes) >= 2 and passes[0] <= 4 and sum(passes) == 8, passes
@@ -196,7 +204,7 @@ def test_auto_mapper_maps_keyframes_that_fell_apart_again_with_another_seed(room
     KEYFRAME_RETRY_SEED before the denser keyframes or the incremental mapper; both attempts are
     recorded with their seeds. An explicit `--mapper keyframes` does not retry."""
     from kgs_core.data import sfm
-    from kgs_core.data.ingest import frame_set
+    from kgs_core.data.frame_cache import frame_set
 
     real = sfm.map_keyframes
     seeds = []
@@ -210,15 +218,13 @@ def test_auto_mapper_maps_keyframes_that_fell_apart_again_with_another_seed(room
     monkeypatch.setattr(sfm, "map_keyframes", fragile)
     video, _ = room_video
     folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
-    result = sfm.run_sfm(folder / "database.db", folder / "images", tmp_path / "work", meta["names_a"], [],
-                         meta["sharpness"], "auto", keyframe_step=2, progress=False)
+    result = sfm_of_frames(folder, meta, tmp_path / "work", "auto", 2)
     assert seeds == [0, sfm.KEYFRAME_RETRY_SEED] and result.mapper == "keyframes"
     assert [(a["keyframe_step"], a["seed"]) for a in result.attempts] == [(2, 0), (2, sfm.KEYFRAME_RETRY_SEED)]
     assert "fell apart" in result.attempts[0]["outcome"] and result.attempts[1]["outcome"] == "ok"
     assert result.attempts[1]["registered_fraction"] >= 0.95
     seeds.clear()
-    assert sfm.run_sfm(folder / "database.db", folder / "images", tmp_path / "work2", meta["names_a"], [],
-                       meta["sharpness"], "keyframes", keyframe_step=2, progress=False) is None
+    assert sfm_of_frames(folder, meta, tmp_path / "work2", "keyframes", 2) is None
     assert seeds == [0]
 
 
@@ -259,16 +265,14 @@ def test_another_size_reuses_the_poses(room_video, tmp_path):
         assert fb.image().shape[:2] == (fb.camera.height, fb.camera.width)
         assert max(fb.camera.width, fb.camera.height) <= 96
         np.testing.assert_allclose(fb.camera.K[0, 0] / fb.camera.width, fa.camera.K[0, 0] / fa.camera.width, rtol=0.03)
-    again = ingest(video, tmp_path / "mapped", max_size=96, holdout_every=0, cache_dir=cache, mapper="keyframes",
-                   progress=False)
+    again = ingest(video, tmp_path / "mapped", max_size=96, holdout_every=0, cache_dir=cache, mapper="keyframes", progress=False)
     assert again.poses_from is None and "mapping" in again.seconds
     # A kept model that cannot be read (its model files, then its metadata) is mapped anew, not an error.
     for corrupt in ("sparse", "poses.json"):
         for kept in (cache / "poses").iterdir():
-            for f in ((kept / "sparse").iterdir() if corrupt == "sparse" else [kept / "poses.json"]):
+            for f in (kept / "sparse").iterdir() if corrupt == "sparse" else [kept / "poses.json"]:
                 f.write_bytes(b"\x00garbage")
-        broken = ingest(video, tmp_path / f"broken-{corrupt}", max_size=96, holdout_every=0, cache_dir=cache,
-                        progress=False)
+        broken = ingest(video, tmp_path / f"broken-{corrupt}", max_size=96, holdout_every=0, cache_dir=cache, progress=False)
         assert broken.poses_from is None and "mapping" in broken.seconds, corrupt
         assert broken.registered >= 0.9 * broken.frames
 
@@ -355,22 +359,25 @@ def synthetic_reconstruction(true_lens: str, true_params: list[float], seed: int
     truth = pycolmap.Camera(model=true_lens, width=w, height=h, params=true_params)
     f = float(true_params[0])
     rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h,
-                                                    params=[f, w / 2, h / 2, 0.0], camera_id=1))
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h, params=[f, w / 2, h / 2, 0.0], camera_id=1))
     points = rng.uniform([-1.5, -0.8, 3], [1.5, 0.8, 6], (300, 3))
     ids = [rec.add_point3D(p, pycolmap.Track(), np.array([128, 128, 128], np.uint8)) for p in points]
     for i in range(12):
         # A hand-held path: yaw, pitch and roll all vary (with yaw alone, stretching the scene
         # along x would trade against fx / fy).
         a = np.radians([-10 + 20 * i / 11, 6 * np.sin(i), 15 * np.cos(1.3 * i)])
-        R = (pycolmap.Rotation3d(np.array([0, 1.0, 0]) * a[0]).matrix() @ pycolmap.Rotation3d(np.array([1.0, 0, 0]) * a[1]).matrix()
-             @ pycolmap.Rotation3d(np.array([0, 0, 1.0]) * a[2]).matrix())
+        R = (
+            pycolmap.Rotation3d(np.array([0, 1.0, 0]) * a[0]).matrix()
+            @ pycolmap.Rotation3d(np.array([1.0, 0, 0]) * a[1]).matrix()
+            @ pycolmap.Rotation3d(np.array([0, 0, 1.0]) * a[2]).matrix()
+        )
         t = np.array([0.15 * i - 0.8, 0.1 * np.cos(i), 0.0])
         cam_points = points @ R.T + t
         keypoints = np.asarray(truth.img_from_cam(cam_points)) + rng.normal(0, 0.05, (len(points), 2))
         rec.add_image_with_trivial_frame(
             pycolmap.Image(name=f"f{i:05d}_a.png", keypoints=keypoints, camera_id=1, image_id=i + 1),
-            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t),
+        )
         for j, pid in enumerate(ids):
             rec.add_observation(pid, pycolmap.TrackElement(i + 1, j))
     ba = pycolmap.BundleAdjustmentOptions()
@@ -416,10 +423,10 @@ def test_lens_refit_follows_the_keyframe_probe():
 
     whole = synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0])
     # Keyframe models: other draws of the views, through a lens SIMPLE_RADIAL describes / the same lens.
-    _, flat = refine_lens(synthetic_reconstruction("SIMPLE_RADIAL", [200.0, 160.0, 90.0, 0.05], seed=1),
-                          iterations=LENS_PROBE_ITERATIONS)
-    _, steep = refine_lens(synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0],
-                                                    seed=1), iterations=LENS_PROBE_ITERATIONS)
+    _, flat = refine_lens(synthetic_reconstruction("SIMPLE_RADIAL", [200.0, 160.0, 90.0, 0.05], seed=1), iterations=LENS_PROBE_ITERATIONS)
+    _, steep = refine_lens(
+        synthetic_reconstruction("OPENCV", [208.0, 200.0, 160.0, 90.0, 0.05, 0.0, 0.004, 0.0], seed=1), iterations=LENS_PROBE_ITERATIONS
+    )
     assert lens_gain(flat) < 0.03 < lens_gain(steep)
 
     skipped, report = refine_lens(whole, probe=flat)
@@ -431,4 +438,3 @@ def test_lens_refit_follows_the_keyframe_probe():
     # A probe without a result (its adjustment failed) decides nothing.
     assert lens_gain({"before_px": 1.0, "kept": False, "reason": "the adjustment failed"}) is None
     assert refine_lens(whole, probe={"before_px": 1.0, "kept": False})[1]["kept"]
-

@@ -54,9 +54,10 @@ def test_coarse_l1_still_sees_how_far_a_displaced_object_is():
     """A 4 px square drawn 6 or 12 px from where the frame has it: full-resolution L1 is the same
     for both (no overlap either way, so it has no gradient towards the right place); the 8 px
     pooled term is lower for the nearer one."""
+
     def square(x0: int) -> torch.Tensor:
         img = torch.zeros(32, 48, 3)
-        img[12:16, x0:x0 + 4] = 1.0
+        img[12:16, x0 : x0 + 4] = 1.0
         return img
 
     frame = square(8)

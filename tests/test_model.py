@@ -24,8 +24,9 @@ def moving_model(n: int = 48, seed: int = 0, **config) -> KinematicsGS:
     g = torch.Generator().manual_seed(seed)
     p = init_from_points((0.3 * torch.randn(n, 3, generator=g)).numpy(), np.full((n, 3), 0.5), 1, 4).requires_grad_(True)
     torch.manual_seed(seed)
-    m = KinematicsGS(p, ModelConfig(feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4,
-                                    deform_multires=(1, 2), **config))
+    m = KinematicsGS(
+        p, ModelConfig(feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4, deform_multires=(1, 2), **config)
+    )
     with torch.no_grad():
         for mlp in (m.deform.mlp, m.fine.mlp):
             mlp[-1].weight.normal_(0, 0.3, generator=g)
@@ -59,8 +60,7 @@ def test_batched_field_evaluation_matches_one_time_at_a_time(coarse_to_fine):
 
 
 # 16 and 32 channels run the kernels compiled for the presets' counts; 4 and 20 the general ones.
-@pytest.mark.parametrize("spatial,temporal,features,multires",
-                         [(32, 16, 16, (1,)), (8, 5, 32, (1,)), (8, 5, 4, (1, 2)), (6, 3, 20, (1,))])
+@pytest.mark.parametrize("spatial,temporal,features,multires", [(32, 16, 16, (1,)), (8, 5, 32, (1,)), (8, 5, 4, (1, 2)), (6, 3, 20, (1,))])
 def test_fused_kplanes_kernel_matches_grid_sample(spatial, temporal, features, multires):
     """The C++ K-Planes kernel against the grid_sample expression (its oracle): features and
     the gradients of the coordinates and of every plane, points beyond the bound included
@@ -118,16 +118,19 @@ def test_coarse_neighbourhoods_do_not_reach_a_far_cluster():
     g = torch.Generator().manual_seed(0)
     pts = torch.cat([0.05 * torch.randn(40, 3, generator=g), torch.tensor([[2.0, 0.0, 0.0]])])
     for radius, alone in ((3.0, True), (0.0, False)):
-        m = KinematicsGS(init_from_points(pts.numpy(), np.full((41, 3), 0.5), 1, 4),
-                         ModelConfig(feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4,
-                                     deform_multires=(1, 2), knn_radius=radius))
+        m = KinematicsGS(
+            init_from_points(pts.numpy(), np.full((41, 3), 0.5), 1, 4),
+            ModelConfig(feature_dim=4, deform_spatial=8, deform_temporal=4, deform_features=4, deform_multires=(1, 2), knn_radius=radius),
+        )
         m.decompose(tau=0.0)
         m.dynamic[:] = True
         knn = m.knn_index()
         assert (knn[-1] == 40).all().item() is alone, knn[-1]
         assert (knn[:40] < 40).all()  # the cluster's own neighbourhoods are untouched
-    assert ModelConfig.from_dict({k: v for k, v in ModelConfig().to_dict().items()
-                                  if k not in ("knn_radius", "config_version")}).knn_radius == 0  # saved before both
+    assert (
+        ModelConfig.from_dict({k: v for k, v in ModelConfig().to_dict().items() if k not in ("knn_radius", "config_version")}).knn_radius
+        == 0
+    )  # saved before both
 
 
 @pytest.mark.parametrize("coarse_to_fine", [True, False])
@@ -165,8 +168,7 @@ def test_velocity_without_gradient_is_the_same_velocity_and_trains_the_field_onl
         g = m.at(t, exposure=exposure, dt=dt)
         idx, sweep = g.sweep
         field = list(m.deform.parameters())
-        from_sweep = (torch.autograd.grad(sweep.square().sum(), field, allow_unused=True, retain_graph=True)
-                      if sweep.requires_grad else [])
+        from_sweep = torch.autograd.grad(sweep.square().sum(), field, allow_unused=True, retain_graph=True) if sweep.requires_grad else []
         from_means = torch.autograd.grad(g.means.square().sum(), field, allow_unused=True)
         outs[grad] = (g, from_sweep, from_means)
     (a, sweep_grads, _), (b, no_sweep_grads, means_grads) = outs[True], outs[False]
@@ -215,17 +217,24 @@ def test_residual_covariance_equals_the_rotation_matrix_form_with_its_gradients(
     it must equal the matrix form `M Mᵀ`, `M = R(q) so3_exp(dr) diag(s exp(λ ds))`, in value
     and gradient, for rotations from zero (the series branches) to beyond pi, and for
     unnormalised quaternions."""
-    import kgs_core.model.dynamic as dyn
+    import kgs_core.model.kinematics as kin
     from kgs_core.model.kinematics import so3_exp
     from kgs_core.render.covariance import quat_to_rotmat
 
-    monkeypatch.setattr(dyn, "packed_covariance", lambda q, s: packed_covariance(q, s, backend=backend))
+    monkeypatch.setattr(kin, "packed_covariance", lambda q, s: packed_covariance(q, s, backend=backend))
     g = torch.Generator().manual_seed(3)
     n = 40
     quats = (torch.randn(n, 4, generator=g) * 2).requires_grad_(True)
     scales = (torch.rand(n, 3, generator=g) * 0.2 + 0.01).requires_grad_(True)
-    angles = torch.cat([torch.zeros(4), torch.full((4,), 1e-7), torch.full((4,), 1e-4),
-                        torch.rand(n - 16, generator=g) * 3.0, torch.tensor([3.3, 3.6, 4.0, 6.0])])
+    angles = torch.cat(
+        [
+            torch.zeros(4),
+            torch.full((4,), 1e-7),
+            torch.full((4,), 1e-4),
+            torch.rand(n - 16, generator=g) * 3.0,
+            torch.tensor([3.3, 3.6, 4.0, 6.0]),
+        ]
+    )
     axes = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
     dr = (axes * angles[:, None]).requires_grad_(True)
     ds = (torch.randn(n, 3, generator=g) * 0.5).requires_grad_(True)
@@ -237,7 +246,7 @@ def test_residual_covariance_equals_the_rotation_matrix_form_with_its_gradients(
         (cov6 * weights).sum().backward()
         return cov6.detach(), [t.grad.clone() for t in (quats, scales, dr, ds)]
 
-    got, got_grads = grads(dyn.residual_covariance(quats, scales, Offsets(torch.zeros(n, 3), dr, ds), 0.1))
+    got, got_grads = grads(kin.residual_covariance(quats, scales, Offsets(torch.zeros(n, 3), dr, ds), 0.1))
     M = quat_to_rotmat(quats) @ so3_exp(dr) * (scales * torch.exp(0.1 * ds))[:, None, :]
     want, want_grads = grads(pack_covariance(M @ M.transpose(-1, -2)))
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-8)
@@ -346,8 +355,7 @@ def test_blur_opacity_scale_matches_the_determinant_ratio_with_its_gradients(bac
     assert torch.allclose(gs, rs, rtol=1e-7, atol=1e-9)
     # float32 through the C++ kernel agrees with the reference too
     if backend == "cpu":
-        f32 = blur_opacity_scale(means.float(), cov6.detach().float(), sweep.detach().float(), viewmat.float(),
-                                 K.float(), 64, 48)
+        f32 = blur_opacity_scale(means.float(), cov6.detach().float(), sweep.detach().float(), viewmat.float(), K.float(), 64, 48)
         assert torch.allclose(f32.double(), ref.detach(), rtol=1e-4, atol=1e-5)
 
 
@@ -360,7 +368,7 @@ def test_otsu_tau_cuts_between_the_still_mode_and_the_moving_tail():
     still = 10 ** (-4.5 + 0.2 * torch.randn(8000, generator=g))  # real footage: jitter well above a fixed τ
     moving = 10 ** (-2.0 + 0.3 * torch.randn(2000, generator=g))
     tau = otsu_tau(torch.cat([still, moving]), floor=2e-6)
-    assert 10 ** -4.0 < tau < 10 ** -2.8
+    assert 10**-4.0 < tau < 10**-2.8
     assert abs(float((torch.cat([still, moving]) > tau).float().mean()) - 0.2) < 0.01
     assert otsu_tau(torch.cat([still, moving]), floor=0.05) == 0.05  # the floor wins
     assert otsu_tau(torch.full((100,), 3e-5), floor=2e-6) == 2e-6  # nothing to separate
@@ -401,7 +409,7 @@ def test_temporal_variance_is_the_papers_k_of_the_fields_offsets():
         i = torch.tensor([rows[tuple(p.tolist())] for p in points])
         out = []
         for t in times:
-            dx = torch.stack([t ** 2 * a[i], torch.sin(3 * t) * b[i], c[i]], -1)
+            dx = torch.stack([t**2 * a[i], torch.sin(3 * t) * b[i], c[i]], -1)
             z = torch.zeros_like(dx)
             out.append(Offsets(dx, z, z))
         return out
@@ -409,7 +417,7 @@ def test_temporal_variance_is_the_papers_k_of_the_fields_offsets():
     m.deform.at_times = field
     k = m.compute_K(chunk=16)  # chunks smaller than N: the rows must line up
     ts = torch.linspace(0, 1, 5)
-    dx = torch.stack([torch.stack([t ** 2 * a, torch.sin(3 * t) * b, c], -1) for t in ts])  # (T, N, 3)
+    dx = torch.stack([torch.stack([t**2 * a, torch.sin(3 * t) * b, c], -1) for t in ts])  # (T, N, 3)
     expected = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
     torch.testing.assert_close(k, expected)
     assert float(k.min()) > 0  # every point moves; the constant z offset adds nothing
@@ -423,7 +431,7 @@ def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
     rotation and scale (exactly: a static Gaussian has no field), leaves untouched those that
     stay static, and keeps the average position of the rest closer than a plain decomposition does;
     with keep_static no static Gaussian turns dynamic."""
-    from kgs_core.model.dynamic import residual_covariance
+    from kgs_core.model.kinematics import residual_covariance
 
     def average_state(m):
         off = m.mean_offsets()
@@ -445,8 +453,9 @@ def test_split_in_place_keeps_each_gaussian_where_it_renders_on_average():
     assert float(jumped[turned].min()) > 1e-3  # ... where a plain decomposition makes them jump
     # Their covariance is the deformed one at the mean offsets.
     with torch.no_grad():
-        was = unpack_covariance(residual_covariance(plain.params.quats[turned], plain.scales()[turned],
-                                                    Offsets.from_cat(off0[turned]), moved.config.lambda_s))
+        was = unpack_covariance(
+            residual_covariance(plain.params.quats[turned], plain.scales()[turned], Offsets.from_cat(off0[turned]), moved.config.lambda_s)
+        )
         now = covariance_from_quat_scale(moved.params.quats[turned], moved.scales()[turned])
     torch.testing.assert_close(now, was, atol=1e-6, rtol=1e-4)
     # The ones that stay dynamic: on average nearer where they were than after a plain decomposition.
@@ -482,15 +491,15 @@ def test_paper_form_of_kr_matches_eqs_9_to_14_worked_by_hand():
     far = torch.tensor([1e3], dtype=f64)  # per-frame motion far above still_len: no blend toward sigma
 
     def refine(blur, ds=zero, dr=zero, r_z=(0.0, 0.0, 1.0), kappa=-2.0, frame_len=far):
-        return refine_covariance(sigma, v, torch.tensor([blur], dtype=f64), ds, dr, torch.tensor([r_z], dtype=f64),
-                                 torch.tensor(kappa, dtype=f64), frame_len)[0]
+        return refine_covariance(
+            sigma, v, torch.tensor([blur], dtype=f64), ds, dr, torch.tensor([r_z], dtype=f64), torch.tensor(kappa, dtype=f64), frame_len
+        )[0]
 
     # Eq. 9-10: s' = (sigma along u_x, along u_y, along u_z + eta |v| dt e) = (0.2, 0.1, 0.3 + 0.4),
     # with eta = |r_z . u_z| = 1 (eq. 11); rebuilt in the world frame, x takes u_y's scale.
     assert torch.allclose(refine(0.4), torch.diag(torch.tensor([0.1, 0.2, 0.7], dtype=f64) ** 2), atol=1e-9)
     # Eq. 11's lower bound: r_z across the motion gives eta = sigmoid(kappa) = 0.5.
-    assert torch.allclose(refine(0.4, r_z=(1.0, 0.0, 0.0), kappa=0.0),
-                          torch.diag(torch.tensor([0.1, 0.2, 0.5], dtype=f64) ** 2), atol=1e-9)
+    assert torch.allclose(refine(0.4, r_z=(1.0, 0.0, 0.0), kappa=0.0), torch.diag(torch.tensor([0.1, 0.2, 0.5], dtype=f64) ** 2), atol=1e-9)
     # Eq. 12-13: log s = log s' + lambda_s ds, lambda_s = 0.1.
     ds = torch.tensor([[0.5, -0.5, 1.0]], dtype=f64)
     s = torch.tensor([0.2, 0.1, 0.7], dtype=f64) * torch.exp(0.1 * ds[0])  # along (u_x, u_y, u_z)
@@ -650,8 +659,12 @@ def test_kr_effect_measures_the_blur_and_says_when_it_does_nothing(tmp_path):
         m.deform.mlp[-1].weight.mul_(2.0)
         m.params.log_scales.fill_(math.log(0.02))
         m.params.opacity_logits.fill_(3.0)
-    cam = Camera(K=np.array([[200.0, 0, 48], [0, 200, 48], [0, 0, 1]]),
-                 viewmat=look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), dtype=torch.float64).numpy(), width=96, height=96)
+    cam = Camera(
+        K=np.array([[200.0, 0, 48], [0, 200, 48], [0, 0, 1]]),
+        viewmat=look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0), dtype=torch.float64).numpy(),
+        width=96,
+        height=96,
+    )
     frames = []
     for i in range(3):
         write_image(tmp_path / f"{i}.png", np.full((96, 96, 3), 0.5, np.float32))
@@ -790,13 +803,27 @@ def test_time_opacity_starts_as_the_paper_and_learns_to_fade_a_gaussian_at_one_t
         # A LoD level's view (built by hand, sharing the networks) fades it as the model does.
         from kgs_core.run import level_view
 
-        snap = {"params": {k: v.detach() for k, v in m.params.items()}, "dynamic": m.dynamic,
-                "K": m.K, "lifespan": m.lifespan, "own_velocity": m.own_velocity, "min_scale": 0.0}
+        snap = {
+            "params": {k: v.detach() for k, v in m.params.items()},
+            "dynamic": m.dynamic,
+            "K": m.K,
+            "lifespan": m.lifespan,
+            "own_velocity": m.own_velocity,
+            "min_scale": 0.0,
+        }
         assert torch.allclose(level_view(m, snap).at(0.2, velocity=False).opacities, early, atol=1e-6)
         # It shares every network the model has, and a view of fewer Gaussians leaves the model's alone.
-        few = level_view(m, {**snap, "params": {k: v[:3] for k, v in snap["params"].items()},
-                             "dynamic": m.dynamic[:3], "K": m.K[:3], "lifespan": m.lifespan[:3],
-                             "own_velocity": m.own_velocity[:3]})
+        few = level_view(
+            m,
+            {
+                **snap,
+                "params": {k: v[:3] for k, v in snap["params"].items()},
+                "dynamic": m.dynamic[:3],
+                "K": m.K[:3],
+                "lifespan": m.lifespan[:3],
+                "own_velocity": m.own_velocity[:3],
+            },
+        )
         assert len(few) == 3 and len(m) == len(before) and len(few.at(0.2, velocity=False).opacities) == 3
         assert all(getattr(few, name) is net for name, net in m.named_children() if name != "params")
         assert few.kappa is m.kappa and m.params.means.shape[0] == len(before)

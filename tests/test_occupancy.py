@@ -12,10 +12,12 @@ def test_occupancy_matches_tile_lists_and_a_dense_count():
     res = 64
     sc = random_scene(400, res, res, seed=3, anisotropy=6.0)
     with torch.no_grad():
-        proj = cpu_backend.project(sc.means, cpu_backend.packed_covariance(sc.quats, sc.scales),
-                                   sc.opacities, sc.viewmat, sc.K, res, res, 0.01, 1e10, 0.3, False)
-        out = rasterize(sc.means, sc.opacities, sc.viewmat, sc.K, res, res, quats=sc.quats,
-                        scales=sc.scales, colors=sc.colors, backend="cpu")
+        proj = cpu_backend.project(
+            sc.means, cpu_backend.packed_covariance(sc.quats, sc.scales), sc.opacities, sc.viewmat, sc.K, res, res, 0.01, 1e10, 0.3, False
+        )
+        out = rasterize(
+            sc.means, sc.opacities, sc.viewmat, sc.K, res, res, quats=sc.quats, scales=sc.scales, colors=sc.colors, backend="cpu"
+        )
     occ = occupancy(proj.means2d, proj.conics, proj.opacities, proj.bbox, chunk=97)
 
     # Pairs: the C++ binning's bounding-box tile lists.
@@ -33,8 +35,12 @@ def test_occupancy_matches_tile_lists_and_a_dense_count():
     dx, dy = xs[None] - m[:, 0, None, None], ys[None] - m[:, 1, None, None]
     power = -0.5 * (c[:, 0, None, None] * dx**2 + 2 * c[:, 1, None, None] * dx * dy + c[:, 2, None, None] * dy**2)
     alpha = (o[:, None, None] * power.exp()).clamp(max=ALPHA_MAX)
-    inside = ((xs[None] >= b[:, 0, None, None]) & (xs[None] < b[:, 2, None, None])
-              & (ys[None] >= b[:, 1, None, None]) & (ys[None] < b[:, 3, None, None]))
+    inside = (
+        (xs[None] >= b[:, 0, None, None])
+        & (xs[None] < b[:, 2, None, None])
+        & (ys[None] >= b[:, 1, None, None])
+        & (ys[None] < b[:, 3, None, None])
+    )
     passed = (power <= 0) & (alpha >= ALPHA_MIN) & inside
     assert occ.lanes_drawn == int(passed.sum())
     # Rows and pairs that draw: every drawn lane lies in one, and some of each are empty here.

@@ -56,7 +56,7 @@ def random_spd(n: int) -> np.ndarray:
 def random_velocities(n: int) -> np.ndarray:
     """Half of them anywhere, half within the switch's cap (|u_z . e_x| > 0.99) or just outside it."""
     v = RNG.normal(size=(n, 3))
-    near = v[n // 2:]
+    near = v[n // 2 :]
     near[:, 0] = np.sign(RNG.normal(size=len(near))) * 1.0
     near[:, 1:] *= RNG.uniform(0.02, 0.2, size=(len(near), 1))  # |u_z . e_x| from about 0.98 to 0.9998
     v *= RNG.uniform(0.1, 3.0, size=(n, 1))
@@ -84,10 +84,10 @@ def test_the_refined_covariance_is_eqs_9_to_19_on_random_non_diagonal_inputs():
     r_z /= np.linalg.norm(r_z, axis=1, keepdims=True)
     for kappa in (-6.0, 0.3):  # |r_z . u_z| wins nearly always, then each side of the max for some
         T = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float64))  # noqa: E731
-        got = refine_covariance(T(sigma), T(v), T(blur_len), T(delta_s), T(delta_r), T(r_z), T(kappa),
-                                frame_len=T(np.full(n, 1e9)), basis="paper", lambda_s=0.1).numpy()
-        want = np.stack([paper_refine(sigma[i], v[i], blur_len[i], delta_s[i], delta_r[i], r_z[i], kappa)
-                         for i in range(n)])
+        got = refine_covariance(
+            T(sigma), T(v), T(blur_len), T(delta_s), T(delta_r), T(r_z), T(kappa), frame_len=T(np.full(n, 1e9)), basis="paper", lambda_s=0.1
+        ).numpy()
+        want = np.stack([paper_refine(sigma[i], v[i], blur_len[i], delta_s[i], delta_r[i], r_z[i], kappa) for i in range(n)])
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
 
 
@@ -140,8 +140,7 @@ def _trainer(tmp_path, **over):
     from kgs_core.train.trainer import Trainer
 
     scene = load_scene(Path(__file__).parent / "fixtures" / "walk96")
-    cfg = make_config("fast", iterations=10, noise_init_frames=0.0, lambda_tv=0.0, eval_every=100,
-                      checkpoint_every=100, **over)
+    cfg = make_config("fast", iterations=10, noise_init_frames=0.0, lambda_tv=0.0, eval_every=100, checkpoint_every=100, **over)
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     tr.init_model()
     m = tr.model

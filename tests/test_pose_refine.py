@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from kgs_core.data.scene import Camera, Frame, Scene
-from kgs_core.model.dynamic import GaussiansAt
+from kgs_core.model.gaussians import GaussiansAt
 from kgs_core.model.kinematics import so3_exp
 from kgs_core.model.render import transform_gaussians
 from kgs_core.render import rasterize
@@ -20,17 +20,20 @@ from kgs_core.train.pose_refine import PoseCorrection
 
 def _scene_and_frame(seed: int = 0):
     sc = random_scene(300, 48, 40, overlap=20.0, seed=seed)
-    cam = Camera(K=sc.K.numpy().astype(np.float64), viewmat=sc.viewmat.numpy().astype(np.float64), width=sc.width,
-                 height=sc.height)
+    cam = Camera(K=sc.K.numpy().astype(np.float64), viewmat=sc.viewmat.numpy().astype(np.float64), width=sc.width, height=sc.height)
     frame = Frame(id="f0", image_path=Path("unused.png"), time=0.0, camera=cam)
-    g = GaussiansAt(means=sc.means, covars6=pack_covariance(covariance_from_quat_scale(sc.quats, sc.scales)),
-                    opacities=sc.opacities, sh=sc.colors[:, None, :], dynamic=torch.zeros(300, dtype=torch.bool))
+    g = GaussiansAt(
+        means=sc.means,
+        covars6=pack_covariance(covariance_from_quat_scale(sc.quats, sc.scales)),
+        opacities=sc.opacities,
+        sh=sc.colors[:, None, :],
+        dynamic=torch.zeros(300, dtype=torch.bool),
+    )
     return sc, frame, g
 
 
 def _render(g: GaussiansAt, sc, viewmat: torch.Tensor) -> torch.Tensor:
-    return rasterize(g.means, g.opacities, viewmat, sc.K, sc.width, sc.height, covars=g.covars6,
-                     colors=g.sh[:, 0, :]).image
+    return rasterize(g.means, g.opacities, viewmat, sc.K, sc.width, sc.height, covars=g.covars6, colors=g.sh[:, 0, :]).image
 
 
 def _corrected_viewmat(delta: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:

@@ -62,10 +62,7 @@ def assert_agree(results, fwd_tol=1e-4, grad_rtol=2e-3):
         assert err <= grad_rtol * max(scale, 1e-3), f"grad {name}: {err:.2e} vs scale {scale:.2e}"
 
 
-@pytest.mark.parametrize(
-    "n,w,h,seed,aa",
-    [(200, 48, 40, 0, False), (400, 37, 53, 1, True), (800, 64, 64, 2, False), (60, 17, 16, 3, True)],
-)
+@pytest.mark.parametrize("n,w,h,seed,aa", [(200, 48, 40, 0, False), (400, 37, 53, 1, True), (800, 64, 64, 2, False), (60, 17, 16, 3, True)])
 def test_cpu_matches_torch_reference(n, w, h, seed, aa):
     s = random_scene(n, w, h, seed=seed)
     cam, kw = scene_args(s, background=torch.tensor([0.2, 0.5, 0.9]))
@@ -116,8 +113,9 @@ def test_gradcheck_float64():
     bg = torch.tensor([0.1, 0.3, 0.6], dtype=torch.float64)
 
     def f(means, quats, scales, opacities, colors, background):
-        out = rasterize(**cam, means=means, quats=quats, scales=scales, opacities=opacities,
-                        colors=colors, background=background, backend="cpu")
+        out = rasterize(
+            **cam, means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, background=background, backend="cpu"
+        )
         return out.image, out.alpha, out.depth
 
     inputs = [t.clone().requires_grad_(True) for t in (s.means, s.quats, s.scales, opac, s.colors, bg)]
@@ -130,8 +128,7 @@ def test_gradcheck_float64_covariance_input():
     covars = covariance_from_quat_scale(s.quats, s.scales)
 
     def f(means, covars, opacities):
-        out = rasterize(**cam, means=means, covars=covars, opacities=opacities, colors=s.colors,
-                        antialiased=True, backend="cpu")
+        out = rasterize(**cam, means=means, covars=covars, opacities=opacities, colors=s.colors, antialiased=True, backend="cpu")
         return out.image
 
     inputs = [t.clone().requires_grad_(True) for t in (s.means, covars, s.opacities * 0.8)]
@@ -170,8 +167,13 @@ def test_gaussians_on_image_border():
     means[:, 2] -= 3.0  # camera sits at z = -3
     n = len(means)
     g = torch.Generator().manual_seed(0)
-    kw = dict(means=means, quats=torch.randn(n, 4, generator=g), scales=torch.full((n, 3), 0.08),
-              opacities=torch.full((n,), 0.8), colors=torch.rand(n, 3, generator=g))
+    kw = dict(
+        means=means,
+        quats=torch.randn(n, 4, generator=g),
+        scales=torch.full((n, 3), 0.08),
+        opacities=torch.full((n,), 0.8),
+        colors=torch.rand(n, 3, generator=g),
+    )
     cam = dict(viewmat=s.viewmat, K=s.K, width=40, height=30)
     results = render_both(cam, kw)
     assert_agree(results)
@@ -191,8 +193,13 @@ def test_fully_opaque_stack_terminates():
     means = torch.zeros(n, 3)
     means[:, 2] = torch.linspace(-0.5, 0.5, n)
     s = random_scene(1, 32, 32, seed=0)
-    kw = dict(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4), scales=torch.full((n, 3), 0.5),
-              opacities=torch.ones(n), colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(1)))
+    kw = dict(
+        means=means,
+        quats=torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4),
+        scales=torch.full((n, 3), 0.5),
+        opacities=torch.ones(n),
+        colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(1)),
+    )
     cam = dict(viewmat=s.viewmat, K=s.K, width=32, height=32)
     results = render_both(cam, kw)
     assert_agree(results)
@@ -211,8 +218,19 @@ def test_means2d_gradient_and_absgrad_for_densification():
     for absgrad in (False, True):
         for t in leaves:
             t.grad = None
-        out = rasterize(leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2],
-                        colors=leaves[4], backend="cpu", absgrad=absgrad)
+        out = rasterize(
+            leaves[0],
+            leaves[3],
+            s.viewmat,
+            s.K,
+            32,
+            32,
+            quats=leaves[1],
+            scales=leaves[2],
+            colors=leaves[4],
+            backend="cpu",
+            absgrad=absgrad,
+        )
         (out.image * weights).sum().backward()
         grads[absgrad] = (out.means2d.grad, [t.grad.clone() for t in leaves])
         assert ("means2d_absgrad" in out.info) == absgrad
@@ -229,8 +247,9 @@ def test_means2d_gradient_and_absgrad_for_densification():
     for a, b in zip([grads[False][0], *grads[False][1]], [g, *grads[True][1]]):
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(a.abs().max()))
     with pytest.raises(ValueError, match="absgrad"):
-        rasterize(leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2],
-                  colors=leaves[4], backend="torch", absgrad=True)
+        rasterize(
+            leaves[0], leaves[3], s.viewmat, s.K, 32, 32, quats=leaves[1], scales=leaves[2], colors=leaves[4], backend="torch", absgrad=True
+        )
 
 
 @pytest.mark.parametrize(
@@ -245,8 +264,17 @@ def test_means2d_gradient_and_absgrad_for_densification():
     ],
 )
 def test_bad_arguments_name_the_field(bad, match):
-    kw = dict(means=torch.zeros(3, 3), quats=torch.ones(3, 4), scales=torch.ones(3, 3), opacities=torch.ones(3),
-              colors=torch.ones(3, 3), viewmat=torch.eye(4), K=torch.eye(3), width=8, height=8)
+    kw = dict(
+        means=torch.zeros(3, 3),
+        quats=torch.ones(3, 4),
+        scales=torch.ones(3, 3),
+        opacities=torch.ones(3),
+        colors=torch.ones(3, 3),
+        viewmat=torch.eye(4),
+        K=torch.eye(3),
+        width=8,
+        height=8,
+    )
     kw.update(bad)
     with pytest.raises(ValueError, match=match):
         rasterize(**kw)
@@ -291,7 +319,7 @@ def test_compiled_sh_matches_reference(degree):
     assert (ref == 0).any()  # the clamp at 0 is exercised
     assert torch.allclose(got, ref, atol=1e-6) and torch.isfinite(got).all()
     assert torch.allclose(g_got, g_ref, atol=1e-6)
-    assert g_got[:, (degree + 1) ** 2:].abs().sum() == 0
+    assert g_got[:, (degree + 1) ** 2 :].abs().sum() == 0
 
 
 def test_compiled_sh_gradcheck_float64():
@@ -304,8 +332,7 @@ def test_compiled_sh_gradcheck_float64():
 def test_cpu_backend_rejects_images_beyond_its_int16_boxes():
     s = random_scene(3, 8, 8)
     with pytest.raises(RuntimeError, match="image size must be 1..32767"):
-        rasterize(s.means, s.opacities, s.viewmat, s.K, 40000, 8, quats=s.quats, scales=s.scales,
-                  colors=s.colors, backend="cpu")
+        rasterize(s.means, s.opacities, s.viewmat, s.K, 40000, 8, quats=s.quats, scales=s.scales, colors=s.colors, backend="cpu")
 
 
 def test_extension_compiles_the_vector_path_this_cpu_supports():
@@ -323,8 +350,7 @@ def test_extension_compiles_the_vector_path_this_cpu_supports():
     cpuinfo = Path("/proc/cpuinfo")
     if not cpuinfo.exists():
         pytest.skip("no /proc/cpuinfo to read the CPU's instruction sets from")
-    flags = next((line.split(":", 1)[1].split() for line in cpuinfo.read_text().splitlines()
-                  if line.startswith("flags")), [])
+    flags = next((line.split(":", 1)[1].split() for line in cpuinfo.read_text().splitlines() if line.startswith("flags")), [])
     expected = "avx512" if "avx512f" in flags else "avx2" if {"avx2", "fma"} <= set(flags) else "generic"
     assert ext.simd_path() == expected
 
@@ -353,7 +379,9 @@ def test_per_gaussian_loops_stay_vectorised(source, tmp_path):
     flags = [f for f in _ext.CFLAGS if f != "-march=native"] + ["-march=x86-64-v3"]
     report = subprocess.run(
         [cxx, *flags, "-fopt-info-vec-optimized", "-c", str(path), "-o", str(tmp_path / "out.o")],
-        capture_output=True, text=True, check=True,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stderr
     vectorised = {r.split(":")[1] for r in report.splitlines() if "loop vectorized" in r and source in r}
     for line in loops:
@@ -372,8 +400,10 @@ def test_build_lock_clears_the_lock_file_a_killed_build_left(tmp_path):
     (tmp_path / "lock").touch()
     with _build_lock(tmp_path):
         assert not (tmp_path / "lock").exists()
-        code = ("from pathlib import Path; from kgs_core.render._ext import _build_lock\n"
-                f"print('waiting', flush=True)\nwith _build_lock(Path({str(tmp_path)!r})): print('held', flush=True)")
+        code = (
+            "from pathlib import Path; from kgs_core.render._ext import _build_lock\n"
+            f"print('waiting', flush=True)\nwith _build_lock(Path({str(tmp_path)!r})): print('held', flush=True)"
+        )
         other = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
         assert other.stdout.readline().strip() == "waiting"
         time.sleep(0.5)

@@ -94,8 +94,9 @@ def test_detail_share_sets_render_and_input_against_the_sharp_target(walk):
     share.add(sharp, soft, sharp, left)
     share.add(soft, soft, sharp, left)  # a second frame: the sums, not the mean of ratios
     r = share.result()
-    assert r["detail"] == pytest.approx((gradient_energy(sharp, everywhere) + gradient_energy(soft, everywhere))
-                                        / (2 * gradient_energy(sharp, everywhere)))
+    assert r["detail"] == pytest.approx(
+        (gradient_energy(sharp, everywhere) + gradient_energy(soft, everywhere)) / (2 * gradient_energy(sharp, everywhere))
+    )
     assert r["detail_input"] == pytest.approx(gradient_energy(soft, everywhere) / gradient_energy(sharp, everywhere))
     assert r["detail_input_dynamic"] == pytest.approx(gradient_energy(soft, left) / gradient_energy(sharp, left))
     assert 0 < r["detail_input"] < r["detail"] < 1 and r["detail_dynamic"] != r["detail"]
@@ -149,7 +150,7 @@ def test_settings_follow_the_clip(walk):
     """The fitted settings: τ in this scene's units for the same image motion as on the demo,
     at least one temporal cell per four frames, every choice recorded with its reason;
     explicit values win."""
-    from kgs_core.train.config import TAU_RMS_PX, scene_pixels_per_unit
+    from kgs_core.train.fitting import TAU_RMS_PX, scene_pixels_per_unit
 
     cfg = make_config("fast", scene=walk)
     ppu = scene_pixels_per_unit(walk)
@@ -163,7 +164,7 @@ def test_settings_follow_the_clip(walk):
     assert make_config("fast").fitted == {}
     # FLoD's first level at the demo's fraction of the image width (0.02 units there; the same
     # 0.02 is 16 px on walk at 320 px), fitted only where there is more than one level.
-    from kgs_core.train.config import LOD_LAMBDA_WIDTH
+    from kgs_core.train.fitting import LOD_LAMBDA_WIDTH
 
     # A video ingest trains the paper preset with one level (FLoD misplaced kitchen's person at the
     # sharp camera); five levels when asked for, with the first one's scale fitted.
@@ -184,7 +185,7 @@ def test_settings_follow_the_clip(walk):
     # A video ingest trains with the flow term; a scene that is not one, or an explicit 0, without.
     from dataclasses import replace
 
-    from kgs_core.train.config import VIDEO_FLOW_WEIGHT, VIDEO_SPAWN_FRAMES
+    from kgs_core.train.fitting import VIDEO_FLOW_WEIGHT, VIDEO_SPAWN_FRAMES
 
     assert cfg.lambda_flow == VIDEO_FLOW_WEIGHT > 0 and "lambda_flow" in cfg.fitted
     assert cfg.spawn_frames == VIDEO_SPAWN_FRAMES > 0 and "spawn_frames" in cfg.fitted
@@ -213,8 +214,10 @@ def test_equal_time_mean_covers_seeds_that_needed_no_retraining():
     the "same time" row's mean, which then averages all three seeds."""
     from kgs_app.bench.real import fill_equal_time, mean_over_seeds
 
-    per_seed = {"base": {0: {"psnr": 20.0}, 1: {"psnr": 21.0}, 2: {"psnr": 22.0}},
-                "base, same time": {0: {"psnr": 19.0}, 2: {"psnr": 23.0}}}
+    per_seed = {
+        "base": {0: {"psnr": 20.0}, 1: {"psnr": 21.0}, 2: {"psnr": 22.0}},
+        "base, same time": {0: {"psnr": 19.0}, 2: {"psnr": 23.0}},
+    }
     fill_equal_time(per_seed)
     assert per_seed["base, same time"][1] == {"psnr": 21.0}
     assert mean_over_seeds(per_seed["base, same time"])["psnr"] == pytest.approx(21.0)
@@ -282,13 +285,33 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
         (data / f"walk_{cam}.mp4").write_bytes(b"")  # never decoded: the scene is cached
     out = tmp_path / "out"
     shutil.copytree(FIXTURE, out / "scenes" / "walk96")
-    assert main(["walk", "--data", str(data), "--size", "96", "--iterations", "40", "--configs",
-                 "full,decompose,decompose@lambda_flow=0", "--seeds", "0,1", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "walk",
+                "--data",
+                str(data),
+                "--size",
+                "96",
+                "--iterations",
+                "40",
+                "--configs",
+                "full,decompose,decompose@lambda_flow=0",
+                "--seeds",
+                "0,1",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     results = json.loads((out / "results.json").read_text())["walk"]
     # a configuration with an override gets rows of its own, not its base's
     assert {"full", "no decomposition, D3DGS-like", "no decomposition, D3DGS-like @lambda_flow=0", "static 3DGS"} <= set(results)
-    assert (results["no decomposition, D3DGS-like"]["seeds"]["0"]["run"]
-            != results["no decomposition, D3DGS-like @lambda_flow=0"]["seeds"]["0"]["run"])
+    assert (
+        results["no decomposition, D3DGS-like"]["seeds"]["0"]["run"]
+        != results["no decomposition, D3DGS-like @lambda_flow=0"]["seeds"]["0"]["run"]
+    )
     for row in results.values():
         assert 5 < row["psnr"] < 50 and row["iterations"] >= 40
         # the row is the mean of each seed's, and the seeds trained apart
@@ -298,8 +321,7 @@ def test_bench_real_end_to_end_on_a_cached_clip(tmp_path):
     assert results["full"]["seeds"]["0"]["psnr"] != results["full"]["seeds"]["1"]["psnr"]
     table = (out / "results.md").read_text()
     assert "PSNR in mask" in table and "detail in mask (input)" in table and "| **full** | mean |" in table
-    assert all(0 < row["detail_mask"] < 3 and 0 < row["detail"] < 3 and 0 < row["detail_input"] < 3
-               for row in results.values())
+    assert all(0 < row["detail_mask"] < 3 and 0 < row["detail"] < 3 and 0 < row["detail_input"] < 3 for row in results.values())
     assert (out / "views_walk.png").stat().st_size > 1000 and (out / "psnr_vs_time_walk.png").is_file()
     from PIL import Image
 
@@ -316,15 +338,19 @@ def test_the_viewer_is_told_what_blur_a_run_learned():
 
     cfg = {"camera_blur": "off", "model": {"kinematic": True}, "ablate": []}
     base = {"exposure": 0.5, "config": cfg}
-    assert learned_blur({**base, "exposure": 0.0}) == {"objects": False, "camera": "off",
-                                                     "note": "trained at exposure 0: no blur was modelled"}
+    assert learned_blur({**base, "exposure": 0.0}) == {
+        "objects": False,
+        "camera": "off",
+        "note": "trained at exposure 0: no blur was modelled",
+    }
     assert not learned_blur({**base, "config": {**cfg, "ablate": ["kr"]}})["objects"]
     off = learned_blur({**base, "kr_check": {"iteration": 600, "kept": False, "changed_share": 0.001, "gain_db": 0.0}})
     assert not off["objects"] and "turned off at iteration 600" in off["note"] and "0.1%" in off["note"]
     weak = learned_blur({**base, "kr_effect": {"changed_share": 0.02, "gain_db": KR_MIN_GAIN_DB / 2}})
     assert not weak["objects"] and weak["note"].startswith("exposure 0.50: next to no learned blur")
-    acts = learned_blur({**base, "config": {**cfg, "camera_blur": "learned"},
-                         "kr_effect": {"changed_share": 0.05, "gain_db": 2 * KR_MIN_GAIN_DB}})
+    acts = learned_blur(
+        {**base, "config": {**cfg, "camera_blur": "learned"}, "kr_effect": {"changed_share": 0.05, "gain_db": 2 * KR_MIN_GAIN_DB}}
+    )
     assert acts["objects"] and acts["camera"] == "learned" and "5.0% of the training pixels" in acts["note"]
     assert "modelled at the training cameras" in acts["note"] and "not modelled" in weak["note"]
 
@@ -336,7 +362,7 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     unless it is set by hand or the K.R. form cannot carry it."""
     import dataclasses
 
-    from kgs_core.train.config import CAMERA_BLUR_MIN_PX
+    from kgs_core.train.fitting import CAMERA_BLUR_MIN_PX
     from kgs_core.train.scene_measures import camera_blur_px
 
     frames = sorted(walk.train_frames, key=lambda f: f.time)

@@ -205,8 +205,10 @@ def test_edits_change_sets_and_are_stored(client, copy_run):
     assert sorted(stored["levels"]["2"]["deleted"]) == sorted(victims)
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "delete", "indices": [10**9]}).status_code == 422
     assert client.post(f"/api/runs/{rid}/edits", json={"op": "explode"}).status_code == 422
-    assert client.post(f"/api/runs/{rid}/edits", json={"op": "restore"}).json()["kept"] == client.get(
-        f"/api/runs/{rid}").json()["decomposition"]["gaussians"]
+    assert (
+        client.post(f"/api/runs/{rid}/edits", json={"op": "restore"}).json()["kept"]
+        == client.get(f"/api/runs/{rid}").json()["decomposition"]["gaussians"]
+    )
 
 
 def test_undo_and_redo_walk_the_edit_history_and_survive_a_reload(client, copy_run):
@@ -224,8 +226,12 @@ def test_undo_and_redo_walk_the_edit_history_and_survive_a_reload(client, copy_r
     cropped = edit(op="crop", crop={"min": [-0.01, -0.01, -0.01], "max": [0.01, 0.01, 0.01]}).json()
     assert cropped["kept"] < total - 3 and cropped["history"]["undo"] == "crop"
     undone = edit(op="undo").json()
-    assert undone["kept"] == total - 3 and undone["history"] == {"undo": "delete 3 splats", "undo_steps": 1,
-                                                                 "redo": "crop", "redo_steps": 1}
+    assert undone["kept"] == total - 3 and undone["history"] == {
+        "undo": "delete 3 splats",
+        "undo_steps": 1,
+        "redo": "crop",
+        "redo_steps": 1,
+    }
     stored = json.loads((copy_run / "edits.json").read_text())
     assert stored["crop"] is None and [s["label"] for s in stored["history"]["redo"]] == ["crop"]
     reloaded = RunView(copy_run)  # what a reload or a restarted server reads
@@ -272,8 +278,11 @@ def test_websocket_refusals_on_a_real_server(copy_run, tmp_path):
 
     with ServerProcess([copy_run], tmp_path / "workspace", token="s3cret") as srv:
         base, rid = srv.base.replace("http", "ws", 1), srv.runs[0]["id"]
-        for path, code in ((f"/api/runs/{rid}/stream", 4401), (f"/api/runs/{rid}/stream?token=wrong", 4401),
-                           ("/api/runs/nope/stream?token=s3cret", 4404)):
+        for path, code in (
+            (f"/api/runs/{rid}/stream", 4401),
+            (f"/api/runs/{rid}/stream?token=wrong", 4401),
+            ("/api/runs/nope/stream?token=s3cret", 4404),
+        ):
             with connect(base + path, open_timeout=30) as w, pytest.raises(ConnectionClosed) as exc:
                 w.recv(timeout=30)
             assert exc.value.rcvd is not None and exc.value.rcvd.code == code, path
@@ -353,20 +362,26 @@ def test_uploads_limits_and_types(client, tiny_run, tmp_path):
     big = b"PK\x03\x04" + b"\0" * (1024 * 1024 + 10)
     assert client.post("/api/scenes/upload", params={"name": "big", "kind": "zip"}, content=big, headers=zip_type).status_code == 413
     assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"hello", headers=zip_type).status_code == 415
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "video"}, content=b"not a video",
-                       headers={"content-type": "video/mp4"}).status_code == 415
+    assert (
+        client.post(
+            "/api/scenes/upload", params={"name": "x", "kind": "video"}, content=b"not a video", headers={"content-type": "video/mp4"}
+        ).status_code
+        == 415
+    )
     assert client.post("/api/scenes/upload", params={"name": "../x", "kind": "zip"}, content=blob, headers=zip_type).status_code == 422
     assert client.post("/api/scenes/upload", params={"name": "x", "kind": "exe"}, content=blob, headers=zip_type).status_code == 422
     evil = io.BytesIO()
     with zipfile.ZipFile(evil, "w") as z:
         z.writestr("../../escape.txt", "x")
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue(),
-                       headers=zip_type).status_code == 422
+    assert (
+        client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=evil.getvalue(), headers=zip_type).status_code == 422
+    )
     junk = io.BytesIO()
     with zipfile.ZipFile(junk, "w") as z:
         z.writestr("readme.txt", "no dataset here")
-    assert client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue(),
-                       headers=zip_type).status_code == 422
+    assert (
+        client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=junk.getvalue(), headers=zip_type).status_code == 422
+    )
     # Nothing half-written stays behind.
     ws_root = client.app_.state.ws.root
     assert not [p for p in (ws_root / "scenes").iterdir() if p.name.startswith(".upload")]
@@ -379,8 +394,11 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     assert client.post("/api/runs", json={"scene_id": scene_id, "ablate": ["everything"]}).status_code == 422
     bad_blur = client.post("/api/runs", json={"scene_id": scene_id, "camera_blur": "yes"})
     assert bad_blur.status_code == 422 and "camera_blur" in bad_blur.text
-    for settings, needle in ((["lambda_regg=0.1"], "lambda_regg"), (["model.knn=1.5"], "model.knn takes a whole number"),
-                             (["frame_sampling=often"], "frame_sampling must be one of")):
+    for settings, needle in (
+        (["lambda_regg=0.1"], "lambda_regg"),
+        (["model.knn=1.5"], "model.knn takes a whole number"),
+        (["frame_sampling=often"], "frame_sampling must be one of"),
+    ):
         bad = client.post("/api/runs", json={"scene_id": scene_id, "settings": settings})
         assert bad.status_code == 422 and needle in bad.text, bad.text
     r = client.post("/api/runs", json={"scene_id": scene_id, "iterations": 40, "settings": ["model.knn=4", "lambda_reg=0.02"]})
@@ -413,8 +431,7 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     killed = wait_status(client, f"/api/runs/{long['id']}", done=("interrupted", "failed"))
     assert killed["status"] == "interrupted" and "resume" in killed["error"] and killed["resumable"], killed
     # A failing job keeps its error.
-    bad = client.app_.state.ws.insert("scenes", name="broken", path=str(ws_dir / "scenes" / "broken"), source="upload",
-                                      status="done")
+    bad = client.app_.state.ws.insert("scenes", name="broken", path=str(ws_dir / "scenes" / "broken"), source="upload", status="done")
     (ws_dir / "scenes" / "broken").mkdir()
     (ws_dir / "scenes" / "broken" / "dataset.json").write_text("{")
     failed = wait_status(client, f"/api/runs/{client.post('/api/runs', json={'scene_id': bad['id']}).json()['id']}")
@@ -578,7 +595,6 @@ def test_trajectory_cache_fades_gaussians_present_for_part_of_the_clip_as_the_mo
             assert alpha[row[int(some[1])]] == 0 and alpha[row[int(some[3])]] == round(full * np.exp(-0.5 * (2 / 3) ** 2))
 
 
-
 def test_trajectory_cache_gives_a_time_opacity_the_alpha_the_model_does(copy_run):
     """With `model.time_opacity` the dynamic Gaussians' alpha changes with time: the cache
     samples it with the positions, so that its buffers at the samples give the exact
@@ -630,8 +646,9 @@ def test_foreign_host_and_cross_site_writes_are_refused(client):
     # Reads from a foreign origin get no CORS headers (CORS is off), so the browser hides them.
     assert "access-control-allow-origin" not in client.get("/api/runs", headers={"origin": "http://evil.example"}).headers
     # Uploads need their declared content type: text/plain is refused even same-origin.
-    r = client.post("/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"PK\x03\x04",
-                    headers={"content-type": "text/plain"})
+    r = client.post(
+        "/api/scenes/upload", params={"name": "x", "kind": "zip"}, content=b"PK\x03\x04", headers={"content-type": "text/plain"}
+    )
     assert r.status_code == 415 and "application/zip" in r.json()["detail"]
     with pytest.raises(WebSocketDisconnect):
         with client.websocket_connect(WS + f"/api/runs/{rid}/stream", headers={"origin": "http://evil.example"}) as w:
@@ -702,9 +719,12 @@ def test_non_finite_numbers_big_bodies_and_huge_seeds_get_4xx(client):
     rid = client.run_id
     scene_id = client.get(f"/api/runs/{rid}").json()["scene_id"]
     js = {"content-type": "application/json"}
-    for path, body in ((f"/api/runs/{rid}/tau", b'{"tau": NaN}'), (f"/api/runs/{rid}/tau", b'{"tau": Infinity}'),
-                       ("/api/runs", b'{"scene_id": "%s", "iterations": NaN}' % scene_id.encode()),
-                       (f"/api/runs/{rid}/exports", b'{"format": "splat", "exposure": NaN}')):
+    for path, body in (
+        (f"/api/runs/{rid}/tau", b'{"tau": NaN}'),
+        (f"/api/runs/{rid}/tau", b'{"tau": Infinity}'),
+        ("/api/runs", b'{"scene_id": "%s", "iterations": NaN}' % scene_id.encode()),
+        (f"/api/runs/{rid}/exports", b'{"format": "splat", "exposure": NaN}'),
+    ):
         r = client.post(path, content=body, headers=js)
         assert r.status_code == 422, (path, body, r.status_code)
         assert "finite" in r.text or "nan" in r.text.lower(), r.text
@@ -727,8 +747,9 @@ def test_scene_with_runs_cannot_be_deleted_and_uploads_are_cleaned(client, tmp_p
     assert client.get(f"/api/runs/{rid}/frames/0/image").status_code == 200  # the run still has its scene
     # An uploaded video whose ingest never produced a scene goes with the scene's row.
     ws = client.app_.state.ws
-    row = ws.insert("scenes", name="clip", path=str(ws.new_dir("scenes", "deadbeef0001")), source="ingest",
-                    status="failed", id="deadbeef0001")
+    row = ws.insert(
+        "scenes", name="clip", path=str(ws.new_dir("scenes", "deadbeef0001")), source="ingest", status="failed", id="deadbeef0001"
+    )
     video = ws.root / "scenes" / f".{row['id']}.video"
     video.write_bytes(b"\0" * 100)
     assert client.delete(f"/api/scenes/{row['id']}").status_code == 204 and not video.exists()
@@ -766,8 +787,7 @@ def test_a_cancel_the_ingest_swallowed_still_leaves_no_scene_and_keeps_the_video
         v.write_bytes(b"video")
     previous = signal.getsignal(signal.SIGTERM)
     with pytest.raises(Cancelled):
-        run_ingest({"video": str(videos[0]), "eval_video": str(videos[1]), "out": str(tmp_path / "out"),
-                    "delete_video": True})
+        run_ingest({"video": str(videos[0]), "eval_video": str(videos[1]), "out": str(tmp_path / "out"), "delete_video": True})
     assert signal.getsignal(signal.SIGTERM) is previous
     assert all(v.exists() for v in videos) and not (tmp_path / "out").exists()
 
@@ -777,8 +797,7 @@ def test_video_upload_second_camera_stages_cancel_and_retry(client, room_video):
     options, its stages as it runs, cancel (nothing half-made, the videos kept), retry to the end."""
     video, _ = room_video
     data, vt = Path(video).read_bytes(), {"content-type": "video/mp4"}
-    up = client.post("/api/scenes/upload", params={"name": "room clip", "kind": "video", "hold": "true"}, content=data,
-                     headers=vt)
+    up = client.post("/api/scenes/upload", params={"name": "room clip", "kind": "video", "hold": "true"}, content=data, headers=vt)
     assert up.status_code == 201, up.text
     assert up.json()["status"] == "uploaded" and up.json()["videos"] == 1
     sid = up.json()["id"]
@@ -857,6 +876,7 @@ def test_full_or_read_only_storage_is_named_not_a_500(client, monkeypatch):
         (sqlite3.OperationalError("attempt to write a readonly database"), 503, "registry cannot be written"),
         (sqlite3.OperationalError("database or disk is full"), 507, "disk is full"),
     ]:
+
         def refuse(*a, _exc=exc, **k):
             raise _exc
 
@@ -877,18 +897,19 @@ def test_export_options_are_checked_before_a_job_and_a_video_follows_them(client
     rid = client.run_id
     vm = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]
     view = {"viewmat": vm, "fov_deg": 60, "width": 64, "height": 48}
-    for body, word in (({"format": "mp4", "camera_path": "view"}, "view"),
-                       ({"format": "mp4", "view": view}, "view"),
-                       ({"format": "mp4", "camera_path": "view", "view": {**view, "viewmat": [[2, 0, 0, 0]] * 4}}, "rotation"),
-                       ({"format": "mp4", "camera_path": "orbit", "side_by_side": True}, "side_by_side"),
-                       ({"format": "splat", "size": 256}, "size"),
-                       ({"format": "mp4", "size": 8}, "size"),
-                       ({"format": "glb", "web_frame": True}, "web_frame"),
-                       ({"format": "glb", "times": "0,1"}, "one time")):
+    for body, word in (
+        ({"format": "mp4", "camera_path": "view"}, "view"),
+        ({"format": "mp4", "view": view}, "view"),
+        ({"format": "mp4", "camera_path": "view", "view": {**view, "viewmat": [[2, 0, 0, 0]] * 4}}, "rotation"),
+        ({"format": "mp4", "camera_path": "orbit", "side_by_side": True}, "side_by_side"),
+        ({"format": "splat", "size": 256}, "size"),
+        ({"format": "mp4", "size": 8}, "size"),
+        ({"format": "glb", "web_frame": True}, "web_frame"),
+        ({"format": "glb", "times": "0,1"}, "one time"),
+    ):
         r = client.post(f"/api/runs/{rid}/exports", json=body)
         assert r.status_code == 422 and word in r.text, (body, r.text[:300])
-    r = client.post(f"/api/runs/{rid}/exports", json={"format": "mp4", "camera_path": "view", "view": view,
-                                                      "size": 96, "times": "0:1:5"})
+    r = client.post(f"/api/runs/{rid}/exports", json={"format": "mp4", "camera_path": "view", "view": view, "size": 96, "times": "0:1:5"})
     assert r.status_code == 202, r.text
     e = wait_status(client, f"/api/exports/{r.json()['id']}")
     assert e["status"] == "done", e

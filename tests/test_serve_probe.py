@@ -90,9 +90,12 @@ def test_a_training_request_cannot_name_a_path_and_a_pickled_parent_runs_nothing
     r = client.post("/api/runs", json={"scene_id": client.scene_id, "init_from": str(evil)})
     assert r.status_code == 422  # not a field of the body
     # The same zip the probe uploaded: not a dataset, refused, and nothing of it is kept.
-    r = client.post("/api/scenes/upload", params={"name": "evil", "kind": "zip"}, headers=ZIP,
-                    content=zipped({"evil/run.json": (evil / "run.json").read_bytes(),
-                                    "evil/model.pt": (evil / "model.pt").read_bytes()}))
+    r = client.post(
+        "/api/scenes/upload",
+        params={"name": "evil", "kind": "zip"},
+        headers=ZIP,
+        content=zipped({"evil/run.json": (evil / "run.json").read_bytes(), "evil/model.pt": (evil / "model.pt").read_bytes()}),
+    )
     assert r.status_code == 422 and str(client.ws.root) not in r.text
     # Its parent by id: a run of this workspace, or a 404; never a path.
     assert client.post("/api/runs", json={"scene_id": client.scene_id, "init_from_run": "../../etc"}).status_code == 422
@@ -129,14 +132,19 @@ def test_a_colmap_upload_cannot_name_a_file_outside_it(client, tiny_run, tmp_pat
     secret = tmp_path / "secret.png"
     Image.fromarray(np.full((8, 8, 3), 200, np.uint8)).save(secret)
     name = str(secret) if name == "ABSOLUTE" else name.replace("SECRET", str(secret).lstrip("/"))
-    r = client.post("/api/scenes/upload", params={"name": "c", "kind": "zip"}, headers=ZIP,
-                    content=colmap_zip(colmap_text, tmp_path, tiny_run, name))
+    r = client.post(
+        "/api/scenes/upload", params={"name": "c", "kind": "zip"}, headers=ZIP, content=colmap_zip(colmap_text, tmp_path, tiny_run, name)
+    )
     assert r.status_code == 422 and ("leaves the dataset folder" in r.text or "absolute path" in r.text), r.text
     assert str(client.ws.root) not in r.text and ".upload-" not in r.text
     # The answer is the same whether the file exists: it tells nothing about the server's disk.
     secret.unlink()
-    again = client.post("/api/scenes/upload", params={"name": "c", "kind": "zip"}, headers=ZIP,
-                        content=colmap_zip(colmap_text, tmp_path / "again", tiny_run, name))
+    again = client.post(
+        "/api/scenes/upload",
+        params={"name": "c", "kind": "zip"},
+        headers=ZIP,
+        content=colmap_zip(colmap_text, tmp_path / "again", tiny_run, name),
+    )
     assert again.status_code == 422 and again.json() == r.json()
 
 
@@ -162,8 +170,13 @@ def test_one_request_cannot_ask_for_a_machine(client):
     client.app_.state.jobs.start = lambda *a, **k: None  # (were a bound to fail, no job would run for hours)
     r = client.post("/api/scenes", json={"source": "synth", "size": 1024, "frames": 2000, "subframes": 1})
     assert r.status_code == 422 and "size² x frames" in r.text
-    for body in ({"iterations": 1_000_001}, {"settings": ["iterations=99999999999"]}, {"settings": ["init_points=2000000000"]},
-                 {"settings": ["batch_size=100000"]}, {"settings": ["model.deform_spatial=100000"]}):
+    for body in (
+        {"iterations": 1_000_001},
+        {"settings": ["iterations=99999999999"]},
+        {"settings": ["init_points=2000000000"]},
+        {"settings": ["batch_size=100000"]},
+        {"settings": ["model.deform_spatial=100000"]},
+    ):
         r = client.post("/api/runs", json={"scene_id": client.scene_id, **body})
         assert r.status_code == 422, (body, r.text)
     schema = client.get("/openapi.json").json()["components"]["schemas"]
@@ -207,8 +220,13 @@ def test_huge_images_are_refused_before_they_are_decoded(client, tmp_path):
 def test_the_server_never_builds_the_extension(tmp_path):
     env = {**os.environ, "KGS_EXT_CACHE_DIR": str(tmp_path / "no-build-here"), "KGS_CACHE_DIR": str(tmp_path / "c")}
     t0 = time.time()
-    r = subprocess.run([sys.executable, "-m", "kgs_app.cli", "serve", "--workspace", str(tmp_path / "ws"), "--port", "9"],
-                       capture_output=True, text=True, env=env, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "kgs_app.cli", "serve", "--workspace", str(tmp_path / "ws"), "--port", "9"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert r.returncode != 0 and "kgs-app build-ext" in r.stderr, r.stderr
     assert time.time() - t0 < 60 and not list((tmp_path / "no-build-here").rglob("*.o"))
 
@@ -232,8 +250,9 @@ def test_a_finished_build_loads_without_the_build_tool(monkeypatch):
 # ---------------------------------------------------------------- 6.-7. settings and hostile metadata
 
 
-@pytest.mark.parametrize("setting", ["lr_means=NaN", "model.tau=Infinity", "seed=-5", "iterations=99999999999",
-                                     "init_points=2000000000", "batch_size=100000"])
+@pytest.mark.parametrize(
+    "setting", ["lr_means=NaN", "model.tau=Infinity", "seed=-5", "iterations=99999999999", "init_points=2000000000", "batch_size=100000"]
+)
 def test_settings_get_the_bounds_named_fields_get(client, setting):
     r = client.post("/api/runs", json={"scene_id": client.scene_id, "settings": [setting]})
     assert r.status_code == 422 and setting.split("=")[0] in r.text, r.text
@@ -260,7 +279,7 @@ def test_hostile_dataset_metadata_gets_a_4xx(client, tiny_run, tmp_path, edit):
     if edit == "lying zip":  # the central directory says the first entry is one byte
         data = bytearray(blob)
         k = data.index(b"PK\x01\x02")
-        data[k + 24:k + 28] = (1).to_bytes(4, "little")
+        data[k + 24 : k + 28] = (1).to_bytes(4, "little")
         blob = bytes(data)
     r = client.post("/api/scenes/upload", params={"name": "c", "kind": "zip"}, headers=ZIP, content=blob)
     assert 400 <= r.status_code < 500, (edit, r.status_code, r.text)
@@ -306,8 +325,9 @@ def test_two_requests_racing_to_start_one_ingest_start_one_job(client, room_vide
     from kgs_backend.routers.scenes import IngestRequest, start_ingest
 
     data = Path(room_video[0]).read_bytes()
-    sid = client.post("/api/scenes/upload", params={"name": "clip", "kind": "video", "hold": "true"}, content=data,
-                      headers={"content-type": "video/mp4"}).json()["id"]
+    sid = client.post(
+        "/api/scenes/upload", params={"name": "clip", "kind": "video", "hold": "true"}, content=data, headers={"content-type": "video/mp4"}
+    ).json()["id"]
     row = client.ws.get("scenes", sid)  # what both requests read before either starts the job
     jr = client.app_.state.jobs
     started = []
@@ -330,8 +350,7 @@ def test_a_delete_the_disk_refuses_deletes_nothing(inside, monkeypatch):
     def full(*a, **k):
         raise sqlite3.OperationalError("database or disk is full")
 
-    monkeypatch.setattr(ws, "remove", lambda rows, files=(), _r=ws.remove: (
-        monkeypatch.setattr(ws, "_connect", full), _r(rows, files)))
+    monkeypatch.setattr(ws, "remove", lambda rows, files=(), _r=ws.remove: (monkeypatch.setattr(ws, "_connect", full), _r(rows, files)))
     r = client.delete(f"/api/runs/{client.run_id}")
     monkeypatch.setattr(ws, "_connect", real)
     assert r.status_code == 507, r.text
@@ -374,8 +393,7 @@ def test_a_second_camera_video_over_a_mebibyte_uploads(client, room_video):
     """The second camera's upload is streamed under the upload limit, not the JSON body cap."""
     data = Path(room_video[0]).read_bytes()
     vt = {"content-type": "video/mp4"}
-    sid = client.post("/api/scenes/upload", params={"name": "clip", "kind": "video", "hold": "true"}, content=data,
-                      headers=vt).json()["id"]
+    sid = client.post("/api/scenes/upload", params={"name": "clip", "kind": "video", "hold": "true"}, content=data, headers=vt).json()["id"]
     padded = data + b"\0" * ((1 << 20) + 1024 - len(data))  # an mp4 reader ignores trailing bytes
     r = client.post(f"/api/scenes/{sid}/video", params={"role": "sharp"}, content=padded, headers=vt)
     assert r.status_code == 201 and r.json()["videos"] == 2, r.text

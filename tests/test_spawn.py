@@ -77,6 +77,7 @@ def test_the_relative_test_reads_a_depth_error_under_a_pan_as_still():
     flow[20:30, :5, 1] += abs(true_parallax)  # on the left edge, where the pan takes pixels out of view
     assert independent_motion(depth, view0, K, view1, K, flow, relative=0.5)[20:30, :5].sum() == 0
 
+
 def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from_it():
     m, viewmat, K = scene_model()
     t, life = 0.5, 0.05
@@ -89,12 +90,24 @@ def test_spawned_gaussians_land_on_their_pixels_at_their_time_and_fade_away_from
     target[20:36, 24:40] = torch.tensor([1.0, 0.2, 0.1])
     depth = torch.full((H, W, 1), 3.0)
     n0 = len(m)
-    added = spawn_unexplained(m, opt, strategy.state, t, viewmat, K, torch.zeros(H, W, 3), depth, target, g.means,
-                              max_new=50, life=life, rng=np.random.default_rng(0))
+    added = spawn_unexplained(
+        m,
+        opt,
+        strategy.state,
+        t,
+        viewmat,
+        K,
+        torch.zeros(H, W, 3),
+        depth,
+        target,
+        g.means,
+        max_new=50,
+        life=life,
+        rng=np.random.default_rng(0),
+    )
     assert added.gaussians == 50 and len(m) == n0 + 50
     # Every per-Gaussian tensor grew in lock-step; the new ones are dynamic, coloured from the frame.
-    assert (len(m.dynamic) == len(m.K) == len(m.lifespan) == len(m.own_velocity) == len(strategy.state["grad_sum"])
-            == len(m))
+    assert len(m.dynamic) == len(m.K) == len(m.lifespan) == len(m.own_velocity) == len(strategy.state["grad_sum"]) == len(m)
     assert m.dynamic[n0:].all()
     assert torch.allclose(m.lifespan[n0:], torch.tensor([t, life]).expand(50, 2))
     assert torch.isinf(m.lifespan[:n0, 1]).all()
@@ -139,9 +152,22 @@ def test_a_spawned_gaussian_joins_a_parent_that_moves_like_its_pixel_not_the_nea
     def spawn(model, moved):
         at_next = g.means.detach().clone()
         at_next[moved, 1] += 3.0 * z[moved] / float(K[1, 1])  # 3 px down
-        return spawn_unexplained(model, None, {}, t, viewmat, K, torch.zeros(H, W, 3), depth, target,
-                                 g.means.detach(), 40, 0.05, np.random.default_rng(0),
-                                 NextFrame(viewmat, K, flow, at_next, t + 0.1))
+        return spawn_unexplained(
+            model,
+            None,
+            {},
+            t,
+            viewmat,
+            K,
+            torch.zeros(H, W, 3),
+            depth,
+            target,
+            g.means.detach(),
+            40,
+            0.05,
+            np.random.default_rng(0),
+            NextFrame(viewmat, K, flow, at_next, t + 0.1),
+        )
 
     n0 = len(m)
     assert spawn(m, movers) == Spawned(36, 0)  # one per 2x2 pixels of the 12x12 patch, each with a parent
@@ -180,8 +206,22 @@ def test_spawned_gaussians_move_as_the_flow_at_their_pixel_says_whatever_the_fie
     at_next = g.means.clone()
     at_next[:, 1] += 3.0 * z / float(K[1, 1])  # every Gaussian moves 3 px down: all match
     n0 = len(m)
-    added = spawn_unexplained(m, None, {}, t, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 5.0), target,
-                              g.means, 36, 0.05, np.random.default_rng(0), NextFrame(viewmat, K, flow, at_next, t_next))
+    added = spawn_unexplained(
+        m,
+        None,
+        {},
+        t,
+        viewmat,
+        K,
+        torch.zeros(H, W, 3),
+        torch.full((H, W, 1), 5.0),
+        target,
+        g.means,
+        36,
+        0.05,
+        np.random.default_rng(0),
+        NextFrame(viewmat, K, flow, at_next, t_next),
+    )
     assert added.gaussians > 20
     new = torch.arange(n0, len(m))
 
@@ -285,8 +325,12 @@ def test_a_frame_the_render_explains_gets_nothing():
         g = m.at(0.3, velocity=False)
     image = torch.rand(H, W, 3)
     n0 = len(m)
-    assert spawn_unexplained(m, None, {}, 0.3, viewmat, K, image, torch.ones(H, W, 1), image, g.means, 50, 0.05,
-                             np.random.default_rng(0)).gaussians == 0
+    assert (
+        spawn_unexplained(
+            m, None, {}, 0.3, viewmat, K, image, torch.ones(H, W, 1), image, g.means, 50, 0.05, np.random.default_rng(0)
+        ).gaussians
+        == 0
+    )
     assert len(m) == n0
 
 
@@ -296,8 +340,9 @@ def test_lifespans_survive_pruning_the_split_and_a_save():
         g = m.at(0.5, velocity=False)
     target = torch.zeros(H, W, 3)
     target[20:36, 24:40] = 1.0
-    spawn_unexplained(m, None, {}, 0.5, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 3.0), target, g.means,
-                      20, 0.05, np.random.default_rng(0))
+    spawn_unexplained(
+        m, None, {}, 0.5, viewmat, K, torch.zeros(H, W, 3), torch.full((H, W, 1), 3.0), target, g.means, 20, 0.05, np.random.default_rng(0)
+    )
     bounded = m.lifespan[:, 1].isfinite()
     # A decomposition with a τ above every K keeps the ones present for part of the clip dynamic.
     m.decompose(tau=1e9)
@@ -317,8 +362,13 @@ def test_lifespans_survive_pruning_the_split_and_a_save():
     old = m.state()
     del old["lifespan"]
     assert torch.isinf(KinematicsGS.from_state(old).lifespan[:, 1]).all()
-    for broken in (lambda x: x[:-1], lambda x: x[:, :1], lambda x: x.index_fill(1, torch.tensor([1]), float("nan")),
-                   lambda x: x.index_fill(1, torch.tensor([1]), 0.0), lambda x: x.index_fill(1, torch.tensor([0]), float("inf"))):
+    for broken in (
+        lambda x: x[:-1],
+        lambda x: x[:, :1],
+        lambda x: x.index_fill(1, torch.tensor([1]), float("nan")),
+        lambda x: x.index_fill(1, torch.tensor([1]), 0.0),
+        lambda x: x.index_fill(1, torch.tensor([0]), float("inf")),
+    ):
         bad = m.state()
         bad["lifespan"] = broken(bad["lifespan"])
         with pytest.raises(ValueError, match="lifespan"):
@@ -335,16 +385,16 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     from kgs_core.data.synth.generate import synthesize
     from kgs_core.train.config import make_config
 
-    scene = load_scene(synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0,
-                                  progress=False, overwrite=True))
+    scene = load_scene(
+        synthesize("sheet", tmp_path / "s", blur="mild", size=40, frames=6, subframes=2, seed=0, progress=False, overwrite=True)
+    )
     cfg = make_config("fast", iterations=10)
     cfg.spawn_frames = 2
     tr = trainer_module.Trainer(scene, tmp_path / "r", cfg, progress=False)
     tr.init_model()
     tr.model.decompose(tau=-1.0, recompute=False)
     calls = []
-    monkeypatch.setattr(events_module, "spawn_unexplained",
-                        lambda *args: calls.append((args[3], args[-1])) or Spawned(7, 2))
+    monkeypatch.setattr(events_module, "spawn_unexplained", lambda *args: calls.append((args[3], args[-1])) or Spawned(7, 2))
     tr.frame_loss = torch.tensor([0.01, 0.01, 0.5, 0.01, 0.01, 1.0])  # the last frame fits worst
     tr.spawn(100)
     frames = scene.train_frames
@@ -353,5 +403,10 @@ def test_trainer_spawns_only_in_frames_with_a_flow_to_the_next(tmp_path, monkeyp
     assert nxt.flow is tr.flows[frames[2].id][1] and nxt.means.shape == (len(tr.model), 3)
     # run.json's record: one attempt, at that frame's time, 7 Gaussians (what spawn_unexplained said).
     tr.spawn(200)
-    assert tr.spawn_summary() == {"attempts": 2, "gaussians": 14, "frames": 1, "by_time": {f"{frames[2].time:.4f}": 14},
-                                  "without_parent": 4}
+    assert tr.spawn_summary() == {
+        "attempts": 2,
+        "gaussians": 14,
+        "frames": 1,
+        "by_time": {f"{frames[2].time:.4f}": 14},
+        "without_parent": 4,
+    }

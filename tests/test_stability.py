@@ -60,8 +60,13 @@ def test_kinematic_basis_orthonormal_and_finite(seed, mag, basis, along_x):
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 10**6), mag=magnitudes, basis=st.sampled_from(BASES),
-       sigma_scale=st.sampled_from([1e-30, 1e-12, 1e-4, 1.0, 1e4]), blur=st.sampled_from([0.0, 1e-3, 1.0, 100.0]))
+@given(
+    seed=st.integers(0, 10**6),
+    mag=magnitudes,
+    basis=st.sampled_from(BASES),
+    sigma_scale=st.sampled_from([1e-30, 1e-12, 1e-4, 1.0, 1e4]),
+    blur=st.sampled_from([0.0, 1e-3, 1.0, 100.0]),
+)
 def test_refined_covariance_spd_with_finite_gradients(seed, mag, basis, sigma_scale, blur):
     n = 4
     v = (unit(seed, n) * mag).requires_grad_(True)
@@ -100,8 +105,12 @@ def test_motion_blur_covariance_is_the_second_moment_of_the_moving_gaussian():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10**6), mag=magnitudes, sigma_scale=st.sampled_from([1e-30, 1e-12, 1e-4, 1.0, 1e4]),
-       exposure=st.sampled_from([0.0, 1e-3, 1.0, 100.0]))
+@given(
+    seed=st.integers(0, 10**6),
+    mag=magnitudes,
+    sigma_scale=st.sampled_from([1e-30, 1e-12, 1e-4, 1.0, 1e4]),
+    exposure=st.sampled_from([0.0, 1e-3, 1.0, 100.0]),
+)
 def test_motion_blur_covariance_spd_with_finite_gradients(seed, mag, sigma_scale, exposure):
     n = 4
     v = (unit(seed, n) * mag).requires_grad_(True)
@@ -216,6 +225,7 @@ def test_projection_and_compositing_extremes(case, backend, ext):
 def jump_across_switch(basis: str, seed: int = 0, delta: float = 1e-7) -> float:
     """Largest relative change of Sigma_kin over a step of 2e-7 in u_z . e_x across 0.99 (the
     paper's reference-axis switch), over 20 random anisotropic covariances."""
+
     def direction(x):  # |u_z . e_x| = x, the rest split between y and z
         r = math.sqrt(1 - x * x) / math.sqrt(2)
         return [x, r, r]
@@ -226,8 +236,17 @@ def jump_across_switch(basis: str, seed: int = 0, delta: float = 1e-7) -> float:
         sigma = spd(seed + k, 1, 0.01, 20.0).expand(2, 3, 3)
         z = torch.zeros(2, 3, dtype=f64)
         rz = unit(seed + k).expand(2, 3)
-        out = refine_covariance(sigma, vs, torch.full((2,), 0.05, dtype=f64), z, z, rz, torch.tensor(-2.0, dtype=f64),
-                                torch.full((2,), 1.0, dtype=f64), basis=basis)
+        out = refine_covariance(
+            sigma,
+            vs,
+            torch.full((2,), 0.05, dtype=f64),
+            z,
+            z,
+            rz,
+            torch.tensor(-2.0, dtype=f64),
+            torch.full((2,), 1.0, dtype=f64),
+            basis=basis,
+        )
         worst = max(worst, ((out[1] - out[0]).norm() / out[0].norm()).item())
     return worst
 
@@ -248,9 +267,19 @@ def tiny_scene(tmp_path):
 def _cfg(**over):
     from kgs_core.train.config import make_config
 
-    base = {"iterations": 30, "eval_every": 10, "checkpoint_every": 10, "decompose_at": 10, "decompose_every": 0,
-            "lod_levels": 1, "lod_fractions": (1.0,), "init_points": 300, "densify.start": 1000,
-            "densify.opacity_reset_at": (), "densify.max_gaussians": 1000}
+    base = {
+        "iterations": 30,
+        "eval_every": 10,
+        "checkpoint_every": 10,
+        "decompose_at": 10,
+        "decompose_every": 0,
+        "lod_levels": 1,
+        "lod_fractions": (1.0,),
+        "init_points": 300,
+        "densify.start": 1000,
+        "densify.opacity_reset_at": (),
+        "densify.max_gaussians": 1000,
+    }
     base.update(over)
     return make_config("fast", **base)
 
@@ -280,11 +309,14 @@ def test_nonfinite_gradient_error_names_tensor_and_iteration(tiny_scene, tmp_pat
     assert "NonFiniteError" in (tmp_path / "run" / "error.txt").read_text()
 
 
-@pytest.mark.parametrize("name,settings,tensor", [
-    ("camera_motion.motion", {"camera_blur": "learned"}, lambda tr: tr.camera_motion.motion),
-    ("pose_correction.delta", {"pose_refine": True}, lambda tr: tr.pose_correction.delta),
-    ("exposure.logit", {"fit_exposure": True, "exposure": 0.5}, lambda tr: tr.fitted_exposure.logit),
-])
+@pytest.mark.parametrize(
+    "name,settings,tensor",
+    [
+        ("camera_motion.motion", {"camera_blur": "learned"}, lambda tr: tr.camera_motion.motion),
+        ("pose_correction.delta", {"pose_refine": True}, lambda tr: tr.pose_correction.delta),
+        ("exposure.logit", {"fit_exposure": True, "exposure": 0.5}, lambda tr: tr.fitted_exposure.logit),
+    ],
+)
 def test_nonfinite_gradient_of_the_camera_and_exposure_parameters_is_named(tiny_scene, tmp_path, name, settings, tensor):
     """Not only the Gaussians and the field: every fitted parameter is checked (the exposure
     and the learned camera motion act after the decomposition at iteration 10)."""
@@ -323,14 +355,14 @@ def test_still_gaussians_blend_to_the_predicted_covariance_with_bounded_gradient
     kappa = torch.tensor(-2.0, dtype=f64)
     # Sigma_kin of this direction without any fade (no blur, no residuals: the projection onto the
     # kinematic frame), which must differ from Sigma for the blend to show.
-    kin = refine_covariance(sigma, d, torch.zeros(1, dtype=f64), z, z, unit(5), kappa, torch.tensor([1e9], dtype=f64),
-                            basis=basis, still_len=still)
+    kin = refine_covariance(
+        sigma, d, torch.zeros(1, dtype=f64), z, z, unit(5), kappa, torch.tensor([1e9], dtype=f64), basis=basis, still_len=still
+    )
     assert (kin - sigma).norm() > 1e-3 * sigma.norm()
     worst_grad = 0.0
     for mag in [0.0, 1e-9, 1e-7, 1e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2]:
         v = (d * mag).requires_grad_(True)
-        out = refine_covariance(sigma, v, torch.zeros(1, dtype=f64), z, z, unit(5), kappa, v.norm(dim=-1),
-                                basis=basis, still_len=still)
+        out = refine_covariance(sigma, v, torch.zeros(1, dtype=f64), z, z, unit(5), kappa, v.norm(dim=-1), basis=basis, still_len=still)
         w = mag**2 / (mag**2 + still**2)
         # (below |v| ~ 1e-9 the direction is shortened by the normalisation guard, but w ~ 1e-12 there)
         assert torch.allclose(out, (1 - w) * sigma + w * kin, rtol=0, atol=1e-9 * sigma.norm().item()), mag
@@ -416,5 +448,5 @@ def test_camera_blur_elongates_still_gaussians_along_the_camera_motion():
     blurred = m.at(0.5, exposure=1.0, dt=0.1, camera_motion=(A, b))
     assert torch.equal(sharp.covars, m.at(0.5, exposure=0.0, dt=0.1, camera_motion=(A, b)).covars)
     u = p.means.detach() @ A.T + b
-    expected = sharp.covars + (0.1 ** 2 / 12) * u[:, :, None] * u[:, None, :]
+    expected = sharp.covars + (0.1**2 / 12) * u[:, :, None] * u[:, None, :]
     assert torch.allclose(blurred.covars, expected, rtol=1e-5, atol=1e-9)

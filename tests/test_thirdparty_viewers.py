@@ -96,13 +96,15 @@ def our_render(tiny_run, K, vm) -> np.ndarray:
     run = load_run(tiny_run)
     dc = (0.5 + C0 * run.model.params.sh0[:, 0, :]).clamp(0, 1)
     with torch.no_grad():
-        out, _ = render_model(run.model, Camera(K=K, viewmat=vm, width=WIDTH, height=HEIGHT), TIME, 0.0,
-                              background=torch.zeros(3), colors=dc)
+        out, _ = render_model(
+            run.model, Camera(K=K, viewmat=vm, width=WIDTH, height=HEIGHT), TIME, 0.0, background=torch.zeros(3), colors=dc
+        )
     return out.image.clamp(0, 1).numpy() * 255
 
 
-def viewer_picture(browser, site: str, viewer: str, file: str, vm: np.ndarray | None, init_script: str = "",
-                   after_load: str = "") -> np.ndarray:
+def viewer_picture(
+    browser, site: str, viewer: str, file: str, vm: np.ndarray | None, init_script: str = "", after_load: str = ""
+) -> np.ndarray:
     """The viewer's picture of `file` from `vm` (None: the viewer's own opening view);
     `after_load` is evaluated in the page once the file is drawn."""
     ctx = browser.new_context(viewport={"width": WIDTH, "height": HEIGHT}, device_scale_factor=1)
@@ -112,8 +114,7 @@ def viewer_picture(browser, site: str, viewer: str, file: str, vm: np.ndarray | 
     # The viewers' matrices are column-major: our row-major world-to-camera, transposed.
     hash_ = "" if vm is None else "#" + json.dumps(vm.T.reshape(-1).tolist())
     page.goto(f"{site}/{viewer}/index.html?url={site}/{file}{hash_}")
-    page.add_style_tag(content="#info, #quality, #caminfo, #instructions, #progress, #message, #spinner "
-                               "{ display: none !important; }")
+    page.add_style_tag(content="#info, #quality, #caminfo, #instructions, #progress, #message, #spinner { display: none !important; }")
     page.wait_for_function("document.getElementById('spinner').style.display === 'none'", timeout=60_000)
     if after_load:
         page.evaluate(after_load)
@@ -181,9 +182,15 @@ def test_a_framed_splat_opens_on_our_opening_view_in_antimatter15_splat(browser,
     here), and shows what our renderer shows from our opening camera."""
     K = np.array([[SPLAT_FX, 0, WIDTH / 2], [0, SPLAT_FY, HEIGHT / 2], [0, 0, 1.0]])
     ours = our_render(tiny_run, K, opening_view(tiny_run, SPLAT_FX))
-    theirs = viewer_picture(browser, site, "splat", "framed.splat", None,
-                            init_script="let clock = 0; Date.now = () => clock; window.setClock = (v) => { clock = v; };",
-                            after_load="setClock(2000)")
+    theirs = viewer_picture(
+        browser,
+        site,
+        "splat",
+        "framed.splat",
+        None,
+        init_script="let clock = 0; Date.now = () => clock; window.setClock = (v) => { clock = v; };",
+        after_load="setClock(2000)",
+    )
     # A looser limit than from our own camera: besides the viewers' darkening (docs/exports.md),
     # they drop splats centred just off screen, which this wider scene has at its edge.
     assert_close(ours, theirs, "framed.splat in antimatter15/splat with no URL hash", limit=4.0)
@@ -213,12 +220,21 @@ def splatv_render(path: Path, K, vm) -> np.ndarray:
     from kgs_core.render.rasterize import rasterize
 
     header, words = read_splatv(path.read_bytes())
-    d = decode_splatv_words(words[:header[0]["count"]])
+    d = decode_splatv_words(words[: header[0]["count"]])
     means, covars, opacity = evaluate_splatv(d, TIME)
     f32 = functools.partial(torch.tensor, dtype=torch.float32)
     with torch.no_grad():
-        out = rasterize(f32(means), f32(opacity), f32(vm), f32(K), WIDTH, HEIGHT, covars=f32(covars),
-                        colors=f32(d["rgba"][:, :3] / 255.0), background=torch.zeros(3))
+        out = rasterize(
+            f32(means),
+            f32(opacity),
+            f32(vm),
+            f32(K),
+            WIDTH,
+            HEIGHT,
+            covars=f32(covars),
+            colors=f32(d["rgba"][:, :3] / 255.0),
+            background=torch.zeros(3),
+        )
     return out.image.clamp(0, 1).numpy() * 255
 
 
@@ -227,7 +243,8 @@ def assert_close(ours: np.ndarray, theirs: np.ndarray, what: str, limit: float =
     diff = np.abs(theirs - ours).mean()
     if os.environ.get("KGS_DUMP"):  # a folder: ours | theirs | 8x the difference
         Image.fromarray(np.concatenate([ours, theirs, np.abs(theirs - ours) * 8], 1).clip(0, 255).astype(np.uint8)).save(
-            Path(os.environ["KGS_DUMP"]) / (what.split()[0] + ".png"))
+            Path(os.environ["KGS_DUMP"]) / (what.split()[0] + ".png")
+        )
     print(f"{what}: mean difference {diff:.2f}/255 (our mean {ours.mean():.1f}, theirs {theirs.mean():.1f})")
     assert ours.std() > 5, "the test camera sees nothing"
     assert diff < limit, f"{what} differs from our render by {diff:.2f}/255 on average"

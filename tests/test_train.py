@@ -23,16 +23,27 @@ warnings.filterwarnings("ignore", category=UserWarning)
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    root = synthesize("bounce", tmp_path_factory.mktemp("train") / "bounce", blur="mild", size=48, frames=8,
-                      subframes=4, progress=False)
+    root = synthesize("bounce", tmp_path_factory.mktemp("train") / "bounce", blur="mild", size=48, frames=8, subframes=4, progress=False)
     return load_scene(root)
 
 
 def tiny_config(**over):
-    base = {"iterations": 120, "eval_every": 40, "checkpoint_every": 60, "decompose_at": 60, "decompose_every": 0,
-            "lod_fractions": (0.5, 1.0), "lod_levels": 2, "lod_importance_views": 2, "init_points": 2000,
-            "densify.start": 30, "densify.every": 30, "densify.stop": 100, "densify.opacity_reset_at": (),
-            "densify.max_gaussians": 6000}
+    base = {
+        "iterations": 120,
+        "eval_every": 40,
+        "checkpoint_every": 60,
+        "decompose_at": 60,
+        "decompose_every": 0,
+        "lod_fractions": (0.5, 1.0),
+        "lod_levels": 2,
+        "lod_importance_views": 2,
+        "init_points": 2000,
+        "densify.start": 30,
+        "densify.every": 30,
+        "densify.stop": 100,
+        "densify.opacity_reset_at": (),
+        "densify.max_gaussians": 6000,
+    }
     base.update(over)
     ablate = base.pop("ablate", ())
     return make_config("fast", ablate=ablate, **base)
@@ -89,8 +100,7 @@ def test_each_ablation_changes_what_runs(scene, tmp_path, monkeypatch, ablate):
     refine = count_calls(monkeypatch, dyn, "motion_blur_covariance")
     refine_paper = count_calls(monkeypatch, dyn, "refine_covariance")
     # A tiny tau so that the decomposition leaves dynamic Gaussians for C.F. and K.R. to act on.
-    cfg = tiny_config(iterations=70, ablate=tuple(a for a in [ablate] if a), lod_levels=1, lod_fractions=(1.0,),
-                      **{"model.tau": 1e-9})
+    cfg = tiny_config(iterations=70, ablate=tuple(a for a in [ablate] if a), lod_levels=1, lod_fractions=(1.0,), **{"model.tau": 1e-9})
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     fine = {"n": 0}
     deform = {"n": 0}
@@ -230,8 +240,11 @@ def test_model_state_round_trip_keeps_the_knn_graph_and_rejects_malformed_fields
     with pytest.raises(ValueError, match="'knn'"):
         KinematicsGS.from_state(bad)
     # Every per-Gaussian field must have one row per Gaussian, and the decomposition mask be boolean.
-    for field, value in [("dynamic", model.dynamic[:-1]), ("K", model.K[1:]),
-                         ("params.opacity_logits", model.params.opacity_logits.detach()[:-2])]:
+    for field, value in [
+        ("dynamic", model.dynamic[:-1]),
+        ("K", model.K[1:]),
+        ("params.opacity_logits", model.params.opacity_logits.detach()[:-2]),
+    ]:
         bad = model.state()
         if field.startswith("params."):
             bad["params"][field.split(".")[1]] = value
@@ -280,8 +293,7 @@ def test_spawning_on_an_opacity_reset_count_renders_the_trained_model(scene, tmp
         seen[it] = float(torch.sigmoid(self.model.params.opacity_logits.detach()).max())
 
     monkeypatch.setattr(Trainer, "spawn", record)
-    cfg = tiny_config(iterations=70, decompose_at=30, spawn_frames=2, **{"densify.opacity_reset_at": (60,),
-                                                                          "model.tau": 1e-9})
+    cfg = tiny_config(iterations=70, decompose_at=30, spawn_frames=2, **{"densify.opacity_reset_at": (60,), "model.tau": 1e-9})
     train(scene, tmp_path / "run", cfg, progress=False)
     assert sorted(seen) == [60] and seen[60] > 0.1, seen  # (at 30 the decomposition comes after densification)
     ckpt = load_torch(tmp_path / "run" / "checkpoints" / "ckpt_000060.pt")
@@ -311,8 +323,10 @@ def test_interleaved_runs_are_the_runs_alone(scene, tmp_path):
     per step, and each trainer's time counts its own steps only."""
     from app.bench.equal_time import interleave
 
-    cfgs = {"full": tiny_config(iterations=22, checkpoint_every=1000, **{"densify.start": 1000}),
-            "decompose": tiny_config(iterations=14, checkpoint_every=1000, **{"densify.start": 1000}, ablate=("decompose",))}
+    cfgs = {
+        "full": tiny_config(iterations=22, checkpoint_every=1000, **{"densify.start": 1000}),
+        "decompose": tiny_config(iterations=14, checkpoint_every=1000, **{"densify.start": 1000}, ablate=("decompose",)),
+    }
     for name, cfg in cfgs.items():
         train(scene, tmp_path / f"alone_{name}", cfg, progress=False)
     trainers = [Trainer(scene, tmp_path / f"together_{name}", cfg, progress=False) for name, cfg in cfgs.items()]
@@ -367,10 +381,18 @@ def test_velocity_epe_against_ground_truth_motion(tmp_path):
 
     root = synthesize("sheet", tmp_path / "sheet", blur="mild", size=48, frames=8, subframes=2, progress=False)
     scene = load_scene(root)
-    cfg = make_config("fast", iterations=80, eval_every=40, checkpoint_every=1000, decompose_at=40, decompose_every=0,
-                      lod_levels=1, lod_fractions=(1.0,), init_points=1500,
-                      **{"densify.start": 1000, "densify.opacity_reset_at": (), "densify.max_gaussians": 3000,
-                         "model.tau": 1e-7})
+    cfg = make_config(
+        "fast",
+        iterations=80,
+        eval_every=40,
+        checkpoint_every=1000,
+        decompose_at=40,
+        decompose_every=0,
+        lod_levels=1,
+        lod_fractions=(1.0,),
+        init_points=1500,
+        **{"densify.start": 1000, "densify.opacity_reset_at": (), "densify.max_gaussians": 3000, "model.tau": 1e-7},
+    )
     train(scene, tmp_path / "run", cfg, progress=False)
     model = load_run(tmp_path / "run").model
     trained = velocity_epe(model, scene)
@@ -453,19 +475,20 @@ def test_a_saved_config_round_trips_and_a_malformed_one_names_the_field():
     cfg = make_config("paper", camera_blur="poses", **{"densify.max_gaussians": 1234, "model.knn": 5})
     assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
     good = cfg.to_dict()
-    for bad, needle in (({**good, "densify": {**good["densify"], "evry": 5}}, "densify.evry is not a setting"),
-                        ({**good, "densify": [1, 2]}, "densify must be a JSON object"),
-                        ({**good, "model": {**good["model"], "knnn": 5}}, "model.knnn is not a setting"),
-                        ({**good, "model": {**good["model"], "velocity": "fast"}}, "model.velocity must be one of"),
-                        ({k: v for k, v in good.items() if k != "model"}, "no model block"),
-                        ({**good, "on_nonfinite": "ignore"}, "on_nonfinite must be one of error, restore"),
-                        ({**good, "exposure": 2.0}, "exposure must be in"),
-                        ([good], "config must be a JSON object")):
+    for bad, needle in (
+        ({**good, "densify": {**good["densify"], "evry": 5}}, "densify.evry is not a setting"),
+        ({**good, "densify": [1, 2]}, "densify must be a JSON object"),
+        ({**good, "model": {**good["model"], "knnn": 5}}, "model.knnn is not a setting"),
+        ({**good, "model": {**good["model"], "velocity": "fast"}}, "model.velocity must be one of"),
+        ({k: v for k, v in good.items() if k != "model"}, "no model block"),
+        ({**good, "on_nonfinite": "ignore"}, "on_nonfinite must be one of error, restore"),
+        ({**good, "exposure": 2.0}, "exposure must be in"),
+        ([good], "config must be a JSON object"),
+    ):
         with pytest.raises(ValueError, match=needle):
             TrainConfig.from_dict(bad)
     # Runs saved with the densification settings at the top level still load.
-    flat = {k: v for k, v in good.items() if k not in ("densify", "config_version")} | {"grad_threshold": 3e-4,
-                                                                                       "densify_every": 77}
+    flat = {k: v for k, v in good.items() if k not in ("densify", "config_version")} | {"grad_threshold": 3e-4, "densify_every": 77}
     old = TrainConfig.from_dict(flat)
     assert old.densify.grad_threshold == 3e-4 and old.densify.every == 77
 
@@ -533,8 +556,7 @@ def test_time_noise_follows_the_appendix_schedule(scene, tmp_path):
     1 after; here with the trainer's own numbers (frame intervals times the scene's dt)."""
     import math
 
-    cfg = tiny_config(iterations=200, noise_init_frames=1.0, noise_final_frames=0.25, noise_until=0.75,
-                      noise_delay=0.1, noise_w_delay=0.2)
+    cfg = tiny_config(iterations=200, noise_init_frames=1.0, noise_final_frames=0.25, noise_until=0.75, noise_delay=0.1, noise_w_delay=0.2)
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     s_init, s_final, k_max, k_delay, w_delay = scene.dt, 0.25 * scene.dt, 150, 20, 0.2
 
@@ -554,8 +576,9 @@ def test_flod_levels_decay_and_a_level_change_keeps_each_gaussians_size(scene, t
     a level change prunes the Gaussians whose importance is below the threshold, keeps a
     snapshot for rendering at that level, and re-parameterises the scales so that
     exp(s) + s_min, the size each Gaussian renders with, does not jump."""
-    cfg = tiny_config(iterations=100, lod_levels=5, lod_fractions=(0.1, 0.2, 0.35, 0.55, 1.0), lod_lambda=0.02,
-                      lod_rho=0.5, lod_prune_importance=0.5)
+    cfg = tiny_config(
+        iterations=100, lod_levels=5, lod_fractions=(0.1, 0.2, 0.35, 0.55, 1.0), lod_lambda=0.02, lod_rho=0.5, lod_prune_importance=0.5
+    )
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     assert [tr.level_min_scale(i) for i in range(5)] == pytest.approx([0.02, 0.01, 0.005, 0.0025, 0.0])
     assert tr.level_ends == [10, 20, 35, 55, 100]
@@ -595,8 +618,7 @@ def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(
     mean max/min scale ratio; `--ablate reg` and `--ablate ani` leave exactly their term out."""
     import kgs_core.train.objective as objective_module
 
-    cfg = tiny_config(iterations=1, lod_levels=1, lod_fractions=(1.0,), noise_init_frames=0.0,
-                      ablate=(ablate,) if ablate else ())
+    cfg = tiny_config(iterations=1, lod_levels=1, lod_fractions=(1.0,), noise_init_frames=0.0, ablate=(ablate,) if ablate else ())
     assert cfg.lambda_tv == 0  # (the fast preset's; the K-Planes smoothness would add a third term)
     tr = Trainer(scene, tmp_path / "run", cfg, progress=False)
     tr.init_model()
@@ -629,8 +651,19 @@ def test_absgrad_densification_reads_the_absolute_pixel_gradients(scene, tmp_pat
     from kgs_core.train.densify import DensifyStrategy
 
     s = random_scene(200, 32, 32, seed=9)
-    out = rasterize(s.means.clone().requires_grad_(True), s.opacities, s.viewmat, s.K, 32, 32, quats=s.quats,
-                    scales=s.scales, colors=s.colors, backend="cpu", absgrad=True)
+    out = rasterize(
+        s.means.clone().requires_grad_(True),
+        s.opacities,
+        s.viewmat,
+        s.K,
+        32,
+        32,
+        quats=s.quats,
+        scales=s.scales,
+        colors=s.colors,
+        backend="cpu",
+        absgrad=True,
+    )
     (out.image * torch.randn(32, 32, 3, generator=torch.Generator().manual_seed(2))).sum().backward()
     plain, absolute = DensifyStrategy(), DensifyStrategy(absgrad=True)
     plain.accumulate(out, 32, 32)
@@ -642,11 +675,15 @@ def test_absgrad_densification_reads_the_absolute_pixel_gradients(scene, tmp_pat
 
     asked = []
     original = DensifyStrategy.accumulate
-    monkeypatch.setattr(DensifyStrategy, "accumulate",
-                        lambda self, o, w, h: (asked.append("means2d_absgrad" in o.info), original(self, o, w, h)))
-    train(scene, tmp_path / "r", tiny_config(iterations=40, **{"densify.absgrad": True, "densify.start": 10,
-                                                                 "densify.every": 10, "densify.stop": 30}),
-          progress=False)
+    monkeypatch.setattr(
+        DensifyStrategy, "accumulate", lambda self, o, w, h: (asked.append("means2d_absgrad" in o.info), original(self, o, w, h))
+    )
+    train(
+        scene,
+        tmp_path / "r",
+        tiny_config(iterations=40, **{"densify.absgrad": True, "densify.start": 10, "densify.every": 10, "densify.stop": 30}),
+        progress=False,
+    )
     assert asked[:30] == [True] * 30 and not any(asked[30:]), asked
 
 
@@ -758,7 +795,6 @@ def test_the_splits_read_a_flow_of_their_own_method(scene, tmp_path, monkeypatch
     assert saved["config"]["flow_vote_method"] == vote_method
 
 
-
 def test_saved_configurations_of_every_version_load_through_one_migration():
     """`kgs_core.migrations`: a version-0 run.json config (flat densification keys, the camera
     blur as a switch, no kr_form, knn_radius, spawned_motion or tau_auto) loads as the layout
@@ -772,8 +808,7 @@ def test_saved_configurations_of_every_version_load_through_one_migration():
     assert TrainConfig.from_dict(d) == cfg
     old = {k: v for k, v in d.items() if k not in ("config_version", "densify", "tau_auto")}
     old.update({"densify_from": 123, "max_gaussians": 777, "camera_blur": True})
-    old["model"] = {k: v for k, v in d["model"].items() if k not in ("config_version", "kr_form", "knn_radius",
-                                                                     "spawned_motion")}
+    old["model"] = {k: v for k, v in d["model"].items() if k not in ("config_version", "kr_form", "knn_radius", "spawned_motion")}
     got = TrainConfig.from_dict(old)
     assert (got.densify.start, got.densify.max_gaussians, got.camera_blur, got.tau_auto) == (123, 777, "poses", False)
     assert (got.model.kr_form, got.model.knn_radius, got.model.spawned_motion) == ("paper", 0.0, "field")

@@ -44,10 +44,24 @@ def test_no_training_setting_names_a_path():
     assert not [k for k in schema() if setting_type(k) is str]
 
 
-@pytest.mark.parametrize("text", ["lr_means=NaN", "model.tau=Infinity", "model.tau=0", "seed=-5",
-                                  "iterations=99999999999", "init_points=2000000000", "batch_size=100000",
-                                  "lod_fractions=[0.5, NaN]", "model.deform_spatial=100000", "exposure=-0.1",
-                                  "densify.max_gaussians=1000000000", "lambda_reg=-1", "model.deform_multires=[1,2,3,4,5]"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "lr_means=NaN",
+        "model.tau=Infinity",
+        "model.tau=0",
+        "seed=-5",
+        "iterations=99999999999",
+        "init_points=2000000000",
+        "batch_size=100000",
+        "lod_fractions=[0.5, NaN]",
+        "model.deform_spatial=100000",
+        "exposure=-0.1",
+        "densify.max_gaussians=1000000000",
+        "lambda_reg=-1",
+        "model.deform_multires=[1,2,3,4,5]",
+    ],
+)
 def test_out_of_bounds_settings_are_refused_naming_the_key(text):
     from kgs_core.train.config import make_config
     from kgs_core.train.settings import parse_setting
@@ -70,8 +84,7 @@ def test_every_preset_is_inside_the_bounds():
 
 @pytest.fixture(scope="module")
 def synth_scene(tmp_path_factory):
-    return synthesize("bounce", tmp_path_factory.mktemp("colmap") / "synth", blur="none", size=32, frames=4, subframes=1,
-                      progress=False)
+    return synthesize("bounce", tmp_path_factory.mktemp("colmap") / "synth", blur="none", size=32, frames=4, subframes=1, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -115,9 +128,19 @@ def test_every_reader_s_files_are_checked_inside_the_folder(colmap_scene, tmp_pa
         load_scene(colmap_scene)
 
 
-@pytest.mark.parametrize("entry", [{"time": 0.5, "camera_id": None}, {"time": [0.5]}, {"time": float("nan")},
-                                   {"time": "noon"}, [0.5], {"camera_id": 0}, {"time": 0.1, "split": 3},
-                                   {"time": 0.1, "exposure": {}}])
+@pytest.mark.parametrize(
+    "entry",
+    [
+        {"time": 0.5, "camera_id": None},
+        {"time": [0.5]},
+        {"time": float("nan")},
+        {"time": "noon"},
+        [0.5],
+        {"camera_id": 0},
+        {"time": 0.1, "split": 3},
+        {"time": 0.1, "exposure": {}},
+    ],
+)
 def test_hostile_colmap_times_name_the_file(colmap_scene, tmp_path, entry):
     root = tmp_path / "c"
     shutil.copytree(colmap_scene, root)

@@ -58,9 +58,14 @@ class Trained:
     retimed: bool  # trained again at the equal-time count
 
 
-def equal_time(names: list[str], trainer_for: Callable[[str, int, str], Trainer], iterations: int,
-               budget: str = "time", cuts: int = 1,
-               train_all: Callable[[list[Trainer]], object] = interleave) -> tuple[list[Trained], list[Trained]]:
+def equal_time(
+    names: list[str],
+    trainer_for: Callable[[str, int, str], Trainer],
+    iterations: int,
+    budget: str = "time",
+    cuts: int = 1,
+    train_all: Callable[[list[Trainer]], object] = interleave,
+) -> tuple[list[Trained], list[Trained]]:
     """Trains `names` (the first one sets the budget) and returns `(first round, re-timed runs)`.
     `trainer_for(name, iterations, folder_suffix)` makes a fresh trainer. A re-timed run's time
     is the first round's rate times its count: a time of its own would be measured under other
@@ -74,8 +79,9 @@ def equal_time(names: list[str], trainer_for: Callable[[str, int, str], Trainer]
     if budget != "time":
         return done, []
     target = first[0].train_seconds
-    again = [(name, max(50, round(target / rate[name])))
-             for name in names[1:] if abs(rate[name] * iterations / target - 1) > RETIME_TOLERANCE]
+    again = [
+        (name, max(50, round(target / rate[name]))) for name in names[1:] if abs(rate[name] * iterations / target - 1) > RETIME_TOLERANCE
+    ]
     spread = [0.0] if cuts == 1 else [-0.05 + 0.1 * k / (cuts - 1) for k in range(cuts)]
     runs = [(name, max(50, round(n * (1 + f)))) for name, n in again for f in spread]
     if not runs:

@@ -60,8 +60,7 @@ def poses(rec) -> dict[str, np.ndarray]:
 def rig_consistency(P: dict[str, np.ndarray]) -> tuple[float, float] | None:
     """(median rotation spread in degrees, baseline length coefficient of variation) of camera b
     relative to camera a over all times both are posed."""
-    rel = [P[n.replace("_a.", "_b.")] @ np.linalg.inv(M) for n, M in P.items()
-           if n.endswith("_a.png") and n.replace("_a.", "_b.") in P]
+    rel = [P[n.replace("_a.", "_b.")] @ np.linalg.inv(M) for n, M in P.items() if n.endswith("_a.png") and n.replace("_a.", "_b.") in P]
     if len(rel) < 3:
         return None
     rel = np.stack(rel)
@@ -119,9 +118,17 @@ def synthetic_clip(frames: int, size: int, root: Path) -> tuple[str, Path, dict,
     return f"synthetic room ({frames} frames)", video, truth, extent
 
 
-def bench_clip(label: str, video: Path, eval_video: Path | None, size: int, mappers: list[str], cache: Path,
-               truth: dict | None = None, extent: float = 1.0) -> list[dict]:
-    from kgs_core.data.ingest import frame_set
+def bench_clip(
+    label: str,
+    video: Path,
+    eval_video: Path | None,
+    size: int,
+    mappers: list[str],
+    cache: Path,
+    truth: dict | None = None,
+    extent: float = 1.0,
+) -> list[dict]:
+    from kgs_core.data.frame_cache import frame_set
     from kgs_core.data.sfm import run_sfm
 
     rows = []
@@ -134,19 +141,35 @@ def bench_clip(label: str, video: Path, eval_video: Path | None, size: int, mapp
         for mapper in mappers:
             work = Path(tmp) / mapper
             t0 = time.perf_counter()
-            result = run_sfm(folder / "database.db", folder / "images", work, meta["names_a"], meta["names_b"],
-                             meta["sharpness"], mapper, progress=False)
+            result = run_sfm(
+                folder / "database.db", folder / "images", work, meta["names_a"], meta["names_b"], meta["sharpness"], mapper, progress=False
+            )
             seconds = time.perf_counter() - t0
-            row = {"clip": label, "mapper": mapper, "frames": f"{len(meta['names_a'])}+{len(meta['names_b'])}",
-                   "decode": prep["decode"], "features": prep["features"], "matching": prep["matching"],
-                   "mapping": seconds, "posed": "failed", "reproj": None, "points": None, "rig": None, "pose": None}
+            row = {
+                "clip": label,
+                "mapper": mapper,
+                "frames": f"{len(meta['names_a'])}+{len(meta['names_b'])}",
+                "decode": prep["decode"],
+                "features": prep["features"],
+                "matching": prep["matching"],
+                "mapping": seconds,
+                "posed": "failed",
+                "reproj": None,
+                "points": None,
+                "rig": None,
+                "pose": None,
+            }
             if result is not None:
                 P = poses(result.rec)
                 na = sum(n in P for n in meta["names_a"])
                 nb = sum(n in P for n in meta["names_b"])
-                row.update(posed=f"{na}/{len(meta['names_a'])}" + (f" + {nb}/{len(meta['names_b'])}" if meta["names_b"] else ""),
-                           reproj=result.rec.compute_mean_reprojection_error(), points=result.rec.num_points3D(),
-                           rig=rig_consistency(P), pose=pose_error(P, truth, extent) if truth else None)
+                row.update(
+                    posed=f"{na}/{len(meta['names_a'])}" + (f" + {nb}/{len(meta['names_b'])}" if meta["names_b"] else ""),
+                    reproj=result.rec.compute_mean_reprojection_error(),
+                    points=result.rec.num_points3D(),
+                    rig=rig_consistency(P),
+                    pose=pose_error(P, truth, extent) if truth else None,
+                )
             rows.append(row)
             print(format_row(row), flush=True)
             if result is not None and result.attempts and result.attempts[-1].get("stages"):
@@ -154,18 +177,22 @@ def bench_clip(label: str, video: Path, eval_video: Path | None, size: int, mapp
     return rows
 
 
-HEADER = ("| clip | mapper | frames | decode s | features s | matching s | mapping s | total s | posed | "
-          "reprojection px | points | rig rotation spread ° | rig baseline cv | centre error % | rotation error ° |\n"
-          "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+HEADER = (
+    "| clip | mapper | frames | decode s | features s | matching s | mapping s | total s | posed | "
+    "reprojection px | points | rig rotation spread ° | rig baseline cv | centre error % | rotation error ° |\n"
+    "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |"
+)
 
 
 def format_row(r: dict) -> str:
     f = lambda v, d=2: "—" if v is None else f"{v:.{d}f}"
     total = r["decode"] + r["features"] + r["matching"] + r["mapping"]
     rig, pose = r["rig"] or (None, None), r["pose"] or (None, None)
-    return (f"| {r['clip']} | {r['mapper']} | {r['frames']} | {r['decode']:.1f} | {r['features']:.1f} | "
-            f"{r['matching']:.1f} | {r['mapping']:.1f} | {total:.1f} | {r['posed']} | {f(r['reproj'])} | "
-            f"{r['points'] if r['points'] is not None else '—'} | {f(rig[0])} | {f(rig[1])} | {f(pose[0])} | {f(pose[1])} |")
+    return (
+        f"| {r['clip']} | {r['mapper']} | {r['frames']} | {r['decode']:.1f} | {r['features']:.1f} | "
+        f"{r['matching']:.1f} | {r['mapping']:.1f} | {total:.1f} | {r['posed']} | {f(r['reproj'])} | "
+        f"{r['points'] if r['points'] is not None else '—'} | {f(rig[0])} | {f(rig[1])} | {f(pose[0])} | {f(pose[1])} |"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -175,11 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("clips", nargs="*", default=list(DEFAULT_CLIPS), help="clip names in --data, or NAME_blur.EXT paths")
     p.add_argument("--data", default=DEFAULT_DATA)
     p.add_argument("--size", type=int, default=320, help="long side of the frames")
-    p.add_argument("--mappers", default="keyframes,global,incremental",
-                   help=f"comma-separated, from {', '.join(m for m in MAPPERS if m != 'auto')}")
+    p.add_argument(
+        "--mappers", default="keyframes,global,incremental", help=f"comma-separated, from {', '.join(m for m in MAPPERS if m != 'auto')}"
+    )
     p.add_argument("--pingpong", action="store_true", help="also each clip forwards then backwards (twice the frames)")
-    p.add_argument("--synthetic", type=int, default=0, metavar="N",
-                   help="also the synthetic room as an N-frame video with known cameras (0: no)")
+    p.add_argument(
+        "--synthetic", type=int, default=0, metavar="N", help="also the synthetic room as an N-frame video with known cameras (0: no)"
+    )
     p.add_argument("--out", default="bench-results/ingest")
     args = p.parse_args(argv)
     mappers = [m.strip() for m in args.mappers.split(",") if m.strip()]
@@ -199,8 +228,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.synthetic:
         label, video, truth, extent = synthetic_clip(args.synthetic, args.size, out)
         rows += bench_clip(label, video, None, args.size, mappers, cache, truth, extent)
-    text = (f"Machine: {machine()}\n\nCommand: `kgs-app bench ingest {' '.join(argv or [])}`\n\n"
-            + HEADER + "\n" + "\n".join(format_row(r) for r in rows) + "\n")
+    text = (
+        f"Machine: {machine()}\n\nCommand: `kgs-app bench ingest {' '.join(argv or [])}`\n\n"
+        + HEADER
+        + "\n"
+        + "\n".join(format_row(r) for r in rows)
+        + "\n"
+    )
     (out / "results.md").write_text(text)
     print(f"\n{text}\n-> {out / 'results.md'}")
     return 0

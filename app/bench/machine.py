@@ -28,5 +28,4 @@ def machine() -> str:
                 break
     except OSError:
         pass
-    return (f"{cpu}, {os.cpu_count()} cores, rasteriser SIMD {simd_path()}, "
-            f"torch {torch.__version__} ({torch.get_num_threads()} threads)")
+    return f"{cpu}, {os.cpu_count()} cores, rasteriser SIMD {simd_path()}, torch {torch.__version__} ({torch.get_num_threads()} threads)"

@@ -88,8 +88,10 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--n and --res must be positive, got --n {args.n} --res {args.res}")
     occ = scene_occupancy(args.n, args.res, args.seed)
     print(f"N={args.n:,} at {args.res}²: {asdict(occ)}")
-    print(f"pairs that draw {occ.pairs_drawn / occ.pairs:.1%}, rows per pair {occ.rows / occ.pairs:.2f}, "
-          f"rows that draw {occ.rows_drawn / occ.rows:.1%}, lanes per drawn row {occ.lanes_per_drawn_row:.2f} of {TILE}")
+    print(
+        f"pairs that draw {occ.pairs_drawn / occ.pairs:.1%}, rows per pair {occ.rows / occ.pairs:.2f}, "
+        f"rows that draw {occ.rows_drawn / occ.rows:.1%}, lanes per drawn row {occ.lanes_per_drawn_row:.2f} of {TILE}"
+    )
 
 
 if __name__ == "__main__":

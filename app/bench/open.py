@@ -45,8 +45,9 @@ def time_open(page, navigate, timeout_ms: int = 120_000) -> tuple[float, list]:
 
 
 def launch_chromium(pw):
-    return pw.chromium.launch(executable_path=CHROMIUM, args=[
-        "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"])
+    return pw.chromium.launch(
+        executable_path=CHROMIUM, args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
+    )
 
 
 def measure(run: Path, repeats: int, browser, log=print) -> tuple[list[float], list[float]]:
@@ -66,8 +67,7 @@ def measure(run: Path, repeats: int, browser, log=print) -> tuple[list[float], l
                 s_warm, _ = time_open(page, page.reload)
                 cold.append(s_cold)
                 warm.append(s_warm)
-                log(f"repeat {r + 1}: cold {s_cold:.2f} s, reload {s_warm:.2f} s; cold steps: "
-                    + json.dumps(steps, ensure_ascii=False))
+                log(f"repeat {r + 1}: cold {s_cold:.2f} s, reload {s_warm:.2f} s; cold steps: " + json.dumps(steps, ensure_ascii=False))
                 ctx.close()
         finally:
             shutil.rmtree(root, ignore_errors=True)

@@ -53,7 +53,7 @@ def fmt(value: float | None) -> str:
 def config_key(name: str) -> str:
     """The short name `--configs` takes: the part in parentheses, else the whole name without
     spaces (`full`, `cf`, `decompose`, `velocity=paper`, ...)."""
-    return name[name.index("(") + 1:-1] if name.endswith(")") else name.replace(" ", "")
+    return name[name.index("(") + 1 : -1] if name.endswith(")") else name.replace(" ", "")
 
 
 def image_cells(m: dict) -> str:
@@ -64,6 +64,7 @@ def image_cells(m: dict) -> str:
 
 def mean_row(label: str, ms: list[dict]) -> str:
     """A table row of the image metrics averaged over several runs (`evaluate_model` dicts)."""
+
     def avg(group: str, key: str) -> float | None:
         vals = [m[group][key] for m in ms if m[group][key] is not None]
         return sum(vals) / len(vals) if vals else None
@@ -126,8 +127,10 @@ def select_configs(spec: str | None) -> list[str]:
         config_overrides(full_name)  # a bad override fails here, before anything trains
         resolved.append(full_name)
     if unknown:
-        raise SystemExit(f"kgs-app bench quality: --configs: unknown {', '.join(unknown)} "
-                         f"(choose from {', '.join(by_key)}, each optionally with @KEY=VALUE overrides)")
+        raise SystemExit(
+            f"kgs-app bench quality: --configs: unknown {', '.join(unknown)} "
+            f"(choose from {', '.join(by_key)}, each optionally with @KEY=VALUE overrides)"
+        )
     order = list(CONFIGS)
     return sorted(dict.fromkeys(resolved), key=lambda n: (order.index(n.split("@")[0]), "@" in n))
 
@@ -139,23 +142,40 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--scene", default="sheet")
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--frames", type=int, default=30)
-    ap.add_argument("--blur", default="mild", choices=["none", "mild", "severe"],
-                    help="exposure of the blurry training camera (none 0, mild 0.5, severe 1 frame)")
+    ap.add_argument(
+        "--blur",
+        default="mild",
+        choices=["none", "mild", "severe"],
+        help="exposure of the blurry training camera (none 0, mild 0.5, severe 1 frame)",
+    )
     ap.add_argument("--seed", type=int, default=0, help="scene and training seed")
     ap.add_argument("--iterations", type=int, default=600, help="iterations of the first configuration")
-    ap.add_argument("--budget", default="time", choices=["time", "iterations"],
-                    help="what every configuration gets the same of (default: training time)")
-    ap.add_argument("--configs", help="comma-separated short names to run (default: all): "
-                    + ", ".join(config_key(n) for n in CONFIGS)
-                    + "; NAME@KEY=VALUE[@KEY=VALUE] overrides a training setting (full@noise_init_frames=0.1)")
-    ap.add_argument("--cuts", type=int, default=1,
-                    help="with --budget time: train each re-timed configuration at this many iteration counts "
-                         "spread over ±5%% of the equal-time one, and report their mean too (default 1)")
+    ap.add_argument(
+        "--budget",
+        default="time",
+        choices=["time", "iterations"],
+        help="what every configuration gets the same of (default: training time)",
+    )
+    ap.add_argument(
+        "--configs",
+        help="comma-separated short names to run (default: all): "
+        + ", ".join(config_key(n) for n in CONFIGS)
+        + "; NAME@KEY=VALUE[@KEY=VALUE] overrides a training setting (full@noise_init_frames=0.1)",
+    )
+    ap.add_argument(
+        "--cuts",
+        type=int,
+        default=1,
+        help="with --budget time: train each re-timed configuration at this many iteration counts "
+        "spread over ±5%% of the equal-time one, and report their mean too (default 1)",
+    )
     ap.add_argument("--taus", default="1e-7,1e-6,1e-5,2e-5,1e-4,1e-3", help="tau sweep on the full model")
-    ap.add_argument("--plot", help="PSNR-vs-time picture (default: bench-results/quality/"
-                    "psnr_vs_time_SCENE_BLUR.png, one per scene and blur, so that runs of several scenes all stay)")
-    ap.add_argument("--out", help="keep the runs here (default: a temporary folder; with --ray on a cluster, a "
-                    "folder every node mounts)")
+    ap.add_argument(
+        "--plot",
+        help="PSNR-vs-time picture (default: bench-results/quality/"
+        "psnr_vs_time_SCENE_BLUR.png, one per scene and blur, so that runs of several scenes all stay)",
+    )
+    ap.add_argument("--out", help="keep the runs here (default: a temporary folder; with --ray on a cluster, a folder every node mounts)")
     add_ray_options(ap)
     args = ap.parse_args(argv)
     if args.plot is None:
@@ -180,8 +200,11 @@ def tau_sweep(run, scene, taus: list[float]) -> None:
         model = decomposed_copy(run.model, tau)
         m = evaluate_model(model, scene)
         share = float(model.dynamic.float().mean())
-        print(f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
-              f"{fmt(m['decomposition_iou'])} |", flush=True)
+        print(
+            f"| {tau:.0e} | {share:.1%} | {fmt(m['heldout']['psnr'])} | {fmt(m['heldout']['psnr_dynamic'])} | "
+            f"{fmt(m['decomposition_iou'])} |",
+            flush=True,
+        )
 
 
 def plot_curves(curves: dict, dashed: set, path: Path, title: str) -> None:
@@ -224,14 +247,34 @@ def main(argv: list[str]) -> int:
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out or tempfile.mkdtemp(prefix="kgs-bench-quality-"))
-    folder = synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames, subframes=8, seed=args.seed,
-                        progress=False, overwrite=True)
+    folder = synthesize(
+        args.scene,
+        root / "scene",
+        blur=args.blur,
+        size=args.size,
+        frames=args.frames,
+        subframes=8,
+        seed=args.seed,
+        progress=False,
+        overwrite=True,
+    )
     scene = load_scene(folder)
-    print(f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
-          f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
-          f"{machine()}")
-    columns = ["held-out PSNR", "in dynamic mask", "deblur PSNR", "deblur in mask", "decomposition IoU", "velocity EPE px",
-               "dynamic", "iterations", "train s"]
+    print(
+        f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
+        f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
+        f"{machine()}"
+    )
+    columns = [
+        "held-out PSNR",
+        "in dynamic mask",
+        "deblur PSNR",
+        "deblur in mask",
+        "decomposition IoU",
+        "velocity EPE px",
+        "dynamic",
+        "iterations",
+        "train s",
+    ]
     print("| configuration | " + " | ".join(columns) + " |")
     print("| --- |" + " ---: |" * len(columns))
     curves, dashed = {}, set()
@@ -239,31 +282,39 @@ def main(argv: list[str]) -> int:
     def trainer_for(name: str, iterations: int, suffix: str = "") -> Trainer:
         over = config_overrides(name)
         ablate = over.pop("ablate", ())
-        cfg = make_config("fast", ablate=ablate, iterations=iterations,
-                          eval_every=max(iterations // 10, 1), seed=args.seed, **over)  # a curve, not three points
+        cfg = make_config(
+            "fast", ablate=ablate, iterations=iterations, eval_every=max(iterations // 10, 1), seed=args.seed, **over
+        )  # a curve, not three points
         run_dir = root / (config_slug(name) + suffix)
         return Trainer(scene, run_dir, cfg, progress=False)
 
     def curve(run_dir: Path, seconds) -> list[tuple[float, float, float]]:
         """`(seconds, held-out PSNR, inside the dynamic mask)` per logged evaluation."""
-        return [(seconds(r), r["psnr_heldout"], r.get("psnr_heldout_dynamic", math.nan)) for r in read_log(run_dir)
-                if not math.isnan(r["psnr_heldout"])]
+        return [
+            (seconds(r), r["psnr_heldout"], r.get("psnr_heldout_dynamic", math.nan))
+            for r in read_log(run_dir)
+            if not math.isnan(r["psnr_heldout"])
+        ]
 
     def report(label: str, tr: Trainer, seconds: str) -> dict:
         run = load_run(tr.run_dir)
         m = evaluate_model(run.model, scene, static=run.static_only)
         info = tr.info
-        print(f"| {label} | {image_cells(m)} | {fmt(m['decomposition_iou'])} | "
-              f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
-              f"{'static' if 'deform' in info['config']['ablate'] else format(info['dynamic_share'], '.0%')} | "
-              f"{info['iteration']} | {seconds} |", flush=True)
+        print(
+            f"| {label} | {image_cells(m)} | {fmt(m['decomposition_iou'])} | "
+            f"{'n/a' if m['velocity_epe_px'] is None else format(m['velocity_epe_px'], '.3f')} | "
+            f"{'static' if 'deform' in info['config']['ablate'] else format(info['dynamic_share'], '.0%')} | "
+            f"{info['iteration']} | {seconds} |",
+            flush=True,
+        )
         return m
 
     # Every configuration at the same iteration count, stepped in turn, then (--budget time)
     # the ones whose cost differs re-trained at the equal-time count (`equal_time`).
     nodes: list[str] = []
-    first, second = equal_time(names, lambda name, n, suffix: trainer_for(name, n, suffix), args.iterations,
-                               args.budget, args.cuts, **ray_runner(args, nodes))
+    first, second = equal_time(
+        names, lambda name, n, suffix: trainer_for(name, n, suffix), args.iterations, args.budget, args.cuts, **ray_runner(args, nodes)
+    )
     rate = {t.name: t.seconds / t.iterations for t in first}
     for t in first:
         report(t.name, t.trainer, f"{t.seconds:.0f}")
@@ -282,8 +333,9 @@ def main(argv: list[str]) -> int:
     if "full" in names:
         tau_sweep(load_run(root / "full"), scene, [float(x) for x in args.taus.split(",")])
     if args.plot:
-        plot_curves(curves, dashed, Path(args.plot),
-                    f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})")
+        plot_curves(
+            curves, dashed, Path(args.plot), f"{args.scene} {args.size}², same {args.budget} ({args.iterations} iterations for {names[0]})"
+        )
         print(f"\nplot: {args.plot}")
     (root / "bench.json").write_text(json.dumps({"curves": curves, "seconds_per_iteration": rate}))
     return 0

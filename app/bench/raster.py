@@ -55,8 +55,7 @@ def bench_raster(backend: str, n: int, res: int, repeat: int) -> Row:
     grad = torch.rand(res, res, 3, generator=torch.Generator().manual_seed(1))
 
     def forward():
-        return rasterize(means, opac, scene.viewmat, scene.K, res, res, quats=quats, scales=scales,
-                         colors=colors, backend=backend)
+        return rasterize(means, opac, scene.viewmat, scene.K, res, res, quats=quats, scales=scales, colors=colors, backend=backend)
 
     out = forward()
     (out.image * grad).sum().backward()  # warm-up (and extension build)
@@ -135,8 +134,7 @@ def stage_times(n: int, res: int, repeat: int) -> dict:
     def forward_backward():
         for p in params:
             p.grad = None
-        out = rasterize(means, opac, scene.viewmat, scene.K, res, res, quats=quats, scales=scales,
-                        colors=colors, backend="cpu")
+        out = rasterize(means, opac, scene.viewmat, scene.K, res, res, quats=quats, scales=scales, colors=colors, backend="cpu")
         (out.image * grad).sum().backward()
 
     forward_backward()  # warm-up: the reusable buffers grow to size once
@@ -154,8 +152,9 @@ def stage_times(n: int, res: int, repeat: int) -> dict:
 def bench_train_step(n: int, res: int, repeat: int, sh_degree: int = 3) -> dict:
     """One optimisation step: SH colours, projection, raster, L1 + D-SSIM, backward, Adam."""
     scene = random_scene(n, res, res, overlap=30.0, seed=0)
-    target = rasterize(scene.means, scene.opacities, scene.viewmat, scene.K, res, res,
-                       quats=scene.quats, scales=scene.scales, colors=scene.colors).image.detach()
+    target = rasterize(
+        scene.means, scene.opacities, scene.viewmat, scene.K, res, res, quats=scene.quats, scales=scene.scales, colors=scene.colors
+    ).image.detach()
     g = torch.Generator().manual_seed(2)
     means = (scene.means + 0.01 * torch.randn(scene.means.shape, generator=g)).requires_grad_(True)
     quats = scene.quats.clone().requires_grad_(True)
@@ -168,8 +167,18 @@ def bench_train_step(n: int, res: int, repeat: int, sh_degree: int = 3) -> dict:
 
     def step():
         opt.zero_grad(set_to_none=True)
-        out = rasterize(means, torch.sigmoid(opac_logits), scene.viewmat, scene.K, res, res,
-                        quats=quats, scales=log_scales.exp(), sh_coeffs=sh, sh_degree=sh_degree)
+        out = rasterize(
+            means,
+            torch.sigmoid(opac_logits),
+            scene.viewmat,
+            scene.K,
+            res,
+            res,
+            quats=quats,
+            scales=log_scales.exp(),
+            sh_coeffs=sh,
+            sh_degree=sh_degree,
+        )
         loss = photometric_loss(out.image, target)
         loss.backward()
         opt.step()
@@ -230,10 +239,7 @@ def to_markdown(rows: list[Row], step: dict, mem: dict | None, stages: list[dict
         f"backward, Adam), N = {step['n']:,} at {step['res']}²: **{step['step_ms']:.1f} ms**",
     ]
     if mem:
-        lines.append(
-            f"Peak extra resident memory, one forward + backward, N = {mem['n']:,} at "
-            f"{mem['res']}²: **{mem['mb']:.0f} MB**"
-        )
+        lines.append(f"Peak extra resident memory, one forward + backward, N = {mem['n']:,} at {mem['res']}²: **{mem['mb']:.0f} MB**")
     if stages:
         lines += ["", *stages_markdown(stages)]
     return "\n".join(lines)
@@ -246,9 +252,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--backends", nargs="+", default=["cpu", "torch"], choices=["cpu", "torch"])
     ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocess")
-    ap.add_argument("--stages", action="store_true",
-                    help="also time each C++ stage inside the cpu forward + backward, per N and size, "
-                         "and what autograd and Python add")
+    ap.add_argument(
+        "--stages",
+        action="store_true",
+        help="also time each C++ stage inside the cpu forward + backward, per N and size, and what autograd and Python add",
+    )
     ap.add_argument("--markdown", help="also write the results as markdown to this file")
     ap.add_argument("--json", help="also write raw results as JSON to this file")
     args = ap.parse_args(argv)
@@ -261,8 +269,11 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 row = bench_raster(backend, n, res, args.repeat if backend == "cpu" else 1)
                 rows.append(row)
-                print(f"{backend:5s} N={n:>7,} {res:>4}²  fwd {row.forward_ms:8.1f} ms  bwd {row.backward_ms:8.1f} ms"
-                      f"  list {row.list_len:6.0f}  overlap {row.overlap:5.1f}", flush=True)
+                print(
+                    f"{backend:5s} N={n:>7,} {res:>4}²  fwd {row.forward_ms:8.1f} ms  bwd {row.backward_ms:8.1f} ms"
+                    f"  list {row.list_len:6.0f}  overlap {row.overlap:5.1f}",
+                    flush=True,
+                )
     step = bench_train_step(50_000, 256, args.repeat)
     print(f"train step N=50,000 256²: {step['step_ms']:.1f} ms", flush=True)
     mem = None
@@ -275,16 +286,21 @@ def main(argv: list[str] | None = None) -> int:
             for res in args.res:
                 st = stage_times(n, res, max(args.repeat, 5))
                 stages.append(st)
-                print(f"stages N={n:>7,} {res:>4}²  " + "  ".join(f"{k} {v:.2f}" for k, v in st["ms"].items())
-                      + f"  rest {st['rest_ms']:.2f}  fwd+bwd {st['fwd_bwd_ms']:.2f}", flush=True)
+                print(
+                    f"stages N={n:>7,} {res:>4}²  "
+                    + "  ".join(f"{k} {v:.2f}" for k, v in st["ms"].items())
+                    + f"  rest {st['rest_ms']:.2f}  fwd+bwd {st['fwd_bwd_ms']:.2f}",
+                    flush=True,
+                )
     md = to_markdown(rows, step, mem, stages)
     if args.markdown:
         with open(args.markdown, "w") as f:
             f.write(md + "\n")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"machine": machine(), "rows": [asdict(r) for r in rows], "train_step": step, "memory": mem,
-                       "stages": stages}, f, indent=2)
+            json.dump(
+                {"machine": machine(), "rows": [asdict(r) for r in rows], "train_step": step, "memory": mem, "stages": stages}, f, indent=2
+            )
     return 0
 
 

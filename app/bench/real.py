@@ -52,7 +52,7 @@ def resolve_clip(spec: str, data: Path) -> tuple[str, Path, Path]:
         blur = p
         if not blur.stem.endswith("_blur"):
             raise SystemExit(f"kgs-app bench real: {spec}: a clip path must be NAME_blur.EXT with NAME_sharp.EXT beside it")
-        name = blur.stem[:-len("_blur")]
+        name = blur.stem[: -len("_blur")]
         sharp = blur.with_name(f"{name}_sharp{blur.suffix}")
     else:
         name, blur, sharp = spec, data / f"{spec}_blur.mp4", data / f"{spec}_sharp.mp4"
@@ -70,8 +70,11 @@ def ingest_cached(name: str, blur: Path, sharp: Path, size: int, root: Path) -> 
     out = root / "scenes" / f"{name}{size}"
     if not (out / "dataset.json").is_file():
         rep = ingest(blur, out, eval_video=sharp, max_size=size, overwrite=True)
-        print(f"# ingested {name}: {rep.registered}/{rep.frames} + {rep.eval_registered}/{rep.eval_frames} frames, "
-              f"{rep.mean_reprojection_error_px:.2f} px, {sum(rep.seconds.values()):.0f} s", flush=True)
+        print(
+            f"# ingested {name}: {rep.registered}/{rep.frames} + {rep.eval_registered}/{rep.eval_frames} frames, "
+            f"{rep.mean_reprojection_error_px:.2f} px, {sum(rep.seconds.values()):.0f} s",
+            flush=True,
+        )
     return out
 
 
@@ -101,9 +104,16 @@ def sharp_camera_metrics(model, scene, static: bool, masks: list[np.ndarray]) ->
     mean = lambda v: float(np.mean(v)) if v else math.nan  # noqa: E731
     nan = lambda v: math.nan if v is None else v  # noqa: E731
     d = detail.result()
-    return {"psnr": mean(ps), "ssim": mean(ss), "psnr_mask": mean(mps), "ssim_mask": mean(mss),
-            "detail": nan(d["detail"]), "detail_input": nan(d["detail_input"]),
-            "detail_mask": nan(d["detail_dynamic"]), "detail_input_mask": nan(d["detail_input_dynamic"])}
+    return {
+        "psnr": mean(ps),
+        "ssim": mean(ss),
+        "psnr_mask": mean(mps),
+        "ssim_mask": mean(mss),
+        "detail": nan(d["detail"]),
+        "detail_input": nan(d["detail_input"]),
+        "detail_mask": nan(d["detail_dynamic"]),
+        "detail_input_mask": nan(d["detail_input_dynamic"]),
+    }
 
 
 CROP_PX = 160  # side of the full-size crops (crops_<clip>.png)
@@ -141,8 +151,9 @@ def best_time_offset(model, scene, masks: list[np.ndarray], at_zero: float, offs
 def dynamic_masks(static_model, scene) -> list[np.ndarray]:
     from kgs_core.evaluate import render_at, static_error_mask
 
-    return [static_error_mask(render_at(static_model, f, 0.0, scene.dt, static=True)[0].image.numpy(), f.image())
-            for f in scene.test_frames]
+    return [
+        static_error_mask(render_at(static_model, f, 0.0, scene.dt, static=True)[0].image.numpy(), f.image()) for f in scene.test_frames
+    ]
 
 
 @torch.no_grad()
@@ -162,8 +173,9 @@ def side_by_side(runs: list, scene, masks: list[np.ndarray], path: Path, count: 
     for k in np.linspace(0, len(test) - 1, count + 2).round().astype(int)[1:-1]:
         f = test[k]
         gt = f.image().copy()
-        cells = [nearest_input(scene, f)] + [render_at(r.model, f, 0.0, scene.dt, static=r.static_only)[0].image
-                                             .clamp(0, 1).numpy() for r in runs]
+        cells = [nearest_input(scene, f)] + [
+            render_at(r.model, f, 0.0, scene.dt, static=r.static_only)[0].image.clamp(0, 1).numpy() for r in runs
+        ]
         h = min(c.shape[0] for c in cells + [gt])
         w = min(c.shape[1] for c in cells + [gt])
         if crop:
@@ -204,10 +216,12 @@ def plot_curves(curves: dict, title: str, path: Path) -> None:
 
 def table_row(label: str, seed: str, r: dict) -> str:
     dyn = "static" if r["dynamic_share"] is None else f"{r['dynamic_share']:.0%}"
-    return (f"| {label} | {seed} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} | "
-            f"{r['detail']:.2f} ({r['detail_input']:.2f}) | {r['detail_mask']:.2f} ({r['detail_input_mask']:.2f}) | "
-            f"{r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
-            f"{dyn} | {r['gaussians']:,.0f} | {r['iterations']:.0f} | {r['seconds']:.0f} |")
+    return (
+        f"| {label} | {seed} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} | "
+        f"{r['detail']:.2f} ({r['detail_input']:.2f}) | {r['detail_mask']:.2f} ({r['detail_input_mask']:.2f}) | "
+        f"{r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
+        f"{dyn} | {r['gaussians']:,.0f} | {r['iterations']:.0f} | {r['seconds']:.0f} |"
+    )
 
 
 def mean_over_seeds(by_seed: dict[int, dict]) -> dict:
@@ -216,8 +230,7 @@ def mean_over_seeds(by_seed: dict[int, dict]) -> dict:
     if len(by_seed) == 1:
         return next(iter(by_seed.values()))
     rows = list(by_seed.values())
-    mean = {k: (None if rows[0][k] is None else float(np.mean([r[k] for r in rows])))
-            for k in rows[0] if k != "run"}
+    mean = {k: (None if rows[0][k] is None else float(np.mean([r[k] for r in rows]))) for k in rows[0] if k != "run"}
     return {**mean, "seeds": {str(seed): r for seed, r in by_seed.items()}}
 
 
@@ -241,26 +254,40 @@ def main(argv: list[str]) -> int:
     from .quality import config_label, config_overrides, config_slug, select_configs
 
     ap = argparse.ArgumentParser(prog="kgs-app bench real", description=__doc__.split("\n\n")[0])
-    ap.add_argument("clips", nargs="*", default=list(DEFAULT_CLIPS),
-                    help="clip names in --data (default: walk kitchen) or paths to NAME_blur.EXT videos")
-    ap.add_argument("--data", default=os.environ.get("KGS_BARDGS", DEFAULT_DATA),
-                    help=f"folder of NAME_blur.mp4 / NAME_sharp.mp4 pairs (default ${{KGS_BARDGS}} or {DEFAULT_DATA})")
+    ap.add_argument(
+        "clips",
+        nargs="*",
+        default=list(DEFAULT_CLIPS),
+        help="clip names in --data (default: walk kitchen) or paths to NAME_blur.EXT videos",
+    )
+    ap.add_argument(
+        "--data",
+        default=os.environ.get("KGS_BARDGS", DEFAULT_DATA),
+        help=f"folder of NAME_blur.mp4 / NAME_sharp.mp4 pairs (default ${{KGS_BARDGS}} or {DEFAULT_DATA})",
+    )
     ap.add_argument("--size", type=int, default=320, help="longest image side for ingest (default 320)")
     ap.add_argument("--preset", default="fast", choices=["fast", "paper"])
-    ap.add_argument("--iterations", type=int, help="iterations of the first configuration (default: the preset's, "
-                    "fitted to the clip)")
-    ap.add_argument("--configs", default="full,decompose,deform",
-                    help="configurations as for bench quality; 'deform' (the static 3DGS) is always trained: it "
-                         "defines the dynamic-region mask")
+    ap.add_argument("--iterations", type=int, help="iterations of the first configuration (default: the preset's, fitted to the clip)")
+    ap.add_argument(
+        "--configs",
+        default="full,decompose,deform",
+        help="configurations as for bench quality; 'deform' (the static 3DGS) is always trained: it defines the dynamic-region mask",
+    )
     ap.add_argument("--budget", default="time", choices=["time", "iterations"])
     ap.add_argument("--cuts", type=int, default=1)
-    ap.add_argument("--seeds", default="0",
-                    help="comma-separated training seeds. With more than one, every configuration is trained with "
-                         "each (runs under OUT/runs/CLIP/sSEED), the mask comes from the first seed's static 3DGS, "
-                         "and the table gives each seed's row and their mean (one seed's mask PSNR is noisy: "
-                         "docs/results.md)")
-    ap.add_argument("--out", default="bench-results/real", help="runs, cached scenes and results (default %(default)s; "
-                    "with --ray on a cluster, a folder every node mounts)")
+    ap.add_argument(
+        "--seeds",
+        default="0",
+        help="comma-separated training seeds. With more than one, every configuration is trained with "
+        "each (runs under OUT/runs/CLIP/sSEED), the mask comes from the first seed's static 3DGS, "
+        "and the table gives each seed's row and their mean (one seed's mask PSNR is noisy: "
+        "docs/results.md)",
+    )
+    ap.add_argument(
+        "--out",
+        default="bench-results/real",
+        help="runs, cached scenes and results (default %(default)s; with --ray on a cluster, a folder every node mounts)",
+    )
     add_ray_options(ap)
     args = ap.parse_args(argv)
     if args.cuts < 1 or (args.cuts > 1 and args.budget != "time"):
@@ -283,17 +310,23 @@ def main(argv: list[str]) -> int:
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     root = Path(args.out)
     root.mkdir(parents=True, exist_ok=True)
-    lines = [f"# bench real: {args.preset} preset, {args.size} px, same {args.budget}, "
-             f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}; {machine()}", ""]
+    lines = [
+        f"# bench real: {args.preset} preset, {args.size} px, same {args.budget}, "
+        f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}; {machine()}",
+        "",
+    ]
     summary = {}
     for name, blur, sharp in clips:
         scene_dir = ingest_cached(name, blur, sharp, args.size, root)
         scene = load_scene(scene_dir)
 
         iterations = args.iterations or make_config(args.preset, scene=scene).iterations
-        print(f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
-              f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
-              f"{names[0]}", flush=True)
+        print(
+            f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
+            f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
+            f"{names[0]}",
+            flush=True,
+        )
         masks, rows, per_seed = None, [], {}
         for seed in seeds:
             runs = root / "runs" / name / (f"s{seed}" if len(seeds) > 1 else "")
@@ -311,32 +344,46 @@ def main(argv: list[str]) -> int:
                 static_run = load_run(next(t for t in first if t.name == static_name).trainer.run_dir)
                 masks = dynamic_masks(static_run.model, scene)
                 share = float(np.mean([m.mean() for m in masks]))
-                lines += [f"## {name}", "",
-                          f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at "
-                          f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; dynamic-region mask: "
-                          f"{share:.1%} of the sharp-camera pixels." + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""),
-                          "", "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | detail (input) | detail in mask "
-                          "(input) | in mask at the best time offset (frames) | dynamic | Gaussians | iterations | "
-                          "train s |",
-                          "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                lines += [
+                    f"## {name}",
+                    "",
+                    f"{len(scene.train_frames)} + {len(scene.test_frames)} frames at "
+                    f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; dynamic-region mask: "
+                    f"{share:.1%} of the sharp-camera pixels." + (f" {timing_note(nodes, args.task_cpus)}." if nodes else ""),
+                    "",
+                    "| configuration | seed | PSNR | SSIM | PSNR in mask | SSIM in mask | detail (input) | detail in mask "
+                    "(input) | in mask at the best time offset (frames) | dynamic | Gaussians | iterations | "
+                    "train s |",
+                    "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+                ]
                 print("\n".join(lines[-5:]), flush=True)
             curves, shown = {}, []
             for t in first + second:
                 run = load_run(t.trainer.run_dir)
                 m = sharp_camera_metrics(run.model, scene, run.static_only, masks)
-                m.update({"psnr_mask_best_offset": m["psnr_mask"], "best_offset_frames": 0.0} if run.static_only
-                         else best_time_offset(run.model, scene, masks, m["psnr_mask"]))
+                m.update(
+                    {"psnr_mask_best_offset": m["psnr_mask"], "best_offset_frames": 0.0}
+                    if run.static_only
+                    else best_time_offset(run.model, scene, masks, m["psnr_mask"])
+                )
                 label = config_label(t.name) + (", same time" if t.retimed else "")
                 label += f" ({t.iterations} it.)" if t.retimed and args.cuts > 1 else ""
                 info = t.trainer.info
-                result = {**m, "iterations": t.iterations, "seconds": t.seconds, "gaussians": info["gaussians"],
-                          "dynamic_share": None if run.static_only else info["dynamic_share"], "run": str(t.trainer.run_dir)}
+                result = {
+                    **m,
+                    "iterations": t.iterations,
+                    "seconds": t.seconds,
+                    "gaussians": info["gaussians"],
+                    "dynamic_share": None if run.static_only else info["dynamic_share"],
+                    "run": str(t.trainer.run_dir),
+                }
                 per_seed.setdefault(label, {})[seed] = result
                 rows.append(table_row(label, str(seed), result))
                 print(rows[-1], flush=True)
                 rate = t.seconds / t.iterations
-                curves[label] = [(r["iteration"] * rate, r["psnr_heldout"]) for r in read_log(t.trainer.run_dir)
-                                 if not math.isnan(r["psnr_heldout"])]
+                curves[label] = [
+                    (r["iteration"] * rate, r["psnr_heldout"]) for r in read_log(t.trainer.run_dir) if not math.isnan(r["psnr_heldout"])
+                ]
                 # The pictures show each configuration at the shared budget: the re-timed run where there is one.
                 if t.name != static_name and (t.retimed or not any(s.name == t.name for s in second)):
                     shown.append((label, run))
@@ -344,17 +391,23 @@ def main(argv: list[str]) -> int:
                 pictures = root / f"views_{name}.png"
                 side_by_side([r for _, r in shown], scene, masks, pictures)
                 side_by_side([r for _, r in shown], scene, masks, root / f"crops_{name}.png", count=2, crop=CROP_PX)
-                plot_curves(curves, f"{name}: held-out (sharp camera) PSNR, same {args.budget}, seed {seed}",
-                            root / f"psnr_vs_time_{name}.png")
+                plot_curves(
+                    curves, f"{name}: held-out (sharp camera) PSNR, same {args.budget}, seed {seed}", root / f"psnr_vs_time_{name}.png"
+                )
         fill_equal_time(per_seed)
         results = {label: mean_over_seeds(by_seed) for label, by_seed in per_seed.items()}
         if len(seeds) > 1:
             rows += [table_row(f"**{label}**", "mean", r) for label, r in results.items()]
         lines += rows
-        lines += ["", f"Pictures ({pictures.name}; crops_{name}.png at full size, {CROP_PX} px windows where the sharp "
-                  f"frame has the most detail outside the mask; seed {seeds[0]}), columns: blurry input | "
-                  + " | ".join(lb for lb, _ in shown) + " | sharp frame (mask outlined). Detail: the render's fine detail "
-                  "as a share of the sharp frame's, the blurry input's in brackets.", ""]
+        lines += [
+            "",
+            f"Pictures ({pictures.name}; crops_{name}.png at full size, {CROP_PX} px windows where the sharp "
+            f"frame has the most detail outside the mask; seed {seeds[0]}), columns: blurry input | "
+            + " | ".join(lb for lb, _ in shown)
+            + " | sharp frame (mask outlined). Detail: the render's fine detail "
+            "as a share of the sharp frame's, the blurry input's in brackets.",
+            "",
+        ]
         summary[name] = results
     (root / "results.md").write_text("\n".join(lines) + "\n")
     (root / "results.json").write_text(json.dumps(summary, indent=1))

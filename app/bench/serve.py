@@ -49,8 +49,7 @@ def make_run(root: Path, n: int, dynamic_share: float, seed: int = 0) -> Path:
     run = root / f"synthetic-{n}"
     run.mkdir(parents=True, exist_ok=True)
     save_torch(run / "model.pt", {"model": model.state(), "levels": []})
-    write_run_json(run, {"status": "done", "scene": str(root / "no-scene"), "config": cfg.to_dict(), "dt": 1 / 60,
-                         "exposure": 0.5})
+    write_run_json(run, {"status": "done", "scene": str(root / "no-scene"), "config": cfg.to_dict(), "dt": 1 / 60, "exposure": 0.5})
     return run
 
 
@@ -81,10 +80,17 @@ def bench_in_process(run: Path, repeats: int) -> dict:
         errs.append(np.linalg.norm(ra["position"] - rb["position"], axis=1))
     e = np.concatenate(errs)
     h, rec, _ = unpack_buffer(exact[0])
-    return {"dynamic": h["count"], "exact_ms": exact_ms, "interpolated_ms": interp_ms, "cache_build_s": build_s,
-            "cache_samples": len(tr.times), "cache_mb": tr.nbytes() / 2**20,
-            "interp_err_rms": float(np.sqrt((e**2).mean())), "interp_err_max": float(e.max()),
-            "buffer_bytes": len(exact[0])}
+    return {
+        "dynamic": h["count"],
+        "exact_ms": exact_ms,
+        "interpolated_ms": interp_ms,
+        "cache_build_s": build_s,
+        "cache_samples": len(tr.times),
+        "cache_mb": tr.nbytes() / 2**20,
+        "interp_err_rms": float(np.sqrt((e**2).mean())),
+        "interp_err_max": float(e.max()),
+        "buffer_bytes": len(exact[0]),
+    }
 
 
 def load_run_means(run: Path) -> np.ndarray:
@@ -129,7 +135,7 @@ async def wait_for_cache(url: str, timeout: float = 300.0) -> float:
                 m = await ws.recv()
                 if isinstance(m, bytes):
                     (h,) = struct.unpack_from("<I", m, 4)
-                    header = json.loads(m[8:8 + h])
+                    header = json.loads(m[8 : 8 + h])
                     break
             if header.get("interpolated"):
                 return time.perf_counter() - t0
@@ -153,8 +159,9 @@ def rss_mb(pid: int) -> float:
 
 
 def api(base: str, method: str, path: str, body: dict | None = None) -> dict:
-    req = urllib.request.Request(base + path, method=method, data=None if body is None else json.dumps(body).encode(),
-                                 headers={"Content-Type": "application/json"})
+    req = urllib.request.Request(
+        base + path, method=method, data=None if body is None else json.dumps(body).encode(), headers={"Content-Type": "application/json"}
+    )
     return json.loads(urllib.request.urlopen(req).read() or b"null")
 
 
@@ -181,14 +188,21 @@ def bench_clients(run: Path, n_clients: int, seconds: float, warm_cache: bool, t
             row = api(srv.base, "GET", f"/api/runs/{job}")
             trained = (row.get("progress") or {}).get("iteration")
             if row["status"] != "running":
-                raise RuntimeError(f"the training job was not running while the clients scrubbed: {row['status']} "
-                                   f"{row.get('error')}")
+                raise RuntimeError(f"the training job was not running while the clients scrubbed: {row['status']} {row.get('error')}")
             api(srv.base, "POST", f"/api/runs/{job}/cancel")
     lat.sort()
-    return {"clients": n_clients, "seconds": seconds, "requests": len(lat), "errors": errors,
-            "p50_ms": statistics.median(lat), "p95_ms": lat[int(0.95 * (len(lat) - 1))],
-            "per_client_hz": len(lat) / seconds / n_clients, "cache_ready_s": cache_s,
-            "server_rss_mb": (rss0, rss1), "training_iteration": trained}
+    return {
+        "clients": n_clients,
+        "seconds": seconds,
+        "requests": len(lat),
+        "errors": errors,
+        "p50_ms": statistics.median(lat),
+        "p95_ms": lat[int(0.95 * (len(lat) - 1))],
+        "per_client_hz": len(lat) / seconds / n_clients,
+        "cache_ready_s": cache_s,
+        "server_rss_mb": (rss0, rss1),
+        "training_iteration": trained,
+    }
 
 
 def main(argv: list[str]) -> int:
@@ -199,8 +213,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--clients", type=int, default=50)
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--skip-clients", action="store_true")
-    ap.add_argument("--with-training", action="store_true",
-                    help="also scrub (cache warm) while the server trains the demo scene through its API")
+    ap.add_argument(
+        "--with-training", action="store_true", help="also scrub (cache warm) while the server trains the demo scene through its API"
+    )
     ap.add_argument("--run", help="also measure a real run directory (interpolation error of a trained field)")
     args = ap.parse_args(argv)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
@@ -208,17 +223,21 @@ def main(argv: list[str]) -> int:
     run = make_run(root, args.gaussians, args.dynamic_share)
     print(f"# {args.gaussians:,} Gaussians, {args.dynamic_share:.0%} dynamic; {machine()}")
     r = bench_in_process(run, args.repeats)
-    print(f"time change -> dynamic buffer ({r['dynamic']:,} splats, {r['buffer_bytes'] / 2**20:.2f} MB): "
-          f"exact {r['exact_ms']:.1f} ms, interpolated {r['interpolated_ms']:.1f} ms; trajectory cache "
-          f"{r['cache_samples']} samples, {r['cache_mb']:.0f} MB, built in {r['cache_build_s']:.1f} s; "
-          f"interpolation error RMS {r['interp_err_rms']:.2e}, max {r['interp_err_max']:.2e} (scene units)")
+    print(
+        f"time change -> dynamic buffer ({r['dynamic']:,} splats, {r['buffer_bytes'] / 2**20:.2f} MB): "
+        f"exact {r['exact_ms']:.1f} ms, interpolated {r['interpolated_ms']:.1f} ms; trajectory cache "
+        f"{r['cache_samples']} samples, {r['cache_mb']:.0f} MB, built in {r['cache_build_s']:.1f} s; "
+        f"interpolation error RMS {r['interp_err_rms']:.2e}, max {r['interp_err_max']:.2e} (scene units)"
+    )
     if args.run:
         r = bench_in_process(Path(args.run), args.repeats)
         extent = float(np.ptp(load_run_means(Path(args.run)), axis=0).max())
-        print(f"{args.run}: {r['dynamic']:,} dynamic; exact {r['exact_ms']:.1f} ms, interpolated "
-              f"{r['interpolated_ms']:.1f} ms; interpolation error RMS {r['interp_err_rms']:.2e}, max "
-              f"{r['interp_err_max']:.2e} (scene extent {extent:.2f}); cache {r['cache_samples']} samples, "
-              f"built in {r['cache_build_s']:.1f} s")
+        print(
+            f"{args.run}: {r['dynamic']:,} dynamic; exact {r['exact_ms']:.1f} ms, interpolated "
+            f"{r['interpolated_ms']:.1f} ms; interpolation error RMS {r['interp_err_rms']:.2e}, max "
+            f"{r['interp_err_max']:.2e} (scene extent {extent:.2f}); cache {r['cache_samples']} samples, "
+            f"built in {r['cache_build_s']:.1f} s"
+        )
     if not args.skip_clients:
         cases = [(False, None), (True, None)]
         if args.with_training:
@@ -230,8 +249,10 @@ def main(argv: list[str]) -> int:
             what = "trajectory cache warm" if warm else "cold start (exact until the cache is built)"
             if scene:
                 what += f", while the server trains the fast preset (iteration {c['training_iteration']} at the end)"
-            print(f"{c['clients']} scrubbing clients, {c['seconds']:.0f} s, {what}: "
-                  f"{c['requests']} buffers, {c['errors']} errors, p50 {c['p50_ms']:.0f} ms, p95 {c['p95_ms']:.0f} ms, "
-                  f"{c['per_client_hz']:.1f} buffers/s per client; server RSS {c['server_rss_mb'][0]:.0f} -> "
-                  f"{c['server_rss_mb'][1]:.0f} MB")
+            print(
+                f"{c['clients']} scrubbing clients, {c['seconds']:.0f} s, {what}: "
+                f"{c['requests']} buffers, {c['errors']} errors, p50 {c['p50_ms']:.0f} ms, p95 {c['p95_ms']:.0f} ms, "
+                f"{c['per_client_hz']:.1f} buffers/s per client; server RSS {c['server_rss_mb'][0]:.0f} -> "
+                f"{c['server_rss_mb'][1]:.0f} MB"
+            )
     return 0

@@ -43,19 +43,29 @@ def float_errors(seed: int = 0) -> list[tuple[str, float]]:
         rows.append((f"kinematic basis ({basis}), |v| 1e-6..1e6: max abs error", (R32 - R64).abs().max().item()))
         z = torch.zeros(4096, 3, dtype=torch.float64)
         speed = v.norm(dim=-1)
-        args = (sigma, v, speed * 0.01, 0.3 * torch.randn_like(z), 0.3 * torch.randn_like(z), d,
-                torch.tensor(-2.0, dtype=torch.float64), speed * 0.02)
+        args = (
+            sigma,
+            v,
+            speed * 0.01,
+            0.3 * torch.randn_like(z),
+            0.3 * torch.randn_like(z),
+            d,
+            torch.tensor(-2.0, dtype=torch.float64),
+            speed * 0.02,
+        )
         C64 = refine_covariance(*args, basis=basis)
         C32 = refine_covariance(*[a.float() for a in args], basis=basis).double()
         rel = ((C32 - C64).norm(dim=(1, 2)) / C64.norm(dim=(1, 2))).max().item()
         rows.append((f"refined covariance ({basis}): max relative error", rel))
     from scipy.spatial.transform import Rotation
 
-    for label, angles in (("exp map, angles 1e-12..1e-3", 10.0 ** np.linspace(-12, -3, 200)),
-                          ("exp map, angles pi - 1e-6..pi - 1e-2", math.pi - 10.0 ** np.linspace(-6, -2, 200))):
+    for label, angles in (
+        ("exp map, angles 1e-12..1e-3", 10.0 ** np.linspace(-12, -3, 200)),
+        ("exp map, angles pi - 1e-6..pi - 1e-2", math.pi - 10.0 ** np.linspace(-6, -2, 200)),
+    ):
         axes = d[:200].numpy()
         w = axes * angles[:, None]
-        err = (so3_exp(torch.tensor(w, dtype=torch.float32)).double().numpy() - Rotation.from_rotvec(w).as_matrix())
+        err = so3_exp(torch.tensor(w, dtype=torch.float32)).double().numpy() - Rotation.from_rotvec(w).as_matrix()
         rows.append((f"{label}: max abs error", float(np.abs(err).max())))
     for deg in range(4):
         err = (sh_basis(d.float(), deg).double() - sh_basis(d, deg)).abs().max().item()
@@ -86,8 +96,17 @@ def switch_jumps() -> list[tuple[str, float]]:
             v = torch.tensor(vs, dtype=torch.float64)
             z = torch.zeros(2, 3, dtype=torch.float64)
             rz = torch.randn(1, 3, generator=g, dtype=torch.float64).expand(2, 3)
-            C = refine_covariance(sigma, v, torch.full((2,), 0.05, dtype=torch.float64), z, z, rz,
-                                  torch.tensor(-2.0, dtype=torch.float64), torch.ones(2, dtype=torch.float64), basis=basis)
+            C = refine_covariance(
+                sigma,
+                v,
+                torch.full((2,), 0.05, dtype=torch.float64),
+                z,
+                z,
+                rz,
+                torch.tensor(-2.0, dtype=torch.float64),
+                torch.ones(2, dtype=torch.float64),
+                basis=basis,
+            )
             worst = max(worst, ((C[1] - C[0]).norm() / C[0].norm()).item())
         out.append((f"jump of Sigma_kin across |u_z.e_x| = 0.99 ({basis}), step 2e-7", worst))
     del sys
@@ -138,11 +157,23 @@ def train_case(name: str, root: Path, iterations: int, size: int, tau: float | N
     else:
         scene = load_scene(folder)
         raw_extent = None
-    cfg = make_config("fast", iterations=iterations, eval_every=max(iterations // 4, 1), checkpoint_every=10**9,
-                      decompose_at=iterations // 5, decompose_every=0, init_points=2000,
-                      **{"densify.start": iterations // 10, "densify.stop": int(iterations * 0.7),
-                         "densify.every": iterations // 10, "densify.opacity_reset_at": (), "densify.max_gaussians": 8000},
-                      **({"model.tau": tau} if tau else {}))
+    cfg = make_config(
+        "fast",
+        iterations=iterations,
+        eval_every=max(iterations // 4, 1),
+        checkpoint_every=10**9,
+        decompose_at=iterations // 5,
+        decompose_every=0,
+        init_points=2000,
+        **{
+            "densify.start": iterations // 10,
+            "densify.stop": int(iterations * 0.7),
+            "densify.every": iterations // 10,
+            "densify.opacity_reset_at": (),
+            "densify.max_gaussians": 8000,
+        },
+        **({"model.tau": tau} if tau else {}),
+    )
     t0 = time.perf_counter()
     try:
         info = train(scene, root / f"run-{abs(hash(name)) % 10**8}", cfg, progress=False)
@@ -156,9 +187,13 @@ def train_case(name: str, root: Path, iterations: int, size: int, tau: float | N
         from kgs_core.run import load_run
 
         m = evaluate_model(load_run(root / f"run-{abs(hash(name)) % 10**8}").model, scene)
-        row.update(heldout=m.get("heldout", {}).get("psnr"), deblur=m.get("train_view_deblur", {}).get("psnr"),
-                   heldout_dynamic=m.get("heldout", {}).get("psnr_dynamic"),
-                   dynamic_share=info.get("dynamic_share"), params_finite=True)
+        row.update(
+            heldout=m.get("heldout", {}).get("psnr"),
+            deblur=m.get("train_view_deblur", {}).get("psnr"),
+            heldout_dynamic=m.get("heldout", {}).get("psnr_dynamic"),
+            dynamic_share=info.get("dynamic_share"),
+            params_finite=True,
+        )
     if raw_extent is not None:
         row["raw_extent"] = raw_extent
     return row
@@ -173,8 +208,7 @@ def compare_bases(root: Path, iterations: int, size: int) -> list[dict]:
     from kgs_core.train.config import make_config
     from kgs_core.train.trainer import train
 
-    folder = synthesize("sheet", root / "sheet", blur="mild", size=size, frames=30, subframes=8, progress=False,
-                        overwrite=True)
+    folder = synthesize("sheet", root / "sheet", blur="mild", size=size, frames=30, subframes=8, progress=False, overwrite=True)
     scene = load_scene(folder)
     rows = []
     for basis in ("paper", "duff", "principal"):
@@ -182,8 +216,15 @@ def compare_bases(root: Path, iterations: int, size: int) -> list[dict]:
         t0 = time.perf_counter()
         train(scene, root / f"basis-{basis}", cfg, progress=False)
         m = evaluate_model(load_run(root / f"basis-{basis}").model, scene)
-        rows.append({"basis": basis, "seconds": time.perf_counter() - t0, "heldout": m["heldout"]["psnr"],
-                     "heldout_dynamic": m["heldout"]["psnr_dynamic"], "deblur": m["train_view_deblur"]["psnr"]})
+        rows.append(
+            {
+                "basis": basis,
+                "seconds": time.perf_counter() - t0,
+                "heldout": m["heldout"]["psnr"],
+                "heldout_dynamic": m["heldout"]["psnr_dynamic"],
+                "deblur": m["train_view_deblur"]["psnr"],
+            }
+        )
     return rows
 
 
@@ -192,11 +233,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--iterations", type=int, default=300)
     ap.add_argument("--size", type=int, default=32)
     ap.add_argument("--skip-training", action="store_true")
-    ap.add_argument("--tau", type=float, help="override the decomposition threshold (a low one makes most Gaussians "
-                                              "dynamic, so the kinematic path runs everywhere)")
+    ap.add_argument(
+        "--tau",
+        type=float,
+        help="override the decomposition threshold (a low one makes most Gaussians dynamic, so the kinematic path runs everywhere)",
+    )
     ap.add_argument("--cases", help="comma-separated case numbers (1-based) to train")
-    ap.add_argument("--compare-basis", type=int, metavar="ITERATIONS",
-                    help="also train the sheet scene with each kinematic basis for this many iterations")
+    ap.add_argument(
+        "--compare-basis",
+        type=int,
+        metavar="ITERATIONS",
+        help="also train the sheet scene with each kinematic basis for this many iterations",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
     print("## float32 against float64")
@@ -208,15 +256,19 @@ def main(argv: list[str]) -> int:
         print("| basis | held-out PSNR | held-out PSNR (dynamic mask) | deblur PSNR | seconds |")
         print("| ----- | ------------: | ---------------------------: | ----------: | ------: |")
         for r in compare_bases(root, args.compare_basis, args.size * 2):
-            print(f"| {r['basis']} | {r['heldout']:.2f} | {r['heldout_dynamic']:.2f} | {r['deblur']:.2f} | "
-                  f"{r['seconds']:.0f} |", flush=True)
+            print(
+                f"| {r['basis']} | {r['heldout']:.2f} | {r['heldout_dynamic']:.2f} | {r['deblur']:.2f} | {r['seconds']:.0f} |", flush=True
+            )
     if args.skip_training:
         return 0
     names = list(CASES)
     if args.cases:
         names = [names[int(i) - 1] for i in args.cases.split(",")]
-    print(f"\n## training on stiff and extreme sequences ({args.size}^2, {args.iterations} iterations, fast preset"
-          + (f", tau {args.tau:g}" if args.tau else "") + ")")
+    print(
+        f"\n## training on stiff and extreme sequences ({args.size}^2, {args.iterations} iterations, fast preset"
+        + (f", tau {args.tau:g}" if args.tau else "")
+        + ")"
+    )
     print("| case | frames | finite | held-out PSNR | in dynamic mask | deblur PSNR | dynamic | seconds |")
     print("| ---- | -----: | ------ | ------------: | --------------: | ----------: | ------: | ------: |")
     root = Path(tempfile.mkdtemp(prefix="kgs-bench-stability-"))
@@ -224,6 +276,9 @@ def main(argv: list[str]) -> int:
         r = train_case(name, root, args.iterations, args.size, args.tau)
         fmt = lambda x: "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.2f}"  # noqa: E731
         dyn = "n/a" if r.get("dynamic_share") is None else f"{r['dynamic_share']:.0%}"
-        print(f"| {name} | {r['frames']} | {'yes' if r['finite'] else 'NO: ' + r['error']} | {fmt(r.get('heldout'))} | "
-              f"{fmt(r.get('heldout_dynamic'))} | {fmt(r.get('deblur'))} | {dyn} | {r['seconds']:.0f} |", flush=True)
+        print(
+            f"| {name} | {r['frames']} | {'yes' if r['finite'] else 'NO: ' + r['error']} | {fmt(r.get('heldout'))} | "
+            f"{fmt(r.get('heldout_dynamic'))} | {fmt(r.get('deblur'))} | {dyn} | {r['seconds']:.0f} |",
+            flush=True,
+        )
     return 0

@@ -73,18 +73,28 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--scene", default="sheet", help="a synthetic scene's name, or a scene folder")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--frames", type=int, default=30)
-    ap.add_argument("--blur", choices=["none", "mild", "severe"], default="mild",
-                    help="exposure of the training camera (none: sharp, where K.R. needs no velocity)")
+    ap.add_argument(
+        "--blur",
+        choices=["none", "mild", "severe"],
+        default="mild",
+        help="exposure of the training camera (none: sharp, where K.R. needs no velocity)",
+    )
     ap.add_argument("--warmup", type=int, default=400, help="iterations trained before timing (past the decomposition at 300)")
     ap.add_argument("--steps", type=int, default=60, help="steps timed per configuration")
     ap.add_argument("--configs", default="full,kr,decompose", help="short names, as in bench quality")
     ap.add_argument("--repeats", type=int, default=2, help="timing rounds, configurations interleaved")
-    ap.add_argument("--decompose-at", type=int, help="the decomposition's iteration (default: the preset's; set it below "
-                    "--warmup to time a large scene after its decomposition without training to it)")
-    ap.add_argument("--profile", action="store_true", help="also list the operations of the first configuration's "
-                    "steps by self time")
-    ap.add_argument("--levels", help="comma-separated image divisors, e.g. 1,2,4: also time the first configuration's "
-                    "step at each resolution level (the flow term off at every level)")
+    ap.add_argument(
+        "--decompose-at",
+        type=int,
+        help="the decomposition's iteration (default: the preset's; set it below "
+        "--warmup to time a large scene after its decomposition without training to it)",
+    )
+    ap.add_argument("--profile", action="store_true", help="also list the operations of the first configuration's steps by self time")
+    ap.add_argument(
+        "--levels",
+        help="comma-separated image divisors, e.g. 1,2,4: also time the first configuration's "
+        "step at each resolution level (the flow term off at every level)",
+    )
     args = ap.parse_args(argv)
     names = select_configs(args.configs)
     torch.set_num_threads(min(2, os.cpu_count() or 1))
@@ -93,16 +103,14 @@ def main(argv: list[str]) -> int:
     if folder.is_dir():
         scene = load_scene(folder)
     else:
-        scene = load_scene(synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames,
-                                      progress=False))
+        scene = load_scene(synthesize(args.scene, root / "scene", blur=args.blur, size=args.size, frames=args.frames, progress=False))
     trainers = {}
     for name in names:
         over = config_overrides(name)
         ablate = over.pop("ablate", ())
         if args.decompose_at is not None:
             over["decompose_at"] = args.decompose_at
-        cfg = make_config("fast", ablate=ablate, scene=scene if folder.is_dir() else None, eval_every=10**9,
-                          checkpoint_every=10**9, **over)
+        cfg = make_config("fast", ablate=ablate, scene=scene if folder.is_dir() else None, eval_every=10**9, checkpoint_every=10**9, **over)
         tr = Trainer(scene, root / config_slug(name), cfg, progress=False)
         tr.init_model()
         for it in range(args.warmup):
@@ -110,8 +118,11 @@ def main(argv: list[str]) -> int:
             tr.after_step(it)
         trainers[name] = tr
     cam = scene.train_frames[0].camera
-    what = (f"{folder.name} {cam.width}x{cam.height}, {len(scene.train_frames)} training frames" if folder.is_dir() else
-            f"{args.scene} {args.size}², {args.frames} frames, {args.blur} blur")
+    what = (
+        f"{folder.name} {cam.width}x{cam.height}, {len(scene.train_frames)} training frames"
+        if folder.is_dir()
+        else f"{args.scene} {args.size}², {args.frames} frames, {args.blur} blur"
+    )
     print(f"# {what}, fast preset after {args.warmup} iterations; {args.steps} steps x {args.repeats} rounds; {machine()}")
     print("| configuration | Gaussians | dynamic | model ms | render + loss ms | backward ms | optimiser ms | step ms |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
@@ -124,8 +135,10 @@ def main(argv: list[str]) -> int:
     for name, tr in trainers.items():
         t, m = best[name], tr.model
         dyn = int(m.dynamic.sum()) if m.decomposed else len(m)
-        print(f"| {name} | {len(m):,} | {dyn / max(len(m), 1):.0%} | {t['model']:.1f} | {t['render + loss']:.1f} | "
-              f"{t['backward']:.1f} | {t['optimiser']:.1f} | **{t['step']:.1f}** |")
+        print(
+            f"| {name} | {len(m):,} | {dyn / max(len(m), 1):.0%} | {t['model']:.1f} | {t['render + loss']:.1f} | "
+            f"{t['backward']:.1f} | {t['optimiser']:.1f} | **{t['step']:.1f}** |"
+        )
     if args.levels:
         name, tr = next(iter(trainers.items()))
         divisors = [int(k) for k in args.levels.split(",")]
@@ -164,7 +177,7 @@ def time_levels(trainer, divisors: list[int], steps: int, start: int) -> dict[in
         for f in scene.train_frames:
             img, w, h = images[f.id], f.camera.width, f.camera.height
             if k > 1:
-                img = F.adaptive_avg_pool2d(img[:h * k, :w * k].permute(2, 0, 1)[None], (h, w))[0].permute(1, 2, 0)
+                img = F.adaptive_avg_pool2d(img[: h * k, : w * k].permute(2, 0, 1)[None], (h, w))[0].permute(1, 2, 0)
             tr.cache._imgs[(f.id, "image")] = img.contiguous()
 
     best, it = {}, start
@@ -196,6 +209,8 @@ def profile_table(trainer, steps: int, start: int, rows: int = 20) -> str:
     total = sum(e.self_cpu_time_total for e in events)
     lines = ["| operation | calls a step | self ms a step | share |", "| --- | ---: | ---: | ---: |"]
     for e in events[:rows]:
-        lines.append(f"| {e.key} | {e.count / steps:.1f} | {e.self_cpu_time_total / 1000 / steps:.1f} | "
-                     f"{e.self_cpu_time_total / max(total, 1):.1%} |")
+        lines.append(
+            f"| {e.key} | {e.count / steps:.1f} | {e.self_cpu_time_total / 1000 / steps:.1f} | "
+            f"{e.self_cpu_time_total / max(total, 1):.1%} |"
+        )
     return "\n".join(lines)

@@ -66,7 +66,7 @@ def draw_controls(model: ViewerModel) -> bool:
     c, lt = imgui.slider_float("log10 tau", math.log10(s.tau), -12.0, 0.0, "%.2f")
     _track("tau", frame_only=True)
     if c:
-        s.tau, changed = 10.0 ** lt, True
+        s.tau, changed = 10.0**lt, True
     imgui.separator()
     c6, s.exposure_captured = imgui.checkbox("as captured (blur)", s.exposure_captured)
     _track("exposure")

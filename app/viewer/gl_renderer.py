@@ -78,8 +78,7 @@ out vec4 frag;
 void main() { frag = vec4(1.0, 0.85, 0.2, 1.0); }
 """
 
-INSTANCE = np.dtype([("pos", "f4", 3), ("cov_a", "f4", 3), ("cov_b", "f4", 3), ("rgba", "f4", 4), ("dynamic", "f4"),
-                     ("index", "f4")])
+INSTANCE = np.dtype([("pos", "f4", 3), ("cov_a", "f4", 3), ("cov_b", "f4", 3), ("rgba", "f4", 4), ("dynamic", "f4"), ("index", "f4")])
 
 
 def instances(static: SplatSet | None, dynamic: SplatSet | None) -> np.ndarray:
@@ -144,13 +143,25 @@ class GLSplatRenderer:
             self.vao = None
         self.inst_buf.write(data.tobytes())
         if self.vao is None:
-            self.vao = self.ctx.vertex_array(self.prog, [
-                (self.quad, "2f", "a_corner"),
-                (self.inst_buf, "3f 3f 3f 4f 1f 1f/i", "i_pos", "i_cov_a", "i_cov_b", "i_rgba", "i_dynamic", "i_index"),
-            ])
+            self.vao = self.ctx.vertex_array(
+                self.prog,
+                [
+                    (self.quad, "2f", "a_corner"),
+                    (self.inst_buf, "3f 3f 3f 4f 1f 1f/i", "i_pos", "i_cov_a", "i_cov_b", "i_rgba", "i_dynamic", "i_index"),
+                ],
+            )
 
-    def draw(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, show: int = 3, overlay: int = 0,
-             stride: int = 4, arrows: bool = False) -> None:
+    def draw(
+        self,
+        viewmat: np.ndarray,
+        K: np.ndarray,
+        width: int,
+        height: int,
+        show: int = 3,
+        overlay: int = 0,
+        stride: int = 4,
+        arrows: bool = False,
+    ) -> None:
         ctx = self.ctx
         ctx.viewport = (0, 0, width, height)
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
@@ -177,8 +188,9 @@ class GLSplatRenderer:
             self.lines[0].render(moderngl.LINES, vertices=self.lines[1])
 
 
-def render_offscreen(static: SplatSet | None, dynamic: SplatSet | None, viewmat, K, width: int, height: int,
-                     ctx: moderngl.Context | None = None, **kw) -> np.ndarray:
+def render_offscreen(
+    static: SplatSet | None, dynamic: SplatSet | None, viewmat, K, width: int, height: int, ctx: moderngl.Context | None = None, **kw
+) -> np.ndarray:
     """`(H, W, 3)` uint8 from a headless context (EGL on Mesa when none is given)."""
     ctx = ctx or moderngl.create_standalone_context(backend="egl")
     fbo = ctx.framebuffer(color_attachments=[ctx.texture((width, height), 4)])

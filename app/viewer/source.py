@@ -32,8 +32,9 @@ class SplatSet:
     def parse(cls, data: bytes) -> "SplatSet":
         header, rec, vel = unpack_buffer(data)
         cov = rec["covariance"].astype(np.float32) * np.float32(header["cov_scale"])
-        return cls(rec["position"].copy(), cov, rec["rgba"].copy(), rec["index"].copy(),
-                   None if vel is None else vel.astype(np.float32), header)
+        return cls(
+            rec["position"].copy(), cov, rec["rgba"].copy(), rec["index"].copy(), None if vel is None else vel.astype(np.float32), header
+        )
 
 
 class LocalSource:
@@ -45,9 +46,16 @@ class LocalSource:
         self.view = RunView(Path(run_dir))
         self.frames = self.view.frames()
         run = self.view.run
-        self.meta = {"name": run.path.name, "dt": self.view.dt, "exposure": float(run.info.get("exposure", 0.0)),
-                     "lod_levels": run.n_levels, "tau": self.view.tau, "histogram": self.view.histogram(),
-                     "decomposition": self.view.decomposition(), "sh_degree": run.model.config.sh_degree}
+        self.meta = {
+            "name": run.path.name,
+            "dt": self.view.dt,
+            "exposure": float(run.info.get("exposure", 0.0)),
+            "lod_levels": run.n_levels,
+            "tau": self.view.tau,
+            "histogram": self.view.histogram(),
+            "decomposition": self.view.decomposition(),
+            "sh_degree": run.model.config.sh_degree,
+        }
 
     def static(self, lod: int | None) -> SplatSet:
         return SplatSet.parse(self.view.static_buffer(lod))
@@ -75,9 +83,16 @@ class RemoteSource:
         if not meta.get("has_model"):
             raise ValueError(f"run {run_id} on {url} has no model yet (status {meta.get('status')})")
         self.frames = meta["frames"]
-        self.meta = {"name": meta["name"], "dt": meta["dt"], "exposure": meta["exposure"],
-                     "lod_levels": meta["lod_levels"], "tau": meta["tau"], "histogram": meta["histogram"],
-                     "decomposition": meta["decomposition"], "sh_degree": meta["sh_degree"]}
+        self.meta = {
+            "name": meta["name"],
+            "dt": meta["dt"],
+            "exposure": meta["exposure"],
+            "lod_levels": meta["lod_levels"],
+            "tau": meta["tau"],
+            "histogram": meta["histogram"],
+            "decomposition": meta["decomposition"],
+            "sh_degree": meta["sh_degree"],
+        }
         from websockets.sync.client import connect
 
         ws_url = self.url.replace("http", "ws", 1) + f"/api/runs/{run_id}/stream"
@@ -92,9 +107,11 @@ class RemoteSource:
         self._conn.__exit__(None, None, None)
 
     def _get(self, path: str, body: dict | None = None) -> dict:
-        req = urllib.request.Request(self.url + path, data=None if body is None else json.dumps(body).encode(),
-                                     headers={"Content-Type": "application/json",
-                                              **({"Authorization": f"Bearer {self.token}"} if self.token else {})})
+        req = urllib.request.Request(
+            self.url + path,
+            data=None if body is None else json.dumps(body).encode(),
+            headers={"Content-Type": "application/json", **({"Authorization": f"Bearer {self.token}"} if self.token else {})},
+        )
         with urllib.request.urlopen(req) as r:
             return json.loads(r.read())
 

@@ -25,8 +25,9 @@ def save_png(path: str | Path, rgb: np.ndarray) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def run_window(model: ViewerModel, width: int = 1280, height: int = 800, max_frames: int | None = None,
-               screenshot: str | None = None) -> None:
+def run_window(
+    model: ViewerModel, width: int = 1280, height: int = 800, max_frames: int | None = None, screenshot: str | None = None
+) -> None:
     import moderngl
     from imgui_bundle import hello_imgui, imgui
 

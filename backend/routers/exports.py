@@ -42,17 +42,16 @@ def progress_path(ws: Workspace, export_id: str) -> Path:
 
 
 @router.post("/api/runs/{run_id}/exports", status_code=202, response_model=ExportSummary)
-def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(workspace),
-                 jr: JobRunner = Depends(jobs)) -> dict:
+def start_export(run_id: str, req: ExportRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     run = get_or_404(ws, "runs", run_id)
     if not (Path(run["path"]) / "model.pt").is_file():
         raise HTTPException(409, f"run {run_id} has no model yet (status: {run['status']})")
     eid = new_id()
     out = ws.new_dir("exports", eid) / (f"{req.format}{SUFFIX.get(req.format, '')}")
-    ws.insert("exports", id=eid, run_id=run_id, format=req.format, path=str(out), status=JobStatus.QUEUED,
-              params=req.model_dump())
-    jr.start("exports", eid, "export", {"run_dir": run["path"], "out": str(out), **req.model_dump(),
-                                        "progress": str(progress_path(ws, eid))})
+    ws.insert("exports", id=eid, run_id=run_id, format=req.format, path=str(out), status=JobStatus.QUEUED, params=req.model_dump())
+    jr.start(
+        "exports", eid, "export", {"run_dir": run["path"], "out": str(out), **req.model_dump(), "progress": str(progress_path(ws, eid))}
+    )
     return public(ws.get("exports", eid))
 
 

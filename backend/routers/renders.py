@@ -45,8 +45,7 @@ def _encode(img: np.ndarray, fmt: str) -> tuple[bytes, str]:
     return buf.getvalue(), f"image/{fmt}"
 
 
-def camera_for(view, frame: int | None, viewmat: str | None, width: int | None, height: int | None,
-               fx: float | None) -> Camera:
+def camera_for(view, frame: int | None, viewmat: str | None, width: int | None, height: int | None, fx: float | None) -> Camera:
     frames = scene_frames(view)
     base = frames[min(frame or 0, len(frames) - 1)].camera
     if frame is not None and not 0 <= frame < len(frames):
@@ -72,20 +71,30 @@ def camera_for(view, frame: int | None, viewmat: str | None, width: int | None, 
         K[0, 0] = K[1, 1] = fx
         cam = replace(cam, K=K)
     if cam.width * cam.height > MAX_RENDER_PIXELS:
-        raise HTTPException(422, f"a render of {cam.width}x{cam.height} is above the {MAX_RENDER_PIXELS:,} pixels one "
-                                 "render may have: ask for a smaller width and height")
+        raise HTTPException(
+            422,
+            f"a render of {cam.width}x{cam.height} is above the {MAX_RENDER_PIXELS:,} pixels one "
+            "render may have: ask for a smaller width and height",
+        )
     return cam
 
 
 @router.get("/{run_id}/render", responses={200: {"content": {"image/png": {}, "image/jpeg": {}}}})
-async def render(request: Request, run_id: str, t: float = Query(0.0, ge=0, le=1), exposure: float = Query(0.0, ge=0, le=1),
-                 lod: int | None = Query(None, ge=1), set: Literal["all", "static", "dynamic"] = "all",
-                 frame: int | None = Query(None, ge=0, description="the camera of this scene frame (default 0)"),
-                 viewmat: str | None = Query(None, description="16 numbers, row-major world-to-camera"),
-                 width: int | None = Query(None, ge=8, le=4096, description="width x height at most 2048²"),
-                 height: int | None = Query(None, ge=8, le=4096),
-                 fx: float | None = Query(None, gt=0), format: Literal["png", "jpeg"] = "png",
-                 background: Literal["black", "white"] = "black") -> Response:
+async def render(
+    request: Request,
+    run_id: str,
+    t: float = Query(0.0, ge=0, le=1),
+    exposure: float = Query(0.0, ge=0, le=1),
+    lod: int | None = Query(None, ge=1),
+    set: Literal["all", "static", "dynamic"] = "all",
+    frame: int | None = Query(None, ge=0, description="the camera of this scene frame (default 0)"),
+    viewmat: str | None = Query(None, description="16 numbers, row-major world-to-camera"),
+    width: int | None = Query(None, ge=8, le=4096, description="width x height at most 2048²"),
+    height: int | None = Query(None, ge=8, le=4096),
+    fx: float | None = Query(None, gt=0),
+    format: Literal["png", "jpeg"] = "png",
+    background: Literal["black", "white"] = "black",
+) -> Response:
     view = run_view(request.app, run_id)
     if lod is not None and lod > view.run.n_levels:
         raise HTTPException(422, f"lod must be in 1..{view.run.n_levels}")

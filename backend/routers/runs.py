@@ -29,8 +29,9 @@ class TrainRequest(TrainOptions):  # type: ignore[valid-type,misc]
 
     scene_id: str
     name: str | None = Field(None, max_length=80)
-    init_from_run: str | None = Field(None, pattern=r"^[0-9a-f]{12}$",
-                                      description="the id of a finished run whose model this one starts from (fine-tuning)")
+    init_from_run: str | None = Field(
+        None, pattern=r"^[0-9a-f]{12}$", description="the id of a finished run whose model this one starts from (fine-tuning)"
+    )
 
 
 class TauRequest(StrictRequest):
@@ -92,8 +93,12 @@ def resumable(row: dict, info: dict) -> bool:
     a checkpoint to continue from."""
     last = last_checkpoint(Path(row["path"]))
     total = (info.get("config") or {}).get("iterations")
-    return (row["status"] in (JobStatus.INTERRUPTED, JobStatus.CANCELLED, JobStatus.FAILED) and last is not None
-            and isinstance(total, int) and last < total)
+    return (
+        row["status"] in (JobStatus.INTERRUPTED, JobStatus.CANCELLED, JobStatus.FAILED)
+        and last is not None
+        and isinstance(total, int)
+        and last < total
+    )
 
 
 @router.get("", response_model=list[RunSummary])
@@ -118,11 +123,28 @@ def start_run(req: TrainRequest, ws: Workspace = Depends(workspace), jr: JobRunn
             raise HTTPException(409, f"run {req.init_from_run} has no model to start from (status: {parent['status']})")
     rid = new_id()
     run_dir = ws.new_dir("runs", rid)
-    row = ws.insert("runs", id=rid, scene_id=scene["id"], name=req.name or f"{scene['name']}-{req.preset}",
-                    path=str(run_dir), status=JobStatus.QUEUED, params=req.model_dump())
-    jr.start("runs", rid, "train", {"scene_dir": scene["path"], "run_dir": str(run_dir), "preset": req.preset,
-                                     "ablate": req.ablate, "overrides": overrides,
-                                     "init_from": parent["path"] if parent else None})
+    row = ws.insert(
+        "runs",
+        id=rid,
+        scene_id=scene["id"],
+        name=req.name or f"{scene['name']}-{req.preset}",
+        path=str(run_dir),
+        status=JobStatus.QUEUED,
+        params=req.model_dump(),
+    )
+    jr.start(
+        "runs",
+        rid,
+        "train",
+        {
+            "scene_dir": scene["path"],
+            "run_dir": str(run_dir),
+            "preset": req.preset,
+            "ablate": req.ablate,
+            "overrides": overrides,
+            "init_from": parent["path"] if parent else None,
+        },
+    )
     return public(ws.get("runs", row["id"]))
 
 
@@ -171,16 +193,14 @@ def resume_run(run_id: str, ws: Workspace = Depends(workspace), jr: JobRunner = 
     row = get_or_404(ws, "runs", run_id)
     info = read_json(Path(row["path"]) / "run.json")
     if not resumable(row, info):
-        raise HTTPException(409, f"run {run_id} cannot be resumed (status: {row['status']}; it needs a checkpoint "
-                                 "short of its iterations)")
+        raise HTTPException(409, f"run {run_id} cannot be resumed (status: {row['status']}; it needs a checkpoint short of its iterations)")
     scene = ws.get("scenes", row["scene_id"]) if row["scene_id"] else None
     if scene is None:
         raise HTTPException(409, "the run's scene is no longer in the workspace")
     saved_config(run_id, info)  # a malformed run.json is refused here, not in the job
     if not ws.transition("runs", run_id, (row["status"],), status=JobStatus.QUEUED, error=None):
         raise HTTPException(409, f"run {run_id} is already being resumed")
-    jr.start("runs", run_id, "train", {"scene_dir": scene["path"], "run_dir": row["path"], "config": info["config"],
-                                       "resume": True})
+    jr.start("runs", run_id, "train", {"scene_dir": scene["path"], "run_dir": row["path"], "config": info["config"], "resume": True})
     return public(ws.get("runs", run_id))
 
 
@@ -209,8 +229,9 @@ async def set_tau(run_id: str, req: TauRequest, request: Request) -> dict:
 
 
 @router.post("/{run_id}/finetune", status_code=202, response_model=RunSummary)
-def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace = Depends(workspace),
-             jr: JobRunner = Depends(jobs)) -> dict:
+def finetune(
+    run_id: str, req: FinetuneRequest, request: Request, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)
+) -> dict:
     """A new run that continues this one's model with the decomposition at `tau` (the live τ when not
     given): the decomposition chosen in the viewer, then trained further."""
     from kgs_core.train.config import finetune_config
@@ -233,8 +254,15 @@ def finetune(run_id: str, req: FinetuneRequest, request: Request, ws: Workspace 
             scene_dir = str(run_view(request.app, run_id).run.scene_path())
         except RunError:
             raise HTTPException(409, f"run {run_id}: its scene is no longer there") from None
-    ws.insert("runs", id=rid, scene_id=parent["scene_id"], name=f"{parent['name']}-ft", path=str(run_dir),
-              status=JobStatus.QUEUED, params={"finetune_of": run_id, "tau": tau, "iterations": req.iterations})
+    ws.insert(
+        "runs",
+        id=rid,
+        scene_id=parent["scene_id"],
+        name=f"{parent['name']}-ft",
+        path=str(run_dir),
+        status=JobStatus.QUEUED,
+        params={"finetune_of": run_id, "tau": tau, "iterations": req.iterations},
+    )
     jr.start("runs", rid, "train", {"scene_dir": scene_dir, "run_dir": str(run_dir), "config": cfg.to_dict()})
     return public(ws.get("runs", rid))
 

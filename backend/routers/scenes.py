@@ -26,10 +26,10 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm")
 MAX_ZIP_FILES = 20000
 # What each upload kind must declare. Not text/plain or a form type: those a foreign web page
 # can POST without a CORS preflight.
-UPLOAD_TYPES = {"zip": ("application/zip", "application/x-zip-compressed", "application/octet-stream"),
-                "video": ("video/*", "application/octet-stream")}
-
-
+UPLOAD_TYPES = {
+    "zip": ("application/zip", "application/x-zip-compressed", "application/octet-stream"),
+    "video": ("video/*", "application/octet-stream"),
+}
 
 
 class SynthRequest(SynthOptions):
@@ -57,9 +57,16 @@ def scene_summary(path: Path, scene=None) -> dict:
     from kgs_core.data.formats import load_scene
 
     scene = scene or load_scene(path)
-    return {"frames": len(scene.frames), "train_frames": len(scene.train_frames), "test_frames": len(scene.test_frames),
-            "image_size": [scene.frames[0].camera.width, scene.frames[0].camera.height], "dt": scene.dt,
-            "exposure": scene.exposure, "format": scene.source_format, "has_ground_truth": scene.has_ground_truth}
+    return {
+        "frames": len(scene.frames),
+        "train_frames": len(scene.train_frames),
+        "test_frames": len(scene.test_frames),
+        "image_size": [scene.frames[0].camera.width, scene.frames[0].camera.height],
+        "dt": scene.dt,
+        "exposure": scene.exposure,
+        "format": scene.source_format,
+        "has_ground_truth": scene.has_ground_truth,
+    }
 
 
 @router.get("", response_model=list[SceneSummary])
@@ -96,8 +103,7 @@ async def receive_upload(request: Request, kind: str, tmp_dir: Path) -> Path:
     Content-Type checked against `kind` first."""
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if not any(fnmatch.fnmatchcase(ctype, t) for t in UPLOAD_TYPES[kind]):
-        raise HTTPException(415, f"kind={kind} uploads need Content-Type {' or '.join(UPLOAD_TYPES[kind])}, "
-                                 f"got {ctype or 'none'!r}")
+        raise HTTPException(415, f"kind={kind} uploads need Content-Type {' or '.join(UPLOAD_TYPES[kind])}, got {ctype or 'none'!r}")
     limit = request.app.state.settings.max_upload_mb * 1024 * 1024
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
@@ -135,18 +141,32 @@ def start_ingest(ws: Workspace, jr: JobRunner, row: dict, req: IngestRequest) ->
     if not ws.transition("scenes", row["id"], INGESTABLE, status=JobStatus.QUEUED, error=None):
         raise HTTPException(409, f"scene {row['id']} is already being ingested")
     progress_path(ws, row["id"]).unlink(missing_ok=True)
-    jr.start("scenes", row["id"], "ingest", {
-        "video": str(video_path(ws, row["id"])), "eval_video": str(sharp) if sharp.is_file() else None,
-        "out": row["path"], "delete_video": True, "progress": str(progress_path(ws, row["id"])),
-        **req.model_dump(exclude_none=True)})
+    jr.start(
+        "scenes",
+        row["id"],
+        "ingest",
+        {
+            "video": str(video_path(ws, row["id"])),
+            "eval_video": str(sharp) if sharp.is_file() else None,
+            "out": row["path"],
+            "delete_video": True,
+            "progress": str(progress_path(ws, row["id"])),
+            **req.model_dump(exclude_none=True),
+        },
+    )
 
 
 @router.post("/upload", status_code=201, response_model=SceneDetail)
-async def upload_scene(request: Request, name: str = Query(..., min_length=1, max_length=80, pattern=r"^[\w.\- ]+$"),
-                       kind: Literal["zip", "video"] = Query(...),
-                       hold: bool = Query(False, description="video: keep it as 'uploaded' (a second camera's video "
-                                                             "may follow) until POST /api/scenes/{id}/ingest"),
-                       ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
+async def upload_scene(
+    request: Request,
+    name: str = Query(..., min_length=1, max_length=80, pattern=r"^[\w.\- ]+$"),
+    kind: Literal["zip", "video"] = Query(...),
+    hold: bool = Query(
+        False, description="video: keep it as 'uploaded' (a second camera's video may follow) until POST /api/scenes/{id}/ingest"
+    ),
+    ws: Workspace = Depends(workspace),
+    jr: JobRunner = Depends(jobs),
+) -> dict:
     """Raw request body: a dataset folder as .zip (Nerfies, D-NeRF or COLMAP layout) or a video
     (ingested with SfM as a job, at once with the default options, or when asked with `hold`).
     Size-limited while streaming; nothing is kept on failure."""
@@ -193,8 +213,9 @@ def read_uploaded_dataset(blob: Path, dest: Path, max_bytes: int) -> tuple[dict,
                 if path is not None and path.suffix.lower() != ".npy":
                     w, h = image_size(path)
                     if w * h > MAX_IMAGE_PIXELS:
-                        raise HTTPException(413, f"{path.relative_to(root.resolve())} is {w}x{h}, above the "
-                                                 f"{MAX_IMAGE_PIXELS:,} pixels a frame may hold")
+                        raise HTTPException(
+                            413, f"{path.relative_to(root.resolve())} is {w}x{h}, above the {MAX_IMAGE_PIXELS:,} pixels a frame may hold"
+                        )
         summary = scene_summary(root, scene)
     except ValueError as exc:
         raise HTTPException(422, "the zip is not a readable dataset: " + relative_text(str(exc), root)) from None
@@ -210,8 +231,9 @@ def waiting_video(ws: Workspace, scene_id: str) -> dict:
 
 
 @router.post("/{scene_id}/video", status_code=201, response_model=SceneSummary)
-async def upload_second_video(scene_id: str, request: Request, role: Literal["sharp"] = Query(...),
-                              ws: Workspace = Depends(workspace)) -> dict:
+async def upload_second_video(
+    scene_id: str, request: Request, role: Literal["sharp"] = Query(...), ws: Workspace = Depends(workspace)
+) -> dict:
     """A second camera's video of the same moment (raw body), synchronised with the first and with
     as many frames: ingest poses both, trains on the first, and keeps the second for evaluation."""
     waiting_video(ws, scene_id)
@@ -226,8 +248,7 @@ async def upload_second_video(scene_id: str, request: Request, role: Literal["sh
 
 
 @router.post("/{scene_id}/ingest", status_code=202, response_model=SceneSummary)
-def ingest_scene(scene_id: str, req: IngestRequest, ws: Workspace = Depends(workspace),
-                 jr: JobRunner = Depends(jobs)) -> dict:
+def ingest_scene(scene_id: str, req: IngestRequest, ws: Workspace = Depends(workspace), jr: JobRunner = Depends(jobs)) -> dict:
     """Starts (or, after a failure or a cancel, retries) the ingest of an uploaded video."""
     start_ingest(ws, jr, waiting_video(ws, scene_id), req)
     return public(ws.get("scenes", scene_id), ws)
@@ -290,8 +311,9 @@ def delete_scene(scene_id: str, ws: Workspace = Depends(workspace)) -> None:
         raise HTTPException(409, "the scene is still being created (cancel it first)")
     runs = ws.list("runs", scene_id=scene_id)
     if runs:  # their renders, input frames and fine-tuning read the scene
-        raise HTTPException(409, f"{len(runs)} run(s) use this scene ({', '.join(r['id'] for r in runs[:5])}): "
-                                 "delete them first")
+        raise HTTPException(409, f"{len(runs)} run(s) use this scene ({', '.join(r['id'] for r in runs[:5])}): delete them first")
     # Never data the user registered from elsewhere (`remove` touches files inside the workspace only).
-    ws.remove([("scenes", scene_id)], [Path(row["path"]), *(video_path(ws, scene_id, role) for role in ("video", "sharp")),
-                                       progress_path(ws, scene_id)])
+    ws.remove(
+        [("scenes", scene_id)],
+        [Path(row["path"]), *(video_path(ws, scene_id, role) for role in ("video", "sharp")), progress_path(ws, scene_id)],
+    )

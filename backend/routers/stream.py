@@ -199,8 +199,7 @@ async def progress(conn: Connection, app) -> None:
                 last = info["progress"]
                 conn.notify({"type": "progress", **info["progress"]})
         else:
-            conn.notify({"type": "status", "status": info["status"], "error": info["error"],
-                         "has_model": info["has_model"]})
+            conn.notify({"type": "status", "status": info["status"], "error": info["error"], "has_model": info["has_model"]})
             return
         await asyncio.sleep(1.0)
 

@@ -22,8 +22,14 @@ def system(request: Request, ws: Workspace = Depends(workspace)) -> dict:
         ver = version("kinematics-gs")
     except PackageNotFoundError:
         ver = "dev"
-    return {"version": ver, "workspace": ws.root.name, "scenes": len(ws.list("scenes")), "runs": len(ws.list("runs")),
-            "demo_scene": DEFAULT_SCENE, "token_required": bool(request.app.state.settings.token)}
+    return {
+        "version": ver,
+        "workspace": ws.root.name,
+        "scenes": len(ws.list("scenes")),
+        "runs": len(ws.list("runs")),
+        "demo_scene": DEFAULT_SCENE,
+        "token_required": bool(request.app.state.settings.token),
+    }
 
 
 @router.post("/demo", status_code=202, response_model=DemoStarted)
@@ -38,8 +44,9 @@ def start_demo(ws: Workspace, jr: JobRunner) -> dict:
     sid, rid = new_id(), new_id()
     scene_dir, run_dir = ws.new_dir("scenes", sid), ws.new_dir("runs", rid)
     ws.insert("scenes", id=sid, name=DEFAULT_SCENE, path=str(scene_dir), source="synth", status=JobStatus.QUEUED)
-    ws.insert("runs", id=rid, scene_id=sid, name=f"{DEFAULT_SCENE}-fast", path=str(run_dir), status=JobStatus.QUEUED,
-              params={"preset": "fast"})
+    ws.insert(
+        "runs", id=rid, scene_id=sid, name=f"{DEFAULT_SCENE}-fast", path=str(run_dir), status=JobStatus.QUEUED, params={"preset": "fast"}
+    )
 
     def then_train(status: str) -> None:
         if status == JobStatus.DONE:

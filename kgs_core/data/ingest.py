@@ -17,10 +17,7 @@ A still camera can skip SfM altogether (`fixed_camera`): every frame gets one po
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-import os
 import shutil
 import tempfile
 import time
@@ -35,9 +32,10 @@ from ..progress import announce
 from ..threads import parallel_map
 from .formats import write_nerfies
 from .formats.colmap import camera_from_colmap
+from .frame_cache import PNG_LEVEL, default_cache_dir, frame_set, pose_cache_dir, posed_before, save_poses
 from .lens import LENSES, refine_lens
 from .scene import Camera, Frame, Scene, SceneError
-from .sfm import MAPPERS, extract_and_match, run_sfm
+from .sfm import MAPPERS, run_sfm
 from .video import count_frames, decode_video, frame_rate
 
 AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
@@ -46,7 +44,6 @@ AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
 # refit. Only for the estimate printed at the start.
 SECONDS_PER_FRAME_320 = {"decode": 0.018, "features": 0.024, "matching": 0.017, "mapping": 0.045}
 FIXED_CAMERA_FOV_DEG = 60.0  # assumed horizontal field of view when no SfM runs
-PNG_LEVEL = 1  # zlib level for frames: level 6 (PIL's default) took 4x as long for files ~1.3x smaller
 
 
 @dataclass
@@ -79,15 +76,7 @@ class IngestReport:
         return self.registered / max(self.frames, 1)
 
 
-def sharpness(img: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image: low for blurry frames."""
-    g = img.astype(np.float32).mean(axis=-1)
-    lap = g[1:-1, 2:] + g[1:-1, :-2] + g[2:, 1:-1] + g[:-2, 1:-1] - 4 * g[1:-1, 1:-1]
-    return float(lap.var())
-
-
-def choose_stride(video: Path, every: int | None, max_frames: int | None,
-                  auto_max_frames: int = AUTO_MAX_FRAMES) -> tuple[int, str]:
+def choose_stride(video: Path, every: int | None, max_frames: int | None, auto_max_frames: int = AUTO_MAX_FRAMES) -> tuple[int, str]:
     """(stride, why). A given `every` wins; else a long video is thinned to about
     `auto_max_frames` frames (spread over the whole clip, unlike a frame cap, which keeps the
     start)."""
@@ -99,8 +88,10 @@ def choose_stride(video: Path, every: int | None, max_frames: int | None,
     stride = max(1, round(total / auto_max_frames))  # 301-449 frames stay whole: halving them loses more
     if max_frames or stride == 1:
         return 1, f"all {total} frames"
-    return stride, (f"{video.name} has {total} frames: kept every {ordinal(stride)} ({math.ceil(total / stride)} "
-                    f"frames) to stay near {auto_max_frames}; pass --every to choose")
+    return stride, (
+        f"{video.name} has {total} frames: kept every {ordinal(stride)} ({math.ceil(total / stride)} "
+        f"frames) to stay near {auto_max_frames}; pass --every to choose"
+    )
 
 
 def ordinal(n: int) -> str:
@@ -114,159 +105,6 @@ def estimate_seconds(frames: int, long_side: int | None, cached: bool) -> float:
     rates = SECONDS_PER_FRAME_320
     prep = 0.0 if cached else frames * (rates["decode"] * scale + rates["features"] * scale + rates["matching"])
     return prep + frames * rates["mapping"]
-
-
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("KGS_CACHE_DIR") or Path.home() / ".cache" / "kinematics-gs") / "ingest"
-
-
-def frame_set_key(videos: list[Path], every: int, max_frames: int | None, max_size: int | None) -> str:
-    """Names one decoded frame set: the videos (path, size, modification time) and how they were
-    sampled. Features and matches depend on nothing else."""
-    parts = []
-    for v in videos:
-        st = v.stat()
-        parts.append(f"{v.resolve()}:{st.st_size}:{st.st_mtime_ns}")
-    parts.append(f"every={every}:max_frames={max_frames}:max_size={max_size}:v1")
-    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:20]
-
-
-def decode_frames(folder: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
-                  max_size: int | None, progress: bool) -> dict:
-    """Decodes both videos into `folder/images` and scores each frame's sharpness:
-    `{"names_a", "names_b", "sharpness", "seconds": {"decode"}}`."""
-    t0 = time.perf_counter()
-    frames_a = decode_video(video, every, max_frames, max_size, progress)
-    frames_b: list[np.ndarray] = []
-    if eval_video is not None:
-        frames_b = decode_video(eval_video, every, max_frames, max_size, progress)
-        if len(frames_b) != len(frames_a):
-            raise SceneError(f"frame counts differ: {video} has {len(frames_a)}, {eval_video} has {len(frames_b)} "
-                             "(synchronised videos must have one frame per time step)")
-    (folder / "images").mkdir(parents=True)
-    names_a = [f"f{i:05d}_a.png" for i in range(len(frames_a))]
-    names_b = [f"f{i:05d}_b.png" for i in range(len(frames_b))]
-
-    def save(job: tuple[str, np.ndarray]) -> float:
-        name, img = job
-        Image.fromarray(img).save(folder / "images" / name, compress_level=PNG_LEVEL)
-        return round(sharpness(img), 2)
-
-    jobs = list(zip(names_a, frames_a)) + list(zip(names_b, frames_b))
-    scores = dict(zip([name for name, _ in jobs], parallel_map(save, jobs)))
-    return {"names_a": names_a, "names_b": names_b, "sharpness": scores,
-            "seconds": {"decode": round(time.perf_counter() - t0, 2)}}
-
-
-def build_frame_set(folder: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
-                    max_size: int | None, progress: bool) -> dict:
-    """`decode_frames`, then features extracted and matched into `folder/database.db`; writes
-    `folder/frames.json` (names, sharpness, timings)."""
-    meta = decode_frames(folder, video, eval_video, every, max_frames, max_size, progress)
-    timings = extract_and_match(folder / "database.db", folder / "images", meta["names_a"], meta["names_b"], progress)
-    meta["seconds"].update({k: round(v, 2) for k, v in timings.items()})
-    (folder / "frames.json").write_text(json.dumps(meta))
-    return meta
-
-
-def frame_set(video: Path, eval_video: Path | None, every: int, max_frames: int | None, max_size: int | None,
-              cache_dir: Path | None, progress: bool, scratch: Path) -> tuple[Path, dict, bool]:
-    """(folder, metadata, reused): the cached frame set when there is one, else a new one, built
-    atomically into the cache (or into `scratch` when caching is off)."""
-    if cache_dir is None:
-        folder = scratch / "frames"
-        return folder, build_frame_set(folder, video, eval_video, every, max_frames, max_size, progress), False
-    videos = [video] + ([eval_video] if eval_video else [])
-    folder = Path(cache_dir) / frame_set_key(videos, every, max_frames, max_size)
-    meta_path = folder / "frames.json"
-    if meta_path.is_file():
-        try:
-            meta = json.loads(meta_path.read_text())
-            if progress:
-                print(f"reusing decoded frames, features and matches from {folder}", flush=True)
-            return folder, meta, True
-        except (OSError, ValueError):
-            pass  # unreadable: rebuild it
-    with atomic_directory(folder, overwrite=True) as tmp:
-        meta = build_frame_set(tmp, video, eval_video, every, max_frames, max_size, progress)
-    return folder, meta, False
-
-
-def pose_cache_dir(cache_dir: Path, videos: list[Path], every: int, max_frames: int | None) -> Path:
-    """Where the newest posed model of a frame set is kept, whatever the size it was mapped at."""
-    return Path(cache_dir) / "poses" / frame_set_key(videos, every, max_frames, None)
-
-
-def save_poses(folder: Path, rec, max_size: int | None, mapper: str, attempts: list, lens: str,
-               lens_report: dict) -> None:
-    """Keeps a posed model for re-runs at another size (`load_poses`), atomically; `lens` is the
-    `--lens` it was made with, `lens_report` what its refit did."""
-    with atomic_directory(folder, overwrite=True) as tmp:
-        (tmp / "sparse").mkdir()
-        rec.write(str(tmp / "sparse"))
-        (tmp / "poses.json").write_text(json.dumps({"max_size": max_size, "mapper": mapper, "attempts": attempts,
-                                                    "lens": lens, "lens_report": lens_report}))
-
-
-def load_poses(folder: Path):
-    """`(pycolmap.Reconstruction, its metadata)` kept by `save_poses`; None when there is none or
-    it cannot be read (the caller then maps anew)."""
-    import pycolmap
-
-    try:
-        meta = json.loads((folder / "poses.json").read_text())
-        rec = pycolmap.Reconstruction(str(folder / "sparse"))
-    except (OSError, ValueError, RuntimeError):
-        return None
-    return (rec, meta) if isinstance(meta, dict) and rec.num_images() else None
-
-
-def rescale_reconstruction(rec, sizes: dict[str, tuple[int, int]]) -> None:
-    """Rescales each camera of `rec` and its images' keypoints to the size its video's frames
-    now have (`sizes`: the name tag "a" or "b" -> (width, height)), so the model describes frames
-    decoded at another `--max-size`. Poses and points are unchanged: only pixels change units."""
-    factors = {}
-    for im in rec.images.values():
-        if im.camera_id not in factors:
-            cam = rec.cameras[im.camera_id]
-            w, h = sizes[im.name[-5]]  # "f00012_a.png" -> "a"
-            factors[im.camera_id] = np.array([w / cam.width, h / cam.height])
-            cam.rescale(w, h)
-        for p in im.points2D:
-            p.xy = p.xy * factors[im.camera_id]
-    rec.update_point_3d_errors()  # (COLMAP keeps each point's error: recompute it in the new pixels)
-
-
-def posed_before(poses_dir: Path, video: Path, eval_video: Path | None, every: int, max_frames: int | None,
-                 max_size: int | None, lens: str, progress: bool, scratch: Path):
-    """The frame set's model mapped before (at any `--max-size`, with the same `--lens`), rescaled
-    to frames decoded now at `max_size`: `(reconstruction, images folder, decode metadata,
-    {"mapper", "attempts", "from", "lens_report"})`, or None when there is none or its frames are not
-    these (then SfM runs)."""
-    kept = load_poses(poses_dir)
-    if kept is None:
-        return None
-    rec, mapped = kept
-    if mapped.get("lens", "simple") != lens:  # (models kept before the lens refit have none)
-        return None
-    folder = scratch / "frames"
-    meta = decode_frames(folder, video, eval_video, every, max_frames, max_size, progress)
-    if not {im.name for im in rec.images.values()} <= set(meta["names_a"] + meta["names_b"]):
-        shutil.rmtree(folder)
-        return None
-    sizes = {}
-    for tag, names in (("a", meta["names_a"]), ("b", meta["names_b"])):
-        if names:
-            with Image.open(folder / "images" / names[0]) as im:
-                sizes[tag] = im.size
-    rescale_reconstruction(rec, sizes)
-    size = mapped.get("max_size")
-    mapper = mapped.get("mapper", "?")
-    source = f"{mapper} model mapped at {f'{size} px' if size else 'full size'}, rescaled"
-    if progress:
-        print(f"reusing the poses of the {source} (--mapper NAME or --no-cache maps anew)", flush=True)
-    return rec, folder / "images", meta, {"mapper": mapper, "attempts": mapped.get("attempts", []), "from": source,
-                                          "lens_report": mapped.get("lens_report", {})}
 
 
 def undistort_frame(cam, image_path: Path):
@@ -293,11 +131,24 @@ def frame_ranges(indices: list[int]) -> str:
 from ..job_options import DEFAULT_MAX_SIZE  # noqa: E402  (the job's options, declared once)
 
 
-def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = None, every: int | None = None,
-           max_frames: int | None = None, max_size: int | None = DEFAULT_MAX_SIZE, exposure: float = 0.5,
-           mapper: str = "auto", holdout_every: int | None = None, fixed_camera: bool = False,
-           cache_dir: str | Path | None | bool = True, min_registered: float = 0.3, overwrite: bool = False,
-           undistort: bool = True, lens: str = "opencv", progress: bool = True) -> IngestReport:
+def ingest(
+    video: str | Path,
+    out: str | Path,
+    eval_video: str | Path | None = None,
+    every: int | None = None,
+    max_frames: int | None = None,
+    max_size: int | None = DEFAULT_MAX_SIZE,
+    exposure: float = 0.5,
+    mapper: str = "auto",
+    holdout_every: int | None = None,
+    fixed_camera: bool = False,
+    cache_dir: str | Path | None | bool = True,
+    min_registered: float = 0.3,
+    overwrite: bool = False,
+    undistort: bool = True,
+    lens: str = "opencv",
+    progress: bool = True,
+) -> IngestReport:
     """Builds a scene folder from a video. `exposure` is the assumed shutter fraction of the
     training video (unknown from the file; 0.5 is typical for indoor hand-held footage).
 
@@ -329,21 +180,26 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
         print(stride_reason, flush=True)
     cache = default_cache_dir() if cache_dir is True else (Path(cache_dir) if cache_dir else None)
     if fixed_camera:
-        return _ingest_fixed_camera(video, Path(out), eval_video, stride, stride_reason, max_frames, max_size,
-                                    exposure, holdout_every, overwrite, progress)
+        return _ingest_fixed_camera(
+            video, Path(out), eval_video, stride, stride_reason, max_frames, max_size, exposure, holdout_every, overwrite, progress
+        )
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="kgs-sfm-") as tmpdir:
         work = Path(tmpdir)
         if progress:
             count = count_frames(video)
             kept = min(math.ceil(count / stride), max_frames or count) * (2 if eval_video else 1)
-            print(f"ingesting {kept} frames; expect about {estimate_seconds(kept, max_size, False):.0f} s "
-                  "(less when the frames were ingested before)", flush=True)
+            print(
+                f"ingesting {kept} frames; expect about {estimate_seconds(kept, max_size, False):.0f} s "
+                "(less when the frames were ingested before)",
+                flush=True,
+            )
         videos = [video] + ([eval_video] if eval_video else [])
         kept = None
         if cache is not None and mapper == "auto":
-            kept = posed_before(pose_cache_dir(cache, videos, stride, max_frames), video, eval_video, stride,
-                                max_frames, max_size, lens, progress, work)
+            kept = posed_before(
+                pose_cache_dir(cache, videos, stride, max_frames), video, eval_video, stride, max_frames, max_size, lens, progress, work
+            )
         if kept is not None:
             rec, images, meta, mapped = kept
             names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
@@ -355,13 +211,16 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             names_a, names_b, scores = meta["names_a"], meta["names_b"], meta["sharpness"]
             timings = {} if reused else dict(meta["seconds"])
             t0 = time.perf_counter()
-            result = run_sfm(folder / "database.db", images, work, names_a, names_b, scores, mapper,
-                             progress=progress, probe_lens=lens == "opencv")
+            result = run_sfm(
+                folder / "database.db", images, work, names_a, names_b, scores, mapper, progress=progress, probe_lens=lens == "opencv"
+            )
             timings["mapping"] = time.perf_counter() - t0
             if result is None:
-                raise SceneError(f"structure from motion found no model in {video} ({len(names_a)} frames): too "
-                                 "little texture or parallax? Try another stride (--every), a longer clip, or "
-                                 "--fixed-camera for a camera that does not move")
+                raise SceneError(
+                    f"structure from motion found no model in {video} ({len(names_a)} frames): too "
+                    "little texture or parallax? Try another stride (--every), a longer clip, or "
+                    "--fixed-camera for a camera that does not move"
+                )
             rec, mapper_used, attempts = result.rec, result.mapper, result.attempts
             lens_report = {}
             if lens == "opencv":
@@ -380,19 +239,36 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                 f"mappers tried: {', '.join(a['mapper'] + ' ' + a['outcome'] for a in attempts)}). "
                 f"Frames not posed (index after the stride of {stride}): {frame_ranges(missing)}. Try another "
                 "stride (--every), a longer clip with more camera movement, or --fixed-camera for a camera that "
-                "does not move")
+                "does not move"
+            )
         error_px = float(rec.compute_mean_reprojection_error())
         if cache is not None and kept is None:
-            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts, lens,
-                       lens_report)
+            save_poses(pose_cache_dir(cache, videos, stride, max_frames), rec, max_size, mapper_used, attempts, lens, lens_report)
         report = IngestReport(
-            video=str(video), eval_video=str(eval_video) if eval_video else None, frames=n, eval_frames=len(names_b),
-            registered=n_a, eval_registered=n_b, mean_reprojection_error_px=error_px,
-            points=rec.num_points3D(), mapper=mapper_used, attempts=attempts, stride=stride,
-            stride_reason=stride_reason, cached=reused, poses_from=None if kept is None else kept[3]["from"],
-            lens=lens_report, fps=_kept_rate(video, stride),
-            holdout=("second camera (novel view)" if eval_video else
-                     f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none"))
+            video=str(video),
+            eval_video=str(eval_video) if eval_video else None,
+            frames=n,
+            eval_frames=len(names_b),
+            registered=n_a,
+            eval_registered=n_b,
+            mean_reprojection_error_px=error_px,
+            points=rec.num_points3D(),
+            mapper=mapper_used,
+            attempts=attempts,
+            stride=stride,
+            stride_reason=stride_reason,
+            cached=reused,
+            poses_from=None if kept is None else kept[3]["from"],
+            lens=lens_report,
+            fps=_kept_rate(video, stride),
+            holdout=(
+                "second camera (novel view)"
+                if eval_video
+                else f"same-camera interpolation: every {ordinal(holdout_every)} frame"
+                if holdout_every
+                else "none"
+            ),
+        )
         t0 = time.perf_counter()
         out = Path(out)
         with atomic_directory(out, overwrite=overwrite) as tmp:
@@ -417,10 +293,15 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
                 cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
                 viewmat[:3] = np.asarray(cfw.matrix())
                 held = cam_id == 1 or (holdout_every and i % holdout_every == holdout_every // 2)
-                return Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
-                             camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
-                             exposure=exposure if cam_id == 0 else 0.0, split="test" if held else "train",
-                             camera_id=cam_id)
+                return Frame(
+                    id=fid,
+                    image_path=dst,
+                    time=i / max(n - 1, 1),
+                    camera=Camera(K=K, viewmat=viewmat, width=width, height=height, distortion=dist),
+                    exposure=exposure if cam_id == 0 else 0.0,
+                    split="test" if held else "train",
+                    camera_id=cam_id,
+                )
 
             todo = [(nm, cam_id) for names, cam_id in ((names_a, 0), (names_b, 1)) for nm in names if nm in reg]
             frames = parallel_map(lambda job: write_frame(*job), todo, desc="undistort and write", progress=progress)
@@ -428,8 +309,15 @@ def ingest(video: str | Path, out: str | Path, eval_video: str | Path | None = N
             timings["total"] = time.perf_counter() - t_start
             report.seconds = {k: round(v, 2) for k, v in timings.items()}
             pts = list(rec.points3D.values())
-            _write_scene(tmp, out.name, frames, np.array([p.xyz for p in pts], float).reshape(-1, 3),
-                         np.array([p.color for p in pts], float).reshape(-1, 3) / 255.0, report, scores)
+            _write_scene(
+                tmp,
+                out.name,
+                frames,
+                np.array([p.xyz for p in pts], float).reshape(-1, 3),
+                np.array([p.color for p in pts], float).reshape(-1, 3) / 255.0,
+                report,
+                scores,
+            )
             colmap_dir = tmp / "colmap" / "sparse" / "0"
             colmap_dir.mkdir(parents=True)
             rec.write(str(colmap_dir))
@@ -441,20 +329,39 @@ def _kept_rate(video: Path, stride: int) -> float | None:
     return None if rate is None else round(rate / max(stride, 1), 6)
 
 
-def _write_scene(root: Path, name: str, frames: list[Frame], points: np.ndarray, colors: np.ndarray,
-                 report: IngestReport, scores: dict) -> None:
-    scene = Scene(name=name, root=root, frames=sorted(frames, key=lambda f: (f.camera_id, f.time)),
-                  points=points, point_colors=colors, source_format="video")
+def _write_scene(
+    root: Path, name: str, frames: list[Frame], points: np.ndarray, colors: np.ndarray, report: IngestReport, scores: dict
+) -> None:
+    scene = Scene(
+        name=name,
+        root=root,
+        frames=sorted(frames, key=lambda f: (f.camera_id, f.time)),
+        points=points,
+        point_colors=colors,
+        source_format="video",
+    )
     scene.normalize()
-    scene.extras = {"normalized": True, "normalization": scene.normalization.to_dict(),
-                    "ingest": {**asdict(report), "registered_fraction": report.registered_fraction,
-                               "sharpness": scores}}
+    scene.extras = {
+        "normalized": True,
+        "normalization": scene.normalization.to_dict(),
+        "ingest": {**asdict(report), "registered_fraction": report.registered_fraction, "sharpness": scores},
+    }
     write_nerfies(scene, root)
 
 
-def _ingest_fixed_camera(video: Path, out: Path, eval_video: Path | None, stride: int, stride_reason: str,
-                         max_frames: int | None, max_size: int | None, exposure: float, holdout_every: int,
-                         overwrite: bool, progress: bool) -> IngestReport:
+def _ingest_fixed_camera(
+    video: Path,
+    out: Path,
+    eval_video: Path | None,
+    stride: int,
+    stride_reason: str,
+    max_frames: int | None,
+    max_size: int | None,
+    exposure: float,
+    holdout_every: int,
+    overwrite: bool,
+    progress: bool,
+) -> IngestReport:
     """A camera that does not move: every frame gets the same pinhole camera (a
     FIXED_CAMERA_FOV_DEG field of view), and the first frame's pixels, back-projected to depths
     between 2 and 4, are the starting points. No SfM runs, so nothing checks the assumption."""
@@ -471,10 +378,21 @@ def _ingest_fixed_camera(video: Path, out: Path, eval_video: Path | None, stride
     points = np.stack([(xs + 0.5 - K[0, 2]) / f * depth, (ys + 0.5 - K[1, 2]) / f * depth, depth], 1)
     colors = images[0][ys, xs].astype(float) / 255.0
     n = len(images)
-    report = IngestReport(video=str(video), eval_video=None, frames=n, eval_frames=0, registered=n, eval_registered=0,
-                          mean_reprojection_error_px=0.0, points=len(points), mapper="fixed-camera", stride=stride,
-                          stride_reason=stride_reason, fps=_kept_rate(video, stride),
-                          holdout=f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none")
+    report = IngestReport(
+        video=str(video),
+        eval_video=None,
+        frames=n,
+        eval_frames=0,
+        registered=n,
+        eval_registered=0,
+        mean_reprojection_error_px=0.0,
+        points=len(points),
+        mapper="fixed-camera",
+        stride=stride,
+        stride_reason=stride_reason,
+        fps=_kept_rate(video, stride),
+        holdout=f"same-camera interpolation: every {ordinal(holdout_every)} frame" if holdout_every else "none",
+    )
     with atomic_directory(out, overwrite=overwrite) as tmp:
         (tmp / "rgb" / "1x").mkdir(parents=True)
         frames = []
@@ -483,9 +401,17 @@ def _ingest_fixed_camera(video: Path, out: Path, eval_video: Path | None, stride
             dst = tmp / "rgb" / "1x" / f"{fid}.png"
             Image.fromarray(img).save(dst, compress_level=PNG_LEVEL)
             held = bool(holdout_every) and i % holdout_every == holdout_every // 2
-            frames.append(Frame(id=fid, image_path=dst, time=i / max(n - 1, 1),
-                                camera=Camera(K=K, viewmat=np.eye(4), width=w, height=h), exposure=exposure,
-                                split="test" if held else "train", camera_id=0))
+            frames.append(
+                Frame(
+                    id=fid,
+                    image_path=dst,
+                    time=i / max(n - 1, 1),
+                    camera=Camera(K=K, viewmat=np.eye(4), width=w, height=h),
+                    exposure=exposure,
+                    split="test" if held else "train",
+                    camera_id=0,
+                )
+            )
         report.seconds = {"decode": round(time.perf_counter() - t0, 2), "total": round(time.perf_counter() - t0, 2)}
         _write_scene(tmp, out.name, frames, points, colors, report, {})
     return report

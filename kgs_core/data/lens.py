@@ -49,8 +49,13 @@ def opencv_params(cam) -> list[float] | None:
 
 def plausible_lens(params: list[float]) -> bool:
     fx, fy, _, _, k1, k2, p1, p2 = params
-    return (fx > 0 and fy > 0 and abs(fx / fy - 1) <= MAX_ASPECT_CHANGE and max(abs(k1), abs(k2)) <= MAX_DISTORTION
-            and max(abs(p1), abs(p2)) <= MAX_TANGENTIAL)
+    return (
+        fx > 0
+        and fy > 0
+        and abs(fx / fy - 1) <= MAX_ASPECT_CHANGE
+        and max(abs(k1), abs(k2)) <= MAX_DISTORTION
+        and max(abs(p1), abs(p2)) <= MAX_TANGENTIAL
+    )
 
 
 def lens_gain(report: dict) -> float | None:
@@ -85,9 +90,11 @@ def refine_lens(rec, iterations: int = LENS_ITERATIONS, probe: dict | None = Non
         report["probe"] = probe
     probed = None if probe is None else lens_gain(probe)
     if probed is not None and probed < MIN_LENS_GAIN:
-        report.update(seconds=round(time.perf_counter() - t0, 2),
-                      reason=f"the keyframe model's refit lowered its error by {probed:.1%} in {probe['iterations']} "
-                             f"iterations, under {MIN_LENS_GAIN:.0%}: not tried on every frame")
+        report.update(
+            seconds=round(time.perf_counter() - t0, 2),
+            reason=f"the keyframe model's refit lowered its error by {probed:.1%} in {probe['iterations']} "
+            f"iterations, under {MIN_LENS_GAIN:.0%}: not tried on every frame",
+        )
         return rec, report
     converted = {cid: opencv_params(cam) for cid, cam in rec.cameras.items()}
     if any(p is None for p in converted.values()):
@@ -95,8 +102,7 @@ def refine_lens(rec, iterations: int = LENS_ITERATIONS, probe: dict | None = Non
         return rec, report
     trial = pycolmap.Reconstruction(rec)
     for cid, params in converted.items():
-        cam = pycolmap.Camera.create_from_model_name(cid, LENS_MODEL, params[0], trial.cameras[cid].width,
-                                                     trial.cameras[cid].height)
+        cam = pycolmap.Camera.create_from_model_name(cid, LENS_MODEL, params[0], trial.cameras[cid].width, trial.cameras[cid].height)
         cam.params = params
         trial.cameras[cid] = cam
     ba = pycolmap.BundleAdjustmentOptions()
@@ -127,8 +133,11 @@ def refine_lens(rec, iterations: int = LENS_ITERATIONS, probe: dict | None = Non
     report.update(after_px=round(after, 4), iterations=done, seconds=round(time.perf_counter() - t0, 2))
     lenses_ok = all(plausible_lens([float(x) for x in cam.params]) for cam in trial.cameras.values())
     if not np.isfinite(after) or after > (1 - MIN_LENS_GAIN) * before or not lenses_ok:
-        report["reason"] = ("an implausible lens" if not lenses_ok else
-                            f"lowers the reprojection error by {1 - after / max(before, 1e-12):.1%}, under {MIN_LENS_GAIN:.0%}")
+        report["reason"] = (
+            "an implausible lens"
+            if not lenses_ok
+            else f"lowers the reprojection error by {1 - after / max(before, 1e-12):.1%}, under {MIN_LENS_GAIN:.0%}"
+        )
         return rec, report
     report["kept"] = True
     return trial, report

@@ -150,9 +150,7 @@ class Scene:
         self.points = norm.apply_points(self.points)
         prev = self.normalization
         # Compose with any normalisation applied before: x'' = s2 (s1 (x - c1) - c2).
-        self.normalization = Normalization(
-            center=prev.center + center / prev.scale, scale=prev.scale * norm.scale
-        )
+        self.normalization = Normalization(center=prev.center + center / prev.scale, scale=prev.scale * norm.scale)
         return self
 
 

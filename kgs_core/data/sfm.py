@@ -36,14 +36,9 @@ from ..progress import announce, progress_bar
 MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
 MAX_REPROJECTION_ERROR_PX = 4.0
 MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
-# Keyframes every 8th frame where that still leaves this many per camera and a second camera
-# gives each keyframe its same-time twin, else every 4th. The keyframe model's cost grows faster
-# than its size (COLMAP adjusts the whole model each time it grows by a tenth): on a 336 + 336
-# frame clip, 84 keyframes mapped in 5-8 s and 168 in 26-72 s, with every frame posed either way.
-# Without the twins every 8th frame leaves neighbouring keyframes too few shared matches (a median
-# of 38 inliers) to grow the model: it fell apart in 4 of 6 draws on two one-camera inputs, every
-# 4th in 1 of those 6 (and in 2 of 3 more in whole ingests of the harder one, where every 2nd
-# frame then posed it; docs/data.md, "Ingest speed").
+# Keyframes every 8th frame where that leaves this many per camera and a second camera gives each
+# its same-time twin, else every 4th: sparser keyframes map faster but fall apart more often
+# without the twins (docs/data.md, "Ingest speed and pose quality").
 LONG_CLIP_KEYFRAMES = 32
 KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with this seed (run_sfm)
 
@@ -84,13 +79,19 @@ def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[
         for names in (names_a, names_b):  # one camera per video
             reader = pycolmap.ImageReaderOptions()
             for s in range(0, len(names), chunk):
-                pycolmap.extract_features(db, images, image_names=names[s:s + chunk],
-                                          camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                          extraction_options=extraction, device=pycolmap.Device.cpu)
+                pycolmap.extract_features(
+                    db,
+                    images,
+                    image_names=names[s : s + chunk],
+                    camera_mode=pycolmap.CameraMode.SINGLE,
+                    reader_options=reader,
+                    extraction_options=extraction,
+                    device=pycolmap.Device.cpu,
+                )
                 if reader.existing_camera_id < 0:  # later chunks join the camera the first one made
                     with _open_db(db) as d:
                         reader.existing_camera_id = d.read_image_with_name(names[0]).camera_id
-                bar.update(len(names[s:s + chunk]))
+                bar.update(len(names[s : s + chunk]))
     timings["features"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     pairing = pycolmap.SequentialPairingOptions()
@@ -108,8 +109,9 @@ def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[
     announce("matching")
     if progress:
         print(f"matching {len(names_a) + len(names_b)} frames (sequential, quadratic overlap)", flush=True)
-    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                              verification_options=verification, device=pycolmap.Device.cpu)
+    pycolmap.match_sequential(
+        db, matching_options=matching, pairing_options=pairing, verification_options=verification, device=pycolmap.Device.cpu
+    )
     timings["matching"] = time.perf_counter() - t0
     return timings
 
@@ -153,14 +155,14 @@ def map_incremental(db: Path, images: Path, out: Path, scores: dict[str, float])
     ranked = sorted(scores, key=scores.get, reverse=True)
     first = sorted(ranked[: max(8, len(ranked) // 2)])
     (out / "seed").mkdir(parents=True, exist_ok=True)
-    recs = pycolmap.incremental_mapping(db, images, out / "seed",
-                                        options=_pipeline_options(pycolmap.IncrementalPipelineOptions, first))
+    recs = pycolmap.incremental_mapping(db, images, out / "seed", options=_pipeline_options(pycolmap.IncrementalPipelineOptions, first))
     if not recs:
         return None
     best = max(recs, key=lambda k: recs[k].num_reg_images())
     (out / "all").mkdir(parents=True, exist_ok=True)
-    recs2 = pycolmap.incremental_mapping(db, images, out / "all", input_path=out / "seed" / str(best),
-                                         options=_pipeline_options(pycolmap.IncrementalPipelineOptions))
+    recs2 = pycolmap.incremental_mapping(
+        db, images, out / "all", input_path=out / "seed" / str(best), options=_pipeline_options(pycolmap.IncrementalPipelineOptions)
+    )
     return _largest(recs2) or recs[best]
 
 
@@ -198,9 +200,19 @@ class KeyframesFellApart(RuntimeError):
     mapper's random seed decides this as much as the frames do: docs/data.md, "Ingest speed")."""
 
 
-def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b: list[str],
-                  step: int = 4, progress: bool = True, stages: dict | None = None, adjust: bool = True,
-                  seed: int = 0, lens_probe: dict | None = None):
+def map_keyframes(
+    db: Path,
+    images: Path,
+    out: Path,
+    names_a: list[str],
+    names_b: list[str],
+    step: int = 4,
+    progress: bool = True,
+    stages: dict | None = None,
+    adjust: bool = True,
+    seed: int = 0,
+    lens_probe: dict | None = None,
+):
     """Incremental SfM on the keyframes (the mapper's random `seed`), absolute pose for every other
     frame (`_register_rest`), triangulation from all frames and (with `adjust`) one global bundle
     adjustment. None when the keyframes form no model; KeyframesFellApart when none of their
@@ -229,8 +241,9 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
     if model is None:
         return None
     if model.num_reg_images() < max(3, len(keyframes) // 2):
-        raise KeyframesFellApart(f"the keyframes fell apart into {len(models)} model(s), the largest "
-                                 f"{model.num_reg_images()} of {len(keyframes)}")
+        raise KeyframesFellApart(
+            f"the keyframes fell apart into {len(models)} model(s), the largest {model.num_reg_images()} of {len(keyframes)}"
+        )
     if lens_probe is not None:
         from .lens import LENS_PROBE_ITERATIONS, refine_lens  # (lens.py builds on this module)
 
@@ -259,13 +272,14 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
                 continue  # the other video's camera never entered the keyframe model
             im = by_name[name]
             keypoints = np.asarray(d.read_keypoints(im.image_id))[:, :2].astype(np.float64)
-            rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=keypoints, camera_id=camera_id,
-                                                            image_id=im.image_id), pose)
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=name, keypoints=keypoints, camera_id=camera_id, image_id=im.image_id), pose
+            )
     (out / "all").mkdir(parents=True, exist_ok=True)
     triangulation = _pipeline_options(pycolmap.IncrementalPipelineOptions)
     # One round of its point refinement, not COLMAP's five: the adjustment below refines points,
     # poses and lens together anyway, to the same error, faster. Its track merging stays: without
-    # it the real clips trained worse at the sharp camera (docs/data.md, "Ingest speed").
+    # it the real clips trained worse at the sharp camera (docs/data.md, "Ingest speed and pose quality").
     triangulation.ba_global_max_refinements = 1
     rec = pycolmap.triangulate_points(rec, db, images, out / "all", options=triangulation)
     drop_outlier_points(rec)  # before the adjustment too: a few wild points would drag it
@@ -279,7 +293,7 @@ def map_keyframes(db: Path, images: Path, out: Path, names_a: list[str], names_b
         ba.refine_extra_params = True
         ba.print_summary = False
         # Five iterations reach the reprojection error of 10 and 25 (1.02 px on a 672-frame
-        # clip) in 10 s against 17 and 44; without it, 1.07 px (docs/data.md, "Ingest speed").
+        # clip) in 10 s against 17 and 44; without it, 1.07 px (docs/data.md, "Ingest speed and pose quality").
         ba.ceres.solver_options.max_num_iterations = 5
         use_iterative_schur(ba)
         pycolmap.bundle_adjustment(rec, ba)
@@ -351,8 +365,7 @@ def _register_rest(d, model, images: list, progress: bool) -> tuple[dict, list[i
         found = {}
         desc = "register" if not passes else f"register, pass {len(passes) + 1}"
         for image in progress_bar(remaining, desc=desc, show=progress):
-            pose = _absolute_pose(d, model, image, [p for p in partners.get(image.image_id, ()) if p in references],
-                                  observed)
+            pose = _absolute_pose(d, model, image, [p for p in partners.get(image.image_id, ()) if p in references], observed)
             if pose is not None:
                 found[image.name] = (image, *pose)
         if not found:
@@ -396,9 +409,19 @@ def _absolute_pose(d, model, image, references: list[int], observed: dict):
     return found["cam_from_world"], [(int(k), corr[int(k)]) for k in inliers]
 
 
-def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: list[str], scores: dict[str, float],
-            mapper: str = "auto", min_registered: float = 0.95, keyframe_step: int | None = None,
-            progress: bool = True, probe_lens: bool = False) -> SfmResult | None:
+def run_sfm(
+    db: Path,
+    images: Path,
+    work: Path,
+    names_a: list[str],
+    names_b: list[str],
+    scores: dict[str, float],
+    mapper: str = "auto",
+    min_registered: float = 0.95,
+    keyframe_step: int | None = None,
+    progress: bool = True,
+    probe_lens: bool = False,
+) -> SfmResult | None:
     """Maps the frames of `db` with `mapper`. `auto` tries keyframes (once more with another seed
     when they fall apart or pose too few frames), keyframes twice as dense, then incremental, and keeps
     the first model that poses at least `min_registered` of the training frames (else the one
@@ -411,8 +434,15 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
     # auto: keyframes; when their model falls short, keyframes twice as dense (more overlap between
     # neighbours, still far cheaper than mapping every frame); then every frame incrementally.
     # Each entry: (mapper, keyframe step, the mapper's random seed).
-    order = ([("keyframes", keyframe_step, 0)] + ([("keyframes", keyframe_step // 2, 0)] if keyframe_step > 1 else [])
-             + [("incremental", None, 0)]) if mapper == "auto" else [(mapper, keyframe_step, 0)]
+    order = (
+        (
+            [("keyframes", keyframe_step, 0)]
+            + ([("keyframes", keyframe_step // 2, 0)] if keyframe_step > 1 else [])
+            + [("incremental", None, 0)]
+        )
+        if mapper == "auto"
+        else [(mapper, keyframe_step, 0)]
+    )
     attempts, best = [], None
     while order:
         name, step, seed = order.pop(0)
@@ -420,14 +450,16 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
         out.mkdir(parents=True, exist_ok=True)
         announce(f"mapping ({name})")
         if progress:
-            print(f"mapping with the {name} mapper" + (f" (every {step} frames" + (f", seed {seed})" if seed else ")")
-                                                         if name == "keyframes" else ""), flush=True)
+            print(
+                f"mapping with the {name} mapper"
+                + (f" (every {step} frames" + (f", seed {seed})" if seed else ")") if name == "keyframes" else ""),
+                flush=True,
+            )
         t0 = time.perf_counter()
         error, stages, probe = None, {}, ({} if probe_lens and name == "keyframes" else None)
         try:
             if name == "keyframes":
-                rec = map_keyframes(db, images, out, names_a, names_b, step, progress, stages, seed=seed,
-                                    lens_probe=probe)
+                rec = map_keyframes(db, images, out, names_a, names_b, step, progress, stages, seed=seed, lens_probe=probe)
             elif name == "global":
                 rec = map_global(db, images, out)
             else:
@@ -438,20 +470,23 @@ def run_sfm(db: Path, images: Path, work: Path, names_a: list[str], names_b: lis
             rec, error = None, str(exc)
         posed = {im.name for im in rec.images.values() if im.has_pose} if rec is not None else set()
         fraction = sum(n in posed for n in names_a) / max(len(names_a), 1)
-        if mapper == "auto" and name == "keyframes" and seed == 0 and fraction < min_registered and (
-                rec is not None or error is not None):
+        if mapper == "auto" and name == "keyframes" and seed == 0 and fraction < min_registered and (rec is not None or error is not None):
             # Whether a keyframe graph falls apart or falls short depends on the mapper's seed as
             # much as on the frames: on one kitchen x2 frame set seeds 0 and 1 gave fragments, 2
             # and 3 a model of all 168 keyframes, in 13-16 s, where the denser keyframes and the
-            # incremental mapper took minutes (docs/data.md, "Ingest speed"). Keyframes that
+            # incremental mapper took minutes (docs/data.md, "Ingest speed and pose quality"). Keyframes that
             # formed no model at all (too few of them) are not retried.
             order.insert(0, (name, step, KEYFRAME_RETRY_SEED))
-        attempts.append({"mapper": name, **({"keyframe_step": step, "seed": seed} if name == "keyframes" else {}),
-                         "seconds": round(time.perf_counter() - t0, 2),
-                         "registered_fraction": round(fraction, 4),
-                         "outcome": error or ("no model" if rec is None else "ok"),
-                         **({"stages": {k: round(v, 2) if isinstance(v, float) else v for k, v in stages.items()}}
-                            if stages else {})})
+        attempts.append(
+            {
+                "mapper": name,
+                **({"keyframe_step": step, "seed": seed} if name == "keyframes" else {}),
+                "seconds": round(time.perf_counter() - t0, 2),
+                "registered_fraction": round(fraction, 4),
+                "outcome": error or ("no model" if rec is None else "ok"),
+                **({"stages": {k: round(v, 2) if isinstance(v, float) else v for k, v in stages.items()}} if stages else {}),
+            }
+        )
         if rec is not None and (best is None or fraction > best[1]):
             best = (SfmResult(rec=rec, mapper=name, lens_probe=probe or None), fraction)
         if rec is not None and fraction >= min_registered:

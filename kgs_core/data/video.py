@@ -23,8 +23,9 @@ def downscale(img: np.ndarray, max_size: int | None) -> np.ndarray:
     return img
 
 
-def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_size: int | None = None,
-                 progress: bool = True) -> list[np.ndarray]:
+def decode_video(
+    path: Path, every: int = 1, max_frames: int | None = None, max_size: int | None = None, progress: bool = True
+) -> list[np.ndarray]:
     """RGB uint8 frames of `path`, every `every`-th, downscaled so the long side <= max_size."""
     import av
 
@@ -41,8 +42,9 @@ def decode_video(path: Path, every: int = 1, max_frames: int | None = None, max_
                 raise SceneError(f"{path}: no video stream")
             stream = container.streams.video[0]
             total = stream.frames or None
-            for k, fr in enumerate(progress_bar(container.decode(stream), total=total, desc=f"decode {path.name}",
-                                                stage="decode", show=progress)):
+            for k, fr in enumerate(
+                progress_bar(container.decode(stream), total=total, desc=f"decode {path.name}", stage="decode", show=progress)
+            ):
                 if k % every:
                     continue
                 pending.append(pool.submit(downscale, fr.to_ndarray(format="rgb24"), max_size))

@@ -69,11 +69,23 @@ def default_times(source: ExportSource, frames) -> list[float]:
     return np.linspace(0, 1, max(n, 2)).tolist()
 
 
-def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, times: str | None = None,
-               camera_path: str = "training", exposure: float = 0.0, lod: int | None = None,
-               side_by_side: bool = False, fps: float = 24.0, overwrite: bool = False,
-               progress: bool = True, size: int | None = None, view: dict | None = None,
-               web_frame: bool | None = None, keyframes: str | Path | None = None) -> ExportResult:
+def export_run(
+    run_dir: str | Path,
+    fmt: str,
+    out: str | Path | None = None,
+    times: str | None = None,
+    camera_path: str = "training",
+    exposure: float = 0.0,
+    lod: int | None = None,
+    side_by_side: bool = False,
+    fps: float = 24.0,
+    overwrite: bool = False,
+    progress: bool = True,
+    size: int | None = None,
+    view: dict | None = None,
+    web_frame: bool | None = None,
+    keyframes: str | Path | None = None,
+) -> ExportResult:
     """The options are `kgs_core.job_options.ExportOptions` (checked there, the command line's
     and the server's alike; a bad one is a ValueError naming it); `keyframes`: an mp4's camera
     path from a JSON file (`camera_path.keyframe_path`) instead of `camera_path`."""
@@ -82,13 +94,25 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
     from ..job_options import ExportOptions, first_error
 
     try:
-        o = ExportOptions(format=fmt, times=times, camera_path=camera_path, view=view, exposure=exposure, lod=lod,
-                          side_by_side=side_by_side, size=size, fps=fps, web_frame=web_frame)
+        o = ExportOptions(
+            format=fmt,
+            times=times,
+            camera_path=camera_path,
+            view=view,
+            exposure=exposure,
+            lod=lod,
+            side_by_side=side_by_side,
+            size=size,
+            fps=fps,
+            web_frame=web_frame,
+        )
     except ValidationError as exc:
         raise ValueError(first_error(exc)) from None
     if keyframes is not None and (fmt != "mp4" or times is not None or side_by_side or camera_path != "training"):
-        raise ValueError("keyframes: a video's camera path of its own, with its own times (only with format mp4, "
-                         "not with times, side_by_side or another camera_path)")
+        raise ValueError(
+            "keyframes: a video's camera path of its own, with its own times (only with format mp4, "
+            "not with times, side_by_side or another camera_path)"
+        )
     view = o.view.model_dump() if o.view is not None else None
     source = open_source(run_dir, lod)
     if not source.keep.any():
@@ -100,16 +124,25 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
         out = out.with_name(out.name + SUFFIX[fmt])  # `--out scene` writes scene.splatv, as documented
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists (pass --force to replace it)")
-    report = {"format": fmt, "run": str(run_dir), "lod": source.lod, "exposure": exposure,
-              "gaussians": int(source.keep.sum()), "edited_out": int((~source.keep).sum()), "moves": source.moves}
+    report = {
+        "format": fmt,
+        "run": str(run_dir),
+        "lod": source.lod,
+        "exposure": exposure,
+        "gaussians": int(source.keep.sum()),
+        "edited_out": int((~source.keep).sum()),
+        "moves": source.moves,
+    }
     if web_frame is None:
         web_frame = fmt in ("splat", "splatv")
     if web_frame:
         frames = _scene_frames(source, required=False)
         if frames:
             source.frame = _web_frame(source, frames, fmt)
-            report["web_frame"] = {"viewer": (SPLATV if fmt == "splatv" else ANTIMATTER15).name,
-                                   "file_from_run": source.frame.matrix().tolist()}
+            report["web_frame"] = {
+                "viewer": (SPLATV if fmt == "splatv" else ANTIMATTER15).name,
+                "file_from_run": source.frame.matrix().tolist(),
+            }
         else:
             report["note"] = "no training cameras to frame the file for the web viewers: written in run coordinates"
 
@@ -172,7 +205,13 @@ def export_run(run_dir: str | Path, fmt: str, out: str | Path | None = None, tim
             steps = [replace(s, camera=s.camera.scaled(size / max(s.camera.width, s.camera.height))) for s in steps]
         images = render_path(source, steps, exposure, side_by_side, progress=progress)
         write_video(out, images, fps, progress)
-        report.update({"camera_path": "keyframes" if keyframes is not None else camera_path, "frames": len(images), "fps": fps,
-                       "times": [s.time for s in steps][:1000]})
+        report.update(
+            {
+                "camera_path": "keyframes" if keyframes is not None else camera_path,
+                "frames": len(images),
+                "fps": fps,
+                "times": [s.time for s in steps][:1000],
+            }
+        )
     atomic_write_text(out.with_name(out.name + ".json"), json.dumps(report, indent=1))
     return ExportResult(out, [out], report)

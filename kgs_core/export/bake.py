@@ -17,9 +17,10 @@ import numpy as np
 import torch
 
 from ..edits import EditLayer, load_edits
-from ..model.dynamic import GaussiansAt, KinematicsGS
+from ..model.dynamic import KinematicsGS
+from ..model.gaussians import GaussiansAt
 from ..render.blur import blurred_opacities
-from ..render.covariance import pack_covariance
+from ..render.covariance import pack_covariance, quat_to_rotmat
 from ..render.sh import C0
 from ..run import LoadedRun, load_run
 
@@ -145,32 +146,25 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
         r = R[i]
         if c == 0:
             s = 2.0 * np.sqrt(1.0 + tr[i])
-            q[i] = np.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
-                             (r[:, 1, 0] - r[:, 0, 1]) / s], 1)
+            q[i] = np.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 1, 0] - r[:, 0, 1]) / s], 1)
         elif c == 1:
             s = 2.0 * np.sqrt(1.0 + m00[i] - m11[i] - m22[i])
-            q[i] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s,
-                             (r[:, 0, 2] + r[:, 2, 0]) / s], 1)
+            q[i] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s], 1)
         elif c == 2:
             s = 2.0 * np.sqrt(1.0 + m11[i] - m00[i] - m22[i])
-            q[i] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s,
-                             (r[:, 1, 2] + r[:, 2, 1]) / s], 1)
+            q[i] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s, (r[:, 1, 2] + r[:, 2, 1]) / s], 1)
         else:
             s = 2.0 * np.sqrt(1.0 + m22[i] - m00[i] - m11[i])
-            q[i] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s,
-                             (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], 1)
+            q[i] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s, (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], 1)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 0] < 0] *= -1
     return q
 
 
 def quat_to_rotmat_np(q: np.ndarray) -> np.ndarray:
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
+    """`quat_to_rotmat` in float64 NumPy: rotation matrices `(..., 3, 3)` from wxyz quaternions."""
+    quats = torch.from_numpy(np.asarray(q, dtype=np.float64))
+    return quat_to_rotmat(quats.reshape(-1, 4)).numpy().reshape(tuple(quats.shape[:-1]) + (3, 3))
 
 
 MAX_TIMES = 4096  # more exported times than this is a typo (one file or video frame each)
@@ -204,8 +198,7 @@ def parse_times(spec: str | None, default: list[float]) -> list[float]:
     return times
 
 
-def render_baked(g: Baked, camera, sh_degree: int, background: np.ndarray | None = None,
-                 colors: np.ndarray | None = None):
+def render_baked(g: Baked, camera, sh_degree: int, background: np.ndarray | None = None, colors: np.ndarray | None = None):
     """Rasterises baked Gaussians (the edit layer already applied) from a `Camera`; returns
     `Rendered`. `colors (N, C)` replaces the SH colours (e.g. a static/dynamic overlay)."""
     from ..render import rasterize
@@ -226,5 +219,14 @@ def render_baked(g: Baked, camera, sh_degree: int, background: np.ndarray | None
             rows = torch.from_numpy(np.nonzero(g.sweep.any(1))[0])
             sweep = (rows, torch.from_numpy(g.sweep)[rows])
             opacities = blurred_opacities(opacities, means, covars, sweep, viewmat, K, camera.width, camera.height)
-        return rasterize(means, opacities, viewmat, K, camera.width, camera.height, covars=covars,
-                         background=torch.as_tensor(bg, dtype=torch.float32), **kw)
+        return rasterize(
+            means,
+            opacities,
+            viewmat,
+            K,
+            camera.width,
+            camera.height,
+            covars=covars,
+            background=torch.as_tensor(bg, dtype=torch.float32),
+            **kw,
+        )

@@ -41,8 +41,7 @@ def training_path(frames: list[Frame], times: list[float] | None = None) -> list
     if times is None:
         return [PathStep(f.camera, f.time, f) for f in frames]
     ft = np.array([f.time for f in frames])
-    return [PathStep(frames[int(np.abs(ft - t).argmin())].camera, t, frames[int(np.abs(ft - t).argmin())])
-            for t in times]
+    return [PathStep(frames[int(np.abs(ft - t).argmin())].camera, t, frames[int(np.abs(ft - t).argmin())]) for t in times]
 
 
 def orbit_path(frames: list[Frame], centre: np.ndarray, times: list[float], turns: float = 1.0) -> list[PathStep]:

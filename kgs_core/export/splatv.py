@@ -87,8 +87,7 @@ def _aligned_rotations(covars: np.ndarray, ref_axes: np.ndarray) -> tuple[np.nda
     return R, np.maximum(var, 0.0)
 
 
-def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0.0,
-               progress: bool = True) -> tuple[np.ndarray, SplatvFit]:
+def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0.0, progress: bool = True) -> tuple[np.ndarray, SplatvFit]:
     """Fits the splaTV motion model; returns (texture words `(N, 16)` uint32, fit report)."""
     times = np.asarray(sorted(set(fit_times)), dtype=np.float64)
     if len(times) < 4 and source.moves:
@@ -172,14 +171,22 @@ def fit_splatv(source: ExportSource, fit_times: list[float], exposure: float = 0
             g = bake(source, float(t), exposure)
             p, cov, _ = evaluate_splatv(decoded, float(t))
             pos_err.append(np.linalg.norm(p[dyn] - g.means[dyn], axis=1))
-            cov_err.append(np.linalg.norm(cov[dyn] - g.covars[dyn], axis=(1, 2))
-                           / np.maximum(np.linalg.norm(g.covars[dyn], axis=(1, 2)), 1e-30))
+            cov_err.append(
+                np.linalg.norm(cov[dyn] - g.covars[dyn], axis=(1, 2)) / np.maximum(np.linalg.norm(g.covars[dyn], axis=(1, 2)), 1e-30)
+            )
     pe = np.concatenate(pos_err) if pos_err else np.zeros(1)
     ce = np.concatenate(cov_err) if cov_err else np.zeros(1)
-    report = SplatvFit(gaussians=n, dynamic=int(dyn.sum()), fit_times=len(times), check_times=len(check),
-                       position_rms=float(np.sqrt((pe**2).mean())), position_max=float(pe.max()),
-                       position_rms_rel=float(np.sqrt((pe**2).mean()) / max(extent, 1e-12)),
-                       covariance_rel_mean=float(ce.mean()), covariance_rel_max=float(ce.max()))
+    report = SplatvFit(
+        gaussians=n,
+        dynamic=int(dyn.sum()),
+        fit_times=len(times),
+        check_times=len(check),
+        position_rms=float(np.sqrt((pe**2).mean())),
+        position_max=float(pe.max()),
+        position_rms_rel=float(np.sqrt((pe**2).mean()) / max(extent, 1e-12)),
+        covariance_rel_mean=float(ce.mean()),
+        covariance_rel_max=float(ce.max()),
+    )
     return words, report
 
 
@@ -188,8 +195,9 @@ def splatv_bytes(words: np.ndarray, cameras: list[dict] | None = None) -> bytes:
     rows = max(1, -(-n // SPLATS_PER_ROW))
     tex = np.zeros((rows * SPLATS_PER_ROW, 16), dtype=np.uint32)
     tex[:n] = words
-    header = json.dumps([{"type": "splat", "size": tex.nbytes, "texwidth": TEX_WIDTH, "texheight": rows,
-                          "count": n, "cameras": cameras or []}]).encode()
+    header = json.dumps(
+        [{"type": "splat", "size": tex.nbytes, "texwidth": TEX_WIDTH, "texheight": rows, "count": n, "cameras": cameras or []}]
+    ).encode()
     return struct.pack("<II", SPLATV_MAGIC, len(header)) + header + tex.astype("<u4").tobytes()
 
 
@@ -200,7 +208,7 @@ def read_splatv(data: bytes) -> tuple[list[dict], np.ndarray]:
     magic, n = struct.unpack_from("<II", data, 0)
     if magic != SPLATV_MAGIC:
         raise ValueError(f"splatv: bad magic {magic:#x} (expected {SPLATV_MAGIC:#x})")
-    header = json.loads(data[8:8 + n])
+    header = json.loads(data[8 : 8 + n])
     chunk = header[0]
     tex = np.frombuffer(data, dtype="<u4", count=chunk["size"] // 4, offset=8 + n).reshape(-1, 16)
     return header, tex
@@ -208,6 +216,7 @@ def read_splatv(data: bytes) -> tuple[list[dict], np.ndarray]:
 
 def decode_splatv_words(words: np.ndarray) -> dict:
     """The fields of texture words `(N, 16)`, decoded the way the splaTV shader does."""
+
     def halves(w):
         w = w.astype(np.uint32)
         lo = (w & 0xFFFF).astype(np.uint16).view(np.float16).astype(np.float64)
@@ -224,8 +233,16 @@ def decode_splatv_words(words: np.ndarray) -> dict:
     o2, o3 = halves(words[:, 14])
     tc, ts = halves(words[:, 15])
     rgba = words[:, 7].copy().view(np.uint8).reshape(-1, 4)
-    return {"position": pos, "rotation": np.stack([r0, r1, r2, r3], 1), "scale": np.stack([s0, s1, s2], 1),
-            "rgba": rgba, "motion": m, "omega": np.stack([o0, o1, o2, o3], 1), "trbf_center": tc, "trbf_scale": ts}
+    return {
+        "position": pos,
+        "rotation": np.stack([r0, r1, r2, r3], 1),
+        "scale": np.stack([s0, s1, s2], 1),
+        "rgba": rgba,
+        "motion": m,
+        "omega": np.stack([o0, o1, o2, o3], 1),
+        "trbf_center": tc,
+        "trbf_scale": ts,
+    }
 
 
 def evaluate_splatv(d: dict, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -257,9 +274,18 @@ def splatv_cameras(frames, limit: int = 10) -> list[dict]:
     for i, f in enumerate(frames[::step][:limit]):
         R = f.camera.viewmat[:3, :3]
         k = max(1.0, DISPLAY_WIDTH / f.camera.width)
-        out.append({"id": i, "img_name": f.id, "width": round(f.camera.width * k), "height": round(f.camera.height * k),
-                    "position": f.camera.center.tolist(), "rotation": R.T.tolist(),
-                    "fx": float(f.camera.K[0, 0]) * k, "fy": float(f.camera.K[1, 1]) * k})
+        out.append(
+            {
+                "id": i,
+                "img_name": f.id,
+                "width": round(f.camera.width * k),
+                "height": round(f.camera.height * k),
+                "position": f.camera.center.tolist(),
+                "rotation": R.T.tolist(),
+                "fx": float(f.camera.K[0, 0]) * k,
+                "fy": float(f.camera.K[1, 1]) * k,
+            }
+        )
     return out
 
 

@@ -25,8 +25,14 @@ def _resize(img: np.ndarray, h: int, w: int) -> np.ndarray:
     return np.asarray(Image.fromarray(img).resize((w, h), Image.BILINEAR))
 
 
-def render_path(source: ExportSource, steps: list[PathStep], exposure: float = 0.0, side_by_side: bool = False,
-                background: np.ndarray | None = None, progress: bool = True) -> list[np.ndarray]:
+def render_path(
+    source: ExportSource,
+    steps: list[PathStep],
+    exposure: float = 0.0,
+    side_by_side: bool = False,
+    background: np.ndarray | None = None,
+    progress: bool = True,
+) -> list[np.ndarray]:
     frames = []
     static = None if source.moves else bake(source, 0.0, exposure)  # a static scene is baked once
     for step in progress_bar(steps, desc="render video", show=progress):

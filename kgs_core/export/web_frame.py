@@ -28,10 +28,10 @@ class WebViewer:
 
 
 # Copied from each viewer's `defaultViewMatrix`; antimatter15 draws with its own first camera's focal.
-ANTIMATTER15 = WebViewer("antimatter15/splat", (0.47, 0.04, 0.88, 0, -0.11, 0.99, 0.02, 0, -0.88, -0.11, 0.47, 0,
-                                                0.07, 0.03, 6.55, 1), 1159.5880733038064, 6.55)
-SPLATV = WebViewer("splaTV", (0.99, 0.01, -0.14, 0, 0.02, 0.99, 0.12, 0, 0.14, -0.12, 0.98, 0, -0.09, -0.26, 0.2, 1),
-                   None, 2.0)
+ANTIMATTER15 = WebViewer(
+    "antimatter15/splat", (0.47, 0.04, 0.88, 0, -0.11, 0.99, 0.02, 0, -0.88, -0.11, 0.47, 0, 0.07, 0.03, 6.55, 1), 1159.5880733038064, 6.55
+)
+SPLATV = WebViewer("splaTV", (0.99, 0.01, -0.14, 0, 0.02, 0.99, 0.12, 0, 0.14, -0.12, 0.98, 0, -0.09, -0.26, 0.2, 1), None, 2.0)
 REFERENCE_WIDTH = 1280  # the window width the field of view is matched at (splaTV's cameras are sized for it)
 
 
@@ -64,8 +64,10 @@ class Similarity:
         s, R = self.scale, self.R
         sh = g.sh.copy()
         if sh.shape[1] > 4:
-            raise ValueError("framing for a web viewer rotates the view-dependent colour: SH degree 2 and 3 "
-                             "are not supported (export without the web framing)")
+            raise ValueError(
+                "framing for a web viewer rotates the view-dependent colour: SH degree 2 and 3 "
+                "are not supported (export without the web framing)"
+            )
         if sh.shape[1] == 4:  # basis (-y, z, -x): the coefficients are the vector (-c3, -c1, c2)
             a = np.stack([-sh[:, 3], -sh[:, 1], sh[:, 2]], 1)  # (N, xyz, rgb)
             a = np.einsum("ij,njc->nic", R, a)
@@ -73,9 +75,13 @@ class Similarity:
         return Baked(
             means=(s * g.means.astype(np.float64) @ R.T + self.t).astype(np.float32),
             covars=s * s * np.einsum("ij,njk,lk->nil", R, g.covars, R),
-            opacities=g.opacities, sh=sh, dynamic=g.dynamic,
-            velocity=(s * g.velocity.astype(np.float64) @ R.T).astype(np.float32), index=g.index,
-            sweep=None if g.sweep is None else (s * g.sweep.astype(np.float64) @ R.T).astype(np.float32))
+            opacities=g.opacities,
+            sh=sh,
+            dynamic=g.dynamic,
+            velocity=(s * g.velocity.astype(np.float64) @ R.T).astype(np.float32),
+            index=g.index,
+            sweep=None if g.sweep is None else (s * g.sweep.astype(np.float64) @ R.T).astype(np.float32),
+        )
 
     def camera(self, cam: dict) -> dict:
         """A camera in the 3DGS cameras.json form (centre, camera-to-world rotation), moved along."""
@@ -84,8 +90,9 @@ class Similarity:
         return {**cam, "position": c.tolist(), "rotation": rot.tolist()}
 
 
-def opening_camera(viewmat: np.ndarray, K: np.ndarray, width: int, means: np.ndarray,
-                   viewer_fx: float, viewer_width: int = REFERENCE_WIDTH) -> tuple[np.ndarray, float]:
+def opening_camera(
+    viewmat: np.ndarray, K: np.ndarray, width: int, means: np.ndarray, viewer_fx: float, viewer_width: int = REFERENCE_WIDTH
+) -> tuple[np.ndarray, float]:
     """(world-to-camera, content depth): the training camera `viewmat`, moved back along its
     axis so that a viewer drawing with focal `viewer_fx` in a `viewer_width` window sees the
     content (the median depth of `means` in front) as wide as the training frame showed it."""

@@ -29,10 +29,10 @@ class Decomposition:
         means = self.params.means.detach()
         out = torch.empty(len(means))
         for s in range(0, len(means), chunk):
-            x = means[s:s + chunk]
+            x = means[s : s + chunk]
             offs = self.deform.at_times(x, [torch.full((len(x),), float(t)) for t in times])
             dx = torch.stack([o.dx for o in offs])  # (T, n, 3)
-            out[s:s + chunk] = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
+            out[s : s + chunk] = ((dx - dx.mean(0)) ** 2).sum(-1).mean(0)
         return out
 
     def dynamic_by_k(self, tau: float) -> Tensor:
@@ -41,8 +41,14 @@ class Decomposition:
         return (self.K > tau) | self.lifespan[:, 1].isfinite()
 
     @torch.no_grad()
-    def decompose(self, tau: float | None = None, recompute: bool = True, in_place: bool = False,
-                  keep_static: bool = False, also_dynamic: Tensor | None = None) -> Tensor:
+    def decompose(
+        self,
+        tau: float | None = None,
+        recompute: bool = True,
+        in_place: bool = False,
+        keep_static: bool = False,
+        also_dynamic: Tensor | None = None,
+    ) -> Tensor:
         """Splits into static (`K <= tau`) and dynamic (`K > tau`, or `also_dynamic (N,)`, what
         training's splits read off the optical flow); returns the dynamic mask.
 
@@ -151,8 +157,13 @@ def decomposition_counts(model: KinematicsGS, static_only: bool = False) -> dict
     (train/spawn.py, and their clones)."""
     n = len(model)
     d = 0 if static_only else int(model.dynamic.sum()) if model.decomposed else n
-    return {"gaussians": n, "dynamic": d, "static": n - d, "dynamic_share": d / max(n, 1),
-            "spawned": int(model.lifespan[:, 1].isfinite().sum())}  # present for part of the clip
+    return {
+        "gaussians": n,
+        "dynamic": d,
+        "static": n - d,
+        "dynamic_share": d / max(n, 1),
+        "spawned": int(model.lifespan[:, 1].isfinite().sum()),
+    }  # present for part of the clip
 
 
 def K_histogram(K: np.ndarray, bins: int = 64) -> dict:

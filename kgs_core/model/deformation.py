@@ -118,8 +118,16 @@ class Offsets:
 
 
 class DeformationField(nn.Module):
-    def __init__(self, spatial: int = 64, temporal: int = 25, features: int = 32, multires=(1, 2), width: int = 64,
-                 depth: int = 1, bound: float = 1.5):
+    def __init__(
+        self,
+        spatial: int = 64,
+        temporal: int = 25,
+        features: int = 32,
+        multires=(1, 2),
+        width: int = 64,
+        depth: int = 1,
+        bound: float = 1.5,
+    ):
         super().__init__()
         self.planes = KPlanes(spatial, temporal, features, multires, bound)
         self.mlp = _mlp(self.planes.out_dim, width, 9, depth)

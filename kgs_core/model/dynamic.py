@@ -10,53 +10,20 @@ backward is serial on CPU (docs/results.md, "Training speed").
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from ..render import packed_covariance
-from ..render.covariance import normalize_quats, pack_covariance, quat_to_rotmat, unpack_covariance
+from ..render.covariance import pack_covariance, quat_to_rotmat, unpack_covariance
 from .config import ModelConfig
 from .decomposition import Decomposition
 from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
-from .gaussians import GaussianParams, append, presence, select
-from .kinematics import (
-    motion_blur_covariance,
-    quat_multiply,
-    refine_covariance,
-    rotvec_to_quat,
-    safe_norm,
-    velocity_from_offsets,
-)
+from .gaussians import GaussianParams, GaussiansAt, append, presence, select
+from .kinematics import motion_blur_covariance, refine_covariance, residual_covariance, safe_norm, velocity_from_offsets
 from .neighbours import NeighbourGraph, checked_knn
-from .per_gaussian import PerGaussian
-
-
-@dataclass
-class GaussiansAt:
-    """Gaussians at one time, ready for `rasterize`."""
-
-    means: Tensor  # (N, 3)
-    covars6: Tensor  # (N, 6) packed upper triangles xx, xy, xz, yy, yz, zz (what rasterize takes)
-    opacities: Tensor  # (N,)
-    sh: Tensor  # (N, K, 3)
-    dynamic: Tensor  # (N,) bool
-    velocity: Tensor | None = None  # (N, 3), zeros for static Gaussians
-    offsets_dx: Tensor | None = None  # (N, 3), for L_reg
-    # The Gaussians blurred by the convolve form and their displacement over the exposure:
-    # `(idx (B,), sweep (B, 3))` (differentiable; idx None: all N), or None when nothing is
-    # blurred. The renderer scales their opacities so that each splat keeps its 2D mass
-    # (`blur_opacity_scale`).
-    sweep: tuple[Tensor | None, Tensor] | None = None
-    # "dynamic_velocity": `(idx (D,), velocity (D, 3))` with its gradient, where K.R. computed it.
-    extras: dict = field(default_factory=dict)
-
-    @property
-    def covars(self) -> Tensor:
-        """`(N, 3, 3)` world-space covariances (unpacked on each access)."""
-        return unpack_covariance(self.covars6)
+from .per_gaussian import PerGaussian, check_rows
 
 
 class Deformed(NamedTuple):
@@ -79,8 +46,9 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         self.config = config
         self.params = params
         c = config
-        self.deform = DeformationField(c.deform_spatial, c.deform_temporal, c.deform_features, c.deform_multires,
-                                       c.deform_width, c.deform_depth, c.bound)
+        self.deform = DeformationField(
+            c.deform_spatial, c.deform_temporal, c.deform_features, c.deform_multires, c.deform_width, c.deform_depth, c.bound
+        )
         self.fine = FineResidual(c.feature_dim)
         self.time_opacity = TimeOpacity(c.feature_dim) if c.time_opacity else None
         self.kappa = nn.Parameter(torch.tensor(float(c.kappa_init)))
@@ -98,10 +66,12 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         return len(self.params)
 
     def network_parameters(self) -> dict[str, list[Tensor]]:
-        return {"grid": list(self.deform.planes.parameters()), "deform_mlp": list(self.deform.mlp.parameters()),
-                "fine_mlp": list(self.fine.parameters()) + ([] if self.time_opacity is None else
-                                                            list(self.time_opacity.parameters())),
-                "kappa": [self.kappa]}
+        return {
+            "grid": list(self.deform.planes.parameters()),
+            "deform_mlp": list(self.deform.mlp.parameters()),
+            "fine_mlp": list(self.fine.parameters()) + ([] if self.time_opacity is None else list(self.time_opacity.parameters())),
+            "kappa": [self.kappa],
+        }
 
     # Per-Gaussian state (parameters with their Adam moments, dynamic flags, K, lifespans, own
     # velocities, a strategy's statistics) is resized in lock-step by `keep_gaussians` and
@@ -122,37 +92,46 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
     def set_params(self, params: GaussianParams, per_gaussian: PerGaussian, knn: Tensor | None = None) -> None:
         """`knn`: the graph over the new dynamic set; None: rebuilt when next needed."""
         if any(len(v) != len(params) for _, v in per_gaussian.items()):
-            raise ValueError(f"per-Gaussian state out of step: {len(params)} Gaussians, "
-                             + ", ".join(f"{len(v)} rows of {k}" for k, v in per_gaussian.items()))
+            raise ValueError(
+                f"per-Gaussian state out of step: {len(params)} Gaussians, "
+                + ", ".join(f"{len(v)} rows of {k}" for k, v in per_gaussian.items())
+            )
         if knn is not None and len(knn) != int(per_gaussian.dynamic.sum()):
             raise ValueError(f"kNN graph out of step: {len(knn)} rows for {int(per_gaussian.dynamic.sum())} dynamic Gaussians")
         self.params = params
         self.per_gaussian = per_gaussian
         self._knn = knn
 
-    def keep_gaussians(self, keep: Tensor, optimizer: torch.optim.Adam | None = None,
-                       state: dict[str, Tensor] | None = None, heirs: Tensor | None = None) -> None:
+    def keep_gaussians(
+        self, keep: Tensor, optimizer: torch.optim.Adam | None = None, state: dict[str, Tensor] | None = None, heirs: Tensor | None = None
+    ) -> None:
         """Keeps the Gaussians where `keep (N,) bool` is true (pruning): parameters, Adam
         moments, the per-Gaussian state, the kNN graph, and the (N, ...) tensors of `state` (a
         strategy's statistics, replaced in the dict).
 
         In the graph a removed neighbour is replaced by its heir, `heirs (N,)` (a densification split parent's
         child; -1: none), or else by the row's own Gaussian (as `knn_radius` does)."""
-        self.set_params(select(self.params, optimizer, keep), self.per_gaussian.select(keep),
-                        self._graph_after_keep(keep, heirs))
+        self.set_params(select(self.params, optimizer, keep), self.per_gaussian.select(keep), self._graph_after_keep(keep, heirs))
         for k, v in (state or {}).items():
             state[k] = v[keep]
 
-    def add_gaussians(self, new: GaussianParams, parents: Tensor, optimizer: torch.optim.Adam | None = None,
-                      state: dict[str, Tensor] | None = None, lifespan: Tensor | None = None,
-                      own_velocity: Tensor | None = None) -> None:
+    def add_gaussians(
+        self,
+        new: GaussianParams,
+        parents: Tensor,
+        optimizer: torch.optim.Adam | None = None,
+        state: dict[str, Tensor] | None = None,
+        lifespan: Tensor | None = None,
+        own_velocity: Tensor | None = None,
+    ) -> None:
         """Appends Gaussians (densification: clones and split children); each inherits its
         parent's per-Gaussian state (dynamic flag, K, lifespan, own velocity; or takes `lifespan
         (M, 2)`, `own_velocity (M, 3)` when given) and kNN neighbours, `parents (M,)` indices
         into the current set, and starts with zero Adam moments and zeros in `state`."""
         knn = self._graph_after_add(parents)
-        self.set_params(append(self.params, optimizer, new),
-                        self.per_gaussian.append(parents, lifespan=lifespan, own_velocity=own_velocity), knn)
+        self.set_params(
+            append(self.params, optimizer, new), self.per_gaussian.append(parents, lifespan=lifespan, own_velocity=own_velocity), knn
+        )
         for k, v in (state or {}).items():
             state[k] = torch.cat([v, v.new_zeros((len(parents), *v.shape[1:]))])
 
@@ -166,8 +145,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         """Offsets of the Gaussians `idx` (all of them, or the dynamic set) at time `t`."""
         return self.offsets_at(idx, [t], noise)[0]
 
-    def offsets_at(self, idx: Tensor, times: list[float], noise: float = 0.0, shared_fine: bool = False
-                   ) -> list[Offsets]:
+    def offsets_at(self, idx: Tensor, times: list[float], noise: float = 0.0, shared_fine: bool = False) -> list[Offsets]:
         """Offsets of the Gaussians `idx` at each of `times`, in one batched evaluation of the
         field (and of the fine residual). `noise` (training's time jitter) moves the first
         time only: the others are the physical velocity's samples around it.
@@ -187,8 +165,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         own = self.lifespan[idx, 1].isfinite() if self.config.spawned_motion == "own" else None
         rows = None if own is None or not own.any() else torch.nonzero(~own).squeeze(1)
         field_idx, field_tt = (idx, tt) if rows is None else (idx[rows], [t[rows] for t in tt])
-        raws = [_scatter_rows(r.cat(), rows, n)
-                for r in self.deform.at_times(self.params.means.index_select(0, field_idx), field_tt)]
+        raws = [_scatter_rows(r.cat(), rows, n) for r in self.deform.at_times(self.params.means.index_select(0, field_idx), field_tt)]
         if not (self.decomposed and self.config.coarse_to_fine):
             return self._spawned_offsets(idx, tt, [Offsets.from_cat(r) for r in raws])
         # One sparse product for all times: (D, 9 M) offsets side by side.
@@ -222,15 +199,24 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             return [Offsets.from_cat(torch.where(rows, o.cat().detach(), o.cat())) for o in offsets]
         centre, velocity = self.lifespan[idx, 0], self.own_velocity.index_select(0, idx)
         still = torch.zeros(len(idx), 6)
-        return [Offsets.from_cat(torch.where(rows, torch.cat([velocity * (t - centre)[:, None], still], 1), o.cat()))
-                for o, t in zip(offsets, times)]
+        return [
+            Offsets.from_cat(torch.where(rows, torch.cat([velocity * (t - centre)[:, None], still], 1), o.cat()))
+            for o, t in zip(offsets, times)
+        ]
 
     def positions(self, idx: Tensor, t: float, noise: float = 0.0) -> tuple[Tensor, Offsets]:
         off = self.offsets(idx, t, noise)
         return self.params.means.index_select(0, idx) + off.dx, off
 
-    def at(self, t: float, exposure: float | Tensor = 0.0, dt: float = 1.0, noise: float = 0.0,
-           camera_motion: tuple[Tensor, Tensor] | None = None, velocity: bool = True) -> GaussiansAt:
+    def at(
+        self,
+        t: float,
+        exposure: float | Tensor = 0.0,
+        dt: float = 1.0,
+        noise: float = 0.0,
+        camera_motion: tuple[Tensor, Tensor] | None = None,
+        velocity: bool = True,
+    ) -> GaussiansAt:
         """Gaussians at time `t`. `exposure` (fraction of the frame interval `dt`) sets the
         kinematic elongation: 0 renders sharp. `noise` is the training-time jitter of `t`.
         `camera_motion = (A (3, 3), b (3,))`: the camera's own motion during the exposure, as
@@ -247,8 +233,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         dx_all = torch.zeros(n, 3)
         idx = torch.arange(n) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         # (Before the decomposition every Gaussian deforms without K.R., so nothing is blurred then.)
-        blur_camera = (camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve"
-                       and self.decomposed)
+        blur_camera = camera_motion is not None and exposure > 0 and self.config.kr_form == "convolve" and self.decomposed
         cov6_canonical, sweep_all = cov6, None
         if blur_camera:
             # Every Gaussian blurred by the camera's motion (the dynamic rows are replaced below):
@@ -259,8 +244,17 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         sweep = None if sweep_all is None else (None, sweep_all)
         extras = {}
         if len(idx):
-            d = self._deform(idx, t, exposure, dt, noise, scales.index_select(0, idx), cov6_canonical.index_select(0, idx),
-                             camera_motion if blur_camera else None, velocity)
+            d = self._deform(
+                idx,
+                t,
+                exposure,
+                dt,
+                noise,
+                scales.index_select(0, idx),
+                cov6_canonical.index_select(0, idx),
+                camera_motion if blur_camera else None,
+                velocity,
+            )
             means = means.index_copy(0, idx, d.means)
             cov6 = cov6.index_copy(0, idx, d.covars6)
             velocities = None if d.velocity is None else velocities.index_copy(0, idx, d.velocity.detach())
@@ -278,12 +272,19 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         opacities = self.present(p.opacities, t)
         if self.time_opacity is not None and self.decomposed and len(idx):
             opacities = opacities.index_copy(0, idx, opacities.index_select(0, idx) * self.opacity_factor(idx, t))
-        return GaussiansAt(means=means, covars6=cov6, opacities=opacities, sh=p.sh(),
-                           dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
-                           velocity=velocities, offsets_dx=dx_all, sweep=sweep, extras=extras)
+        return GaussiansAt(
+            means=means,
+            covars6=cov6,
+            opacities=opacities,
+            sh=p.sh(),
+            dynamic=self.dynamic if self.decomposed else torch.ones(n, dtype=torch.bool),
+            velocity=velocities,
+            offsets_dx=dx_all,
+            sweep=sweep,
+            extras=extras,
+        )
 
-    def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0,
-                   velocity: bool = True) -> tuple[Tensor, GaussiansAt]:
+    def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0, velocity: bool = True) -> tuple[Tensor, GaussiansAt]:
         """Only the dynamic Gaussians at time `t` (what changes when a viewer scrubs time):
         `(idx (D,), GaussiansAt of D)`; the static ones are `at_static()` restricted to the rest.
         `velocity` as in `at`."""
@@ -296,11 +297,16 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         else:
             d = Deformed(p.means[idx], cov6, torch.zeros(0, 3), torch.zeros(0, 3), None)
         opacities = self.present(p.opacities, t)[idx] * self.opacity_factor(idx, t)
-        return idx, GaussiansAt(means=d.means, covars6=d.covars6, opacities=opacities,
-                                sh=p.sh()[idx],
-                                dynamic=torch.ones(len(idx), dtype=torch.bool),
-                                velocity=None if d.velocity is None else d.velocity.detach(), offsets_dx=d.dx,
-                                sweep=None if d.sweep is None else (None, d.sweep))
+        return idx, GaussiansAt(
+            means=d.means,
+            covars6=d.covars6,
+            opacities=opacities,
+            sh=p.sh()[idx],
+            dynamic=torch.ones(len(idx), dtype=torch.bool),
+            velocity=None if d.velocity is None else d.velocity.detach(),
+            offsets_dx=d.dx,
+            sweep=None if d.sweep is None else (None, d.sweep),
+        )
 
     def _time_faded(self, idx: Tensor) -> Tensor:
         """Positions in `idx` (dynamic Gaussians) of those the time opacity acts on: the ones the
@@ -321,8 +327,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         rows = idx[self._time_faded(idx)]
         if len(rows):
             features = self.params.features[rows]
-            offsets = torch.stack([self.time_opacity(features, torch.full((len(rows),), float(t)))
-                                   for t in torch.linspace(0, 1, times)])
+            offsets = torch.stack([self.time_opacity(features, torch.full((len(rows),), float(t))) for t in torch.linspace(0, 1, times)])
             peak[rows] = offsets.max(0).values
         return peak
 
@@ -348,9 +353,18 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             return opacities
         return opacities * presence(self.lifespan, t)
 
-    def _deform(self, idx: Tensor, t: float, exposure: float | Tensor, dt: float, noise: float, scales: Tensor,
-                cov6_pred: Tensor, camera_motion: tuple[Tensor, Tensor] | None = None,
-                velocity: bool = True) -> "Deformed":
+    def _deform(
+        self,
+        idx: Tensor,
+        t: float,
+        exposure: float | Tensor,
+        dt: float,
+        noise: float,
+        scales: Tensor,
+        cov6_pred: Tensor,
+        camera_motion: tuple[Tensor, Tensor] | None = None,
+        velocity: bool = True,
+    ) -> "Deformed":
         """The Gaussians `idx` deformed to time `t` (`Deformed`); `cov6_pred` is their packed
         canonical covariance. `velocity=False` (the caller will not read it): under the
         convolve form at exposure 0 the covariance
@@ -406,9 +420,21 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             speed = safe_norm(v)
             R = quat_to_rotmat(quats)
             r_z = torch.gather(R, 2, scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
-            cov6 = pack_covariance(refine_covariance(
-                unpack_covariance(cov6_pred), v, speed * dt * exposure, off.ds, off.dr, r_z.detach(), self.kappa,
-                speed * dt, basis=cfg.basis, lambda_s=cfg.lambda_s, still_len=cfg.still_len))
+            cov6 = pack_covariance(
+                refine_covariance(
+                    unpack_covariance(cov6_pred),
+                    v,
+                    speed * dt * exposure,
+                    off.ds,
+                    off.dr,
+                    r_z.detach(),
+                    self.kappa,
+                    speed * dt,
+                    basis=cfg.basis,
+                    lambda_s=cfg.lambda_s,
+                    still_len=cfg.still_len,
+                )
+            )
         else:
             # Without K.R. (and during warm-up): D3DGS-style residual rotation and scale.
             v = None if not velocity else torch.zeros_like(x_t)
@@ -418,8 +444,13 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
     def at_static(self) -> GaussiansAt:
         """The canonical Gaussians, no deformation (the static 3DGS baseline)."""
         p = self.params
-        return GaussiansAt(means=p.means, covars6=packed_covariance(p.quats, self.scales()),
-                           opacities=p.opacities, sh=p.sh(), dynamic=torch.zeros(len(p), dtype=torch.bool))
+        return GaussiansAt(
+            means=p.means,
+            covars6=packed_covariance(p.quats, self.scales()),
+            opacities=p.opacities,
+            sh=p.sh(),
+            dynamic=torch.zeros(len(p), dtype=torch.bool),
+        )
 
     # ------------------------------------------------------------ persistence
 
@@ -443,7 +474,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         state = migrate_model_state(state)  # a model saved by an older version
         params = GaussianParams(**{k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
         n = len(params)
-        _check_per_gaussian(params.items(), n, "params.")
+        check_rows(params.items(), n, "params.")
         model = cls(params, ModelConfig.from_dict(state["config"]))
         model.load_state_dict(state["networks"])
         model.decomposed = bool(state["decomposed"])
@@ -453,25 +484,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         return model
 
 
-def _check_per_gaussian(fields, n: int, prefix: str = "") -> None:
-    """Every per-Gaussian field of a state has the same leading length (a mismatch would fail
-    far away, inside an index or the rasteriser)."""
-    for name, value in fields:
-        if not isinstance(value, Tensor) or value.dim() == 0 or len(value) != n:
-            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-            raise ValueError(f"model state field '{prefix}{name}': expected {n} rows (one per Gaussian), got {got}")
-
-
 def _scatter_rows(x: Tensor, rows: Tensor | None, n: int) -> Tensor:
     """`x (M, C)` placed at `rows (M,)` of an `(n, C)` tensor of zeros (`x` itself when `rows`
     is None: every row)."""
     return x if rows is None else x.new_zeros(n, x.shape[1]).index_copy(0, rows, x)
-
-
-def residual_covariance(quats: Tensor, scales: Tensor, off: Offsets, lambda_s: float) -> Tensor:
-    """D3DGS-style deformed covariance, packed `(N, 6)`: canonical rotation times `exp(dr)`,
-    scales times `exp(lambda_s ds)`. The rotations compose as quaternions and the covariance is
-    `packed_covariance`'s (C++ when built): `R(q) so3_exp(dr)` and `M Mᵀ` to float rounding,
-    without batched 3x3 products, slow on a CPU (docs/results.md, "Training speed")."""
-    rotation = quat_multiply(normalize_quats(quats), rotvec_to_quat(off.dr))
-    return packed_covariance(rotation, scales * torch.exp(lambda_s * off.ds))

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ..render.covariance import quat_to_rotmat
+from ..render.covariance import quat_to_rotmat, unpack_covariance
 from ..render.sh import num_sh_bases, rgb_to_sh0
 
 # Per-Gaussian leaf tensors that the optimizer updates. `features` feed the fine residual MLP.
@@ -52,8 +52,15 @@ class GaussianParams:
         return quat_to_rotmat(self.quats)
 
 
-def init_from_points(points: np.ndarray, colors: np.ndarray, sh_degree: int, feature_dim: int,
-                     max_points: int | None = None, seed: int = 0, init_opacity: float = 0.1) -> GaussianParams:
+def init_from_points(
+    points: np.ndarray,
+    colors: np.ndarray,
+    sh_degree: int,
+    feature_dim: int,
+    max_points: int | None = None,
+    seed: int = 0,
+    init_opacity: float = 0.1,
+) -> GaussianParams:
     """One isotropic Gaussian per point, sized by the distance to its 3 nearest neighbours (3DGS)."""
     rng = np.random.default_rng(seed)
     if len(points) < 4:
@@ -145,3 +152,28 @@ def presence(lifespan: Tensor, t: float) -> Tensor:
     bounded = width.isfinite()
     z = torch.where(bounded, (t - lifespan[:, 0]) / width, torch.zeros_like(width))
     return torch.exp(-0.5 * z * z)
+
+
+@dataclass
+class GaussiansAt:
+    """Gaussians at one time, ready for `rasterize`."""
+
+    means: Tensor  # (N, 3)
+    covars6: Tensor  # (N, 6) packed upper triangles xx, xy, xz, yy, yz, zz (what rasterize takes)
+    opacities: Tensor  # (N,)
+    sh: Tensor  # (N, K, 3)
+    dynamic: Tensor  # (N,) bool
+    velocity: Tensor | None = None  # (N, 3), zeros for static Gaussians
+    offsets_dx: Tensor | None = None  # (N, 3), for L_reg
+    # The Gaussians blurred by the convolve form and their displacement over the exposure:
+    # `(idx (B,), sweep (B, 3))` (differentiable; idx None: all N), or None when nothing is
+    # blurred. The renderer scales their opacities so that each splat keeps its 2D mass
+    # (`blur_opacity_scale`).
+    sweep: tuple[Tensor | None, Tensor] | None = None
+    # "dynamic_velocity": `(idx (D,), velocity (D, 3))` with its gradient, where K.R. computed it.
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def covars(self) -> Tensor:
+        """`(N, 3, 3)` world-space covariances (unpacked on each access)."""
+        return unpack_covariance(self.covars6)

@@ -7,10 +7,16 @@ the refined covariance and its gradients at stiff and extreme inputs) and tests/
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from torch import Tensor
+
+from ..render import packed_covariance
+from ..render.covariance import normalize_quats
+
+if TYPE_CHECKING:
+    from .deformation import Offsets
 
 Basis = Literal["paper", "duff", "principal"]
 
@@ -96,10 +102,15 @@ def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product `a b` of quaternions `(N, 4)` wxyz: `R(a b) = R(a) R(b)`."""
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], -1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
 def so3_exp(w: Tensor) -> Tensor:
@@ -191,3 +202,12 @@ def velocity_from_offsets(offs: list, h: float, dt: float) -> Tensor:
     if len(offs) == 1:
         return offs[0].dx / dt
     return (offs[1].dx - offs[2].dx) / (2 * h)
+
+
+def residual_covariance(quats: Tensor, scales: Tensor, off: "Offsets", lambda_s: float) -> Tensor:
+    """D3DGS-style deformed covariance, packed `(N, 6)`: canonical rotation times `exp(dr)`,
+    scales times `exp(lambda_s ds)`. The rotations compose as quaternions and the covariance is
+    `packed_covariance`'s (C++ when built): `R(q) so3_exp(dr)` and `M Mᵀ` to float rounding,
+    without batched 3x3 products, slow on a CPU (docs/results.md, "Training speed")."""
+    rotation = quat_multiply(normalize_quats(quats), rotvec_to_quat(off.dr))
+    return packed_covariance(rotation, scales * torch.exp(lambda_s * off.ds))

@@ -114,12 +114,18 @@ def checked_knn(knn, n_dynamic: int) -> Tensor | None:
     state would index out of range deep inside rendering)."""
     if knn is None:
         return None
-    ok = (isinstance(knn, Tensor) and knn.dtype == torch.long and knn.dim() == 2 and len(knn) == n_dynamic
-          and (knn.numel() == 0 or (int(knn.min()) >= 0 and int(knn.max()) < n_dynamic)))
+    ok = (
+        isinstance(knn, Tensor)
+        and knn.dtype == torch.long
+        and knn.dim() == 2
+        and len(knn) == n_dynamic
+        and (knn.numel() == 0 or (int(knn.min()) >= 0 and int(knn.max()) < n_dynamic))
+    )
     if not ok:
         shape = tuple(knn.shape) if isinstance(knn, Tensor) else type(knn).__name__
-        raise ValueError(f"model state field 'knn': expected int64 indices of shape ({n_dynamic}, k) "
-                         f"into the {n_dynamic} dynamic Gaussians, got {shape}")
+        raise ValueError(
+            f"model state field 'knn': expected int64 indices of shape ({n_dynamic}, k) into the {n_dynamic} dynamic Gaussians, got {shape}"
+        )
     return knn.clone()
 
 
@@ -140,8 +146,7 @@ def neighbour_mean_matrices(knn: Tensor, drop: Tensor | None = None) -> tuple[Te
         weights = torch.where(left[:, None] > 0, kept / left.clamp_min(1)[:, None], 1.0 / k).reshape(-1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
-        w = torch.sparse_coo_tensor(torch.stack([rows, cols]), weights.float(), (d, d),
-                                    check_invariants=True).coalesce()
+        w = torch.sparse_coo_tensor(torch.stack([rows, cols]), weights.float(), (d, d), check_invariants=True).coalesce()
         return w.to_sparse_csr(), w.t().coalesce().to_sparse_csr()
 
 

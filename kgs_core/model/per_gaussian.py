@@ -44,10 +44,12 @@ class Field:
 FIELDS: dict[str, Field] = {
     "dynamic": Field((), lambda n: torch.zeros(n, dtype=torch.bool), lambda t: t.dtype == torch.bool, "a bool mask"),
     "K": Field((), lambda n: torch.zeros(n), lambda t: t.dtype.is_floating_point, "floats (K)"),
-    "lifespan": Field((2,), unbounded_lifespan, _lifespan_ok,
-                      "floats, finite centres and widths > 0 (inf: always present)", since_start=False),
-    "own_velocity": Field((3,), lambda n: torch.zeros(n, 3), lambda t: t.dtype.is_floating_point and _finite(t),
-                          "finite floats", since_start=False),
+    "lifespan": Field(
+        (2,), unbounded_lifespan, _lifespan_ok, "floats, finite centres and widths > 0 (inf: always present)", since_start=False
+    ),
+    "own_velocity": Field(
+        (3,), lambda n: torch.zeros(n, 3), lambda t: t.dtype.is_floating_point and _finite(t), "finite floats", since_start=False
+    ),
 }
 
 
@@ -112,11 +114,20 @@ class PerGaussian:
         return cls(**out)
 
 
+def check_rows(fields, n: int, prefix: str = "") -> None:
+    """ValueError naming the first of `fields` (name, value) that is not a tensor of `n` rows: a
+    mismatch would fail far away, inside an index or the rasteriser."""
+    for name, value in fields:
+        if not isinstance(value, Tensor) or value.dim() == 0 or len(value) != n:
+            got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+            raise ValueError(f"model state field '{prefix}{name}': expected {n} rows (one per Gaussian), got {got}")
+
+
 def check_field(name: str, value, n: int) -> None:
     f = FIELDS[name]
-    if not isinstance(value, Tensor) or value.dim() == 0 or len(value) != n:
-        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-        raise ValueError(f"model state field '{name}': expected {n} rows (one per Gaussian), got {got}")
+    check_rows([(name, value)], n)
     if tuple(value.shape[1:]) != f.tail or not f.ok(value):
-        raise ValueError(f"model state field '{name}': expected {f.expected} of shape "
-                         f"({', '.join(map(str, (n, *f.tail)))}), got {tuple(value.shape)} {value.dtype}")
+        raise ValueError(
+            f"model state field '{name}': expected {f.expected} of shape "
+            f"({', '.join(map(str, (n, *f.tail)))}), got {tuple(value.shape)} {value.dtype}"
+        )

@@ -40,8 +40,16 @@ SOURCES = ["bindings.cpp", "covariance.cpp", "project.cpp", "binning.cpp", "rast
 HEADERS = ["kernels.h", "simd.h", "parallel.h"]
 # -fno-trapping-math: nothing here reads floating-point exception flags, and it lets GCC
 # evaluate both sides of a select, which the vectorised projection backward needs on AVX2.
-CFLAGS = ["-O3", "-march=native", "-mprefer-vector-width=512", "-fopenmp", "-std=c++17", "-fno-math-errno",
-          "-fno-trapping-math", "-Wno-psabi"]
+CFLAGS = [
+    "-O3",
+    "-march=native",
+    "-mprefer-vector-width=512",
+    "-fopenmp",
+    "-std=c++17",
+    "-fno-math-errno",
+    "-fno-trapping-math",
+    "-Wno-psabi",
+]
 LDFLAGS = ["-fopenmp"]
 
 _lock = threading.Lock()
@@ -77,8 +85,7 @@ def _cpu_model() -> str:
 
 def _compiler_version() -> str:
     try:
-        return subprocess.run([os.environ.get("CXX", "c++"), "--version"], capture_output=True, text=True,
-                              timeout=30).stdout
+        return subprocess.run([os.environ.get("CXX", "c++"), "--version"], capture_output=True, text=True, timeout=30).stdout
     except (OSError, subprocess.SubprocessError):
         return ""
 
@@ -162,9 +169,14 @@ def load(verbose: bool = False) -> ModuleType:
                 _module = _import_built(build_dir, name) if damaged is None else None  # another process built it
                 if _module is None:
                     (build_dir / STAMP).unlink(missing_ok=True)
-                    _module = cpp_extension.load(name=name, sources=[str(CSRC / s) for s in SOURCES],
-                                                 extra_cflags=CFLAGS, extra_ldflags=LDFLAGS,
-                                                 build_directory=str(build_dir), verbose=verbose)
+                    _module = cpp_extension.load(
+                        name=name,
+                        sources=[str(CSRC / s) for s in SOURCES],
+                        extra_cflags=CFLAGS,
+                        extra_ldflags=LDFLAGS,
+                        build_directory=str(build_dir),
+                        verbose=verbose,
+                    )
                     (build_dir / STAMP).write_text(key)
         except Exception as exc:  # compiler errors, missing ninja, ...
             _error = exc

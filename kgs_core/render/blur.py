@@ -18,9 +18,19 @@ from .rasterize import Backend, resolve_backend
 from .types import EPS2D
 
 
-def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: Tensor, K: Tensor, width: int,
-                       height: int, eps2d: float = EPS2D, near: float = 0.01, far: float = 1e10,
-                       backend: Backend = "auto") -> Tensor:
+def blur_opacity_scale(
+    means: Tensor,
+    covars6: Tensor,
+    sweep: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = EPS2D,
+    near: float = 0.01,
+    far: float = 1e10,
+    backend: Backend = "auto",
+) -> Tensor:
     """`(B,)` opacity factors for B blurred Gaussians.
 
     Args:
@@ -41,8 +51,16 @@ def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: T
     return impl.blur_opacity_scale(means, covars6, sweep, viewmat, K, width, height, eps2d, near, far)
 
 
-def blurred_opacities(opacities: Tensor, means: Tensor, covars6: Tensor, sweep: tuple[Tensor | None, Tensor],
-                      viewmat: Tensor, K: Tensor, width: int, height: int) -> Tensor:
+def blurred_opacities(
+    opacities: Tensor,
+    means: Tensor,
+    covars6: Tensor,
+    sweep: tuple[Tensor | None, Tensor],
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+) -> Tensor:
     """`(N,)` opacities with the blurred Gaussians' scaled by `blur_opacity_scale`. `sweep` is
     `(idx (B,), sweeps (B, 3))`, or `(None, sweeps (N, 3))` for all N (`GaussiansAt.sweep`)."""
     idx, sweeps = sweep

@@ -22,14 +22,12 @@ def normalize_quats(quats: Tensor, eps: float = 1e-12) -> Tensor:
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """Rotation matrices `(N, 3, 3)` from quaternions `(N, 4)` wxyz (normalised here)."""
     w, x, y, z = normalize_quats(quats).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+    # fmt: off
+    rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+    # fmt: on
+    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
 
 def covariance_from_quat_scale(quats: Tensor, scales: Tensor) -> Tensor:

@@ -45,8 +45,17 @@ class _Project(torch.autograd.Function):
     def backward(ctx, g_means2d, g_conics, g_depths, g_opac, _g_radii, _g_bbox):
         means, covars6, opacities, viewmat, K, radii = ctx.saved_tensors
         g_means, g_cov, g_op = _ext.load().project_backward(
-            means, covars6, opacities, viewmat, K, *ctx.args, radii,
-            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(), g_opac.contiguous(),
+            means,
+            covars6,
+            opacities,
+            viewmat,
+            K,
+            *ctx.args,
+            radii,
+            g_means2d.contiguous(),
+            g_conics.contiguous(),
+            g_depths.contiguous(),
+            g_opac.contiguous(),
         )
         return g_means, g_cov, g_op, *([None] * 8)
 
@@ -62,16 +71,24 @@ class _BlurScale(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, g_scale):
         means, covars6, sweep, viewmat, K = ctx.saved_tensors
-        g_cov, g_sweep = _ext.load().blur_scale_backward(means, covars6, sweep, viewmat, K, *ctx.args,
-                                                         g_scale.contiguous())
+        g_cov, g_sweep = _ext.load().blur_scale_backward(means, covars6, sweep, viewmat, K, *ctx.args, g_scale.contiguous())
         return None, g_cov, g_sweep, *([None] * 7)
 
 
-def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: Tensor, K: Tensor, width: int,
-                       height: int, eps2d: float, near: float, far: float) -> Tensor:
-    """Motion-blur footprint factor (`render/blur.py`), C++ forward and backward."""
-    return _BlurScale.apply(means.detach().contiguous(), covars6.contiguous(), sweep.contiguous(), viewmat, K,
-                            int(width), int(height), float(near), float(far), float(eps2d))
+def blur_opacity_scale(means, covars6, sweep, viewmat, K, width, height, eps2d, near, far) -> Tensor:
+    """Motion-blur footprint factor (arguments as `render/blur.py`'s), C++ forward and backward."""
+    return _BlurScale.apply(
+        means.detach().contiguous(),
+        covars6.contiguous(),
+        sweep.contiguous(),
+        viewmat,
+        K,
+        int(width),
+        int(height),
+        float(near),
+        float(far),
+        float(eps2d),
+    )
 
 
 class _Rasterize(torch.autograd.Function):
@@ -79,7 +96,7 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bbox, lists, width, height, info, absgrad):
         # depth: the expected depth (alpha-weighted depth sum / alpha, 0 where alpha <= 1e-6).
         image, alpha, depth, t_final, n_contrib, records = _ext.load().raster_forward(
-            means2d, conics, opacities, colors, depths, bbox, background, *lists, width, height,
+            means2d, conics, opacities, colors, depths, bbox, background, *lists, width, height
         )
         # The backward reads the per-pair records (parameters + colour) instead of the inputs.
         ctx.save_for_backward(records, background, *lists, t_final, n_contrib, alpha, depth)
@@ -106,8 +123,16 @@ class _Rasterize(torch.autograd.Function):
         if g_alpha is None:
             g_alpha = torch.empty(0, dtype=t_final.dtype)
         g_m2d, g_con, g_op, g_col, g_dep, abs_g = _ext.load().raster_backward(
-            records, background, *lists, t_final, n_contrib,
-            g_image.contiguous(), g_alpha.contiguous(), g_depth_sum.contiguous(), *ctx.size, ctx.absgrad,
+            records,
+            background,
+            *lists,
+            t_final,
+            n_contrib,
+            g_image.contiguous(),
+            g_alpha.contiguous(),
+            g_depth_sum.contiguous(),
+            *ctx.size,
+            ctx.absgrad,
         )
         if ctx.absgrad:
             ctx.info["means2d_absgrad"] = abs_g
@@ -118,9 +143,17 @@ class _Rasterize(torch.autograd.Function):
 def project(means, covars6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased) -> Projection:
     dt = means.dtype
     means2d, conics, depths, opac, radii, bbox = _Project.apply(
-        means.contiguous(), covars6.contiguous(), opacities.contiguous(),
-        viewmat.detach().to(torch.float64).contiguous(), K.detach().to(torch.float64).contiguous(),
-        int(width), int(height), float(near), float(far), float(eps2d), bool(antialiased),
+        means.contiguous(),
+        covars6.contiguous(),
+        opacities.contiguous(),
+        viewmat.detach().to(torch.float64).contiguous(),
+        K.detach().to(torch.float64).contiguous(),
+        int(width),
+        int(height),
+        float(near),
+        float(far),
+        float(eps2d),
+        bool(antialiased),
     )
     assert means2d.dtype == dt
     return Projection(means2d, conics, depths, opac, radii, bbox)
@@ -133,8 +166,18 @@ def rasterize_to_pixels(
     lists = ext.bin_gaussians(proj.bbox, proj.radii, proj.depths.detach().contiguous(), width, height)
     info: dict = {"tile_offsets": lists[0], "tile_ranks": lists[1], "depth_order": lists[2]}
     image, alpha, depth = _Rasterize.apply(
-        proj.means2d, proj.conics, proj.opacities, colors.contiguous(), proj.depths,
-        background.contiguous(), proj.bbox, tuple(lists), int(width), int(height), info, bool(absgrad),
+        proj.means2d,
+        proj.conics,
+        proj.opacities,
+        colors.contiguous(),
+        proj.depths,
+        background.contiguous(),
+        proj.bbox,
+        tuple(lists),
+        int(width),
+        int(height),
+        info,
+        bool(absgrad),
     )
     return image, alpha, depth, info
 

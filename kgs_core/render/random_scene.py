@@ -58,6 +58,13 @@ def random_scene(
     colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
     viewmat = look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0))
     return RandomScene(
-        means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype), colors.to(dtype),
-        viewmat.to(dtype), K.to(dtype), width, height,
+        means.to(dtype),
+        quats.to(dtype),
+        scales.to(dtype),
+        opacities.to(dtype),
+        colors.to(dtype),
+        viewmat.to(dtype),
+        K.to(dtype),
+        width,
+        height,
     )

@@ -135,15 +135,11 @@ def rasterize(
     elif background.shape != (C,):
         raise ValueError(f"background must be ({C},), got {tuple(background.shape)}")
 
-    proj = impl.project(
-        means, cov6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased
-    )
+    proj = impl.project(means, cov6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     extra = {"absgrad": True} if absgrad else {}
-    image, alpha, depth, info = impl.rasterize_to_pixels(
-        proj, colors.to(means.dtype), background.to(means.dtype), width, height, **extra
-    )
+    image, alpha, depth, info = impl.rasterize_to_pixels(proj, colors.to(means.dtype), background.to(means.dtype), width, height, **extra)
     return Rendered(
         image=image,
         alpha=alpha.unsqueeze(-1),

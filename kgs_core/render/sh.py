@@ -82,8 +82,9 @@ def eval_sh(sh_coeffs: Tensor, means: Tensor, camera_center: Tensor, degree: int
 
     if _ext.usable_for(sh_coeffs) and sh_coeffs.ndim == 3 and sh_coeffs.shape[2] == 3:
         dt = sh_coeffs.dtype
-        return _ShColors.apply(sh_coeffs.contiguous(), means.detach().to(dt).contiguous(),
-                               camera_center.detach().to(dt).reshape(3).contiguous(), int(degree))
+        return _ShColors.apply(
+            sh_coeffs.contiguous(), means.detach().to(dt).contiguous(), camera_center.detach().to(dt).reshape(3).contiguous(), int(degree)
+        )
     return eval_sh_reference(sh_coeffs, means, camera_center, degree)
 
 

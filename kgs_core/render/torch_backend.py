@@ -29,8 +29,9 @@ def packed_covariance(quats: Tensor, scales: Tensor) -> Tensor:
     return pack_covariance(covariance_from_quat_scale(quats, scales))
 
 
-def camera_jacobian(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, near: float, far: float
-                    ) -> tuple[Tensor, Tensor, Tensor]:
+def camera_jacobian(
+    means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, near: float, far: float
+) -> tuple[Tensor, Tensor, Tensor]:
     """Camera-space positions `(N, 3)`, the in-depth-range mask `(N,)` and the perspective
     projection's Jacobian `(N, 2, 3)` with respect to camera-space position (3DGS's EWA rule,
     the ray direction clamped to 1.3x the field of view)."""
@@ -46,9 +47,7 @@ def camera_jacobian(means: Tensor, viewmat: Tensor, K: Tensor, width: int, heigh
     txz = torch.minimum(torch.maximum(x / z, -(cx / fx + 0.3 * tan_fovx)), (width - cx) / fx + 0.3 * tan_fovx)
     tyz = torch.minimum(torch.maximum(y / z, -(cy / fy + 0.3 * tan_fovy)), (height - cy) / fy + 0.3 * tan_fovy)
     zeros = torch.zeros_like(z)
-    J = torch.stack(
-        [fx / z, zeros, -fx * txz / z, zeros, fy / z, -fy * tyz / z], dim=-1
-    ).reshape(-1, 2, 3)
+    J = torch.stack([fx / z, zeros, -fx * txz / z, zeros, fy / z, -fy * tyz / z], dim=-1).reshape(-1, 2, 3)
     return p, in_depth, J
 
 
@@ -103,27 +102,18 @@ def project(
         x1 = torch.ceil(uu + rx).clamp_max(width)
         y0 = torch.floor(vv - ry).clamp_min(0)
         y1 = torch.ceil(vv + ry).clamp_max(height)
-        visible = (
-            in_depth & ok_det & torch.isfinite(u) & torch.isfinite(v)
-            & (opac_eff >= ALPHA_MIN) & (x0 < x1) & (y0 < y1)
-        )
+        visible = in_depth & ok_det & torch.isfinite(u) & torch.isfinite(v) & (opac_eff >= ALPHA_MIN) & (x0 < x1) & (y0 < y1)
         radii = torch.where(visible, torch.ceil(torch.maximum(rx, ry)).clamp_min(1), 0).to(torch.int32)
         bbox = torch.stack([x0, y0, x1, y1], dim=-1).to(torch.int32) * visible[:, None]
 
     vis = visible.to(dtype)[:, None]
     return Projection(
-        means2d=means2d * vis,
-        conics=conics * vis,
-        depths=p[:, 2] * vis[:, 0],
-        opacities=opac_eff * vis[:, 0],
-        radii=radii,
-        bbox=bbox,
+        means2d=means2d * vis, conics=conics * vis, depths=p[:, 2] * vis[:, 0], opacities=opac_eff * vis[:, 0], radii=radii, bbox=bbox
     )
 
 
-def blur_opacity_scale(means: Tensor, covars6: Tensor, sweep: Tensor, viewmat: Tensor, K: Tensor, width: int,
-                       height: int, eps2d: float, near: float, far: float) -> Tensor:
-    """Motion-blur footprint factor (`render/blur.py`), as a plain autograd expression."""
+def blur_opacity_scale(means, covars6, sweep, viewmat, K, width, height, eps2d, near, far) -> Tensor:
+    """Motion-blur footprint factor (arguments as `render/blur.py`'s), as a plain autograd expression."""
     with torch.no_grad():
         viewmat, K = viewmat.to(means.dtype), K.to(means.dtype)
         _, _, J = camera_jacobian(means, viewmat, K, width, height, near, far)
@@ -155,9 +145,7 @@ def rasterize_to_pixels(
     for y0 in range(0, height, TILE):
         y1 = min(y0 + TILE, height)
         sel = (box[:, 1] < y1) & (box[:, 3] > y0)  # bounding box touches this band
-        ys, xs = torch.meshgrid(
-            torch.arange(y0, y1, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij"
-        )
+        ys, xs = torch.meshgrid(torch.arange(y0, y1, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij")
         pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)  # (P, 2)
         d = pix[:, None, :] - m2d[sel][None]  # (P, G, 2)
         a, b, c = con[sel].unbind(-1)

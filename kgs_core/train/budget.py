@@ -127,11 +127,11 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
     target = HEADROOM * budget
     preset_it, preset_g = cfg.iterations, cfg.densify.max_gaussians
     full = cost.run_seconds(cfg, start)
-    pilot = (f"a pilot of {1000 * cost.at(start):.0f} ms a step at {start:,} Gaussians and "
-             f"{1000 * cost.at(top):.0f} ms at {top:,}")
+    pilot = f"a pilot of {1000 * cost.at(start):.0f} ms a step at {start:,} Gaussians and {1000 * cost.at(top):.0f} ms at {top:,}"
     if full <= target:
-        cfg.fitted["time_budget"] = (f"{budget:.0f} s: the preset's {preset_it} iterations up to {preset_g:,} "
-                                     f"Gaussians fit ({full:.0f} s planned from {pilot})")
+        cfg.fitted["time_budget"] = (
+            f"{budget:.0f} s: the preset's {preset_it} iterations up to {preset_g:,} Gaussians fit ({full:.0f} s planned from {pilot})"
+        )
         return cfg
     fits = lambda n, g: cost.run_seconds(remake(n, g), start) <= target  # noqa: E731
     g = preset_g
@@ -143,14 +143,18 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
         if not fits(n, g):  # not even at the initial count: fewer iterations still
             n = _largest(lambda k: fits(k, g), MIN_ITERATIONS, n)
     if not fits(n, g):
-        raise ValueError(f"time_budget of {budget:.0f} s is too short for this scene on this machine: "
-                         f"{MIN_ITERATIONS} iterations would take about "
-                         f"{cost.run_seconds(remake(MIN_ITERATIONS, g), start) / HEADROOM:.0f} s ({pilot})")
+        raise ValueError(
+            f"time_budget of {budget:.0f} s is too short for this scene on this machine: "
+            f"{MIN_ITERATIONS} iterations would take about "
+            f"{cost.run_seconds(remake(MIN_ITERATIONS, g), start) / HEADROOM:.0f} s ({pilot})"
+        )
     out = remake(n, g)
     planned = cost.run_seconds(out, start)
     fewer = f", a Gaussian budget of {g:,} of its {preset_g:,}" if g != preset_g else ""
-    out.fitted["time_budget"] = (f"{budget:.0f} s: {n} of the preset's {preset_it} iterations{fewer} ({planned:.0f} s "
-                                 f"planned, the preset's would take {full:.0f} s; from {pilot})")
+    out.fitted["time_budget"] = (
+        f"{budget:.0f} s: {n} of the preset's {preset_it} iterations{fewer} ({planned:.0f} s "
+        f"planned, the preset's would take {full:.0f} s; from {pilot})"
+    )
     return out
 
 

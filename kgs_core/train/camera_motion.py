@@ -20,8 +20,7 @@ from ..data.scene import Frame
 def skew(w: Tensor) -> Tensor:
     """`(3, 3)` matrix of the cross product with `w (3,)`: `skew(w) x = w × x`."""
     zero = torch.zeros((), dtype=w.dtype)
-    return torch.stack([torch.stack([zero, -w[2], w[1]]), torch.stack([w[2], zero, -w[0]]),
-                        torch.stack([-w[1], w[0], zero])])
+    return torch.stack([torch.stack([zero, -w[2], w[1]]), torch.stack([w[2], zero, -w[0]]), torch.stack([-w[1], w[0], zero])])
 
 
 def motions_from_poses(frames: list[Frame]) -> dict[str, tuple[Tensor, Tensor]]:
@@ -65,14 +64,13 @@ class CameraMotion(nn.Module):
         return skew(row[:3]), row[3:]
 
 
-def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float, t_next: float
-                             ) -> tuple[Tensor, Tensor]:
+def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float, t_next: float) -> tuple[Tensor, Tensor]:
     """The camera's motion at a frame, from the poses of its neighbours (central difference of
     the world-to-camera matrices `(4, 4)`), as `(A, b)`: a still world point `x` moves relative
     to the camera like a point with world velocity `A x + b` seen by a still camera
     (`A = R^T dR/dt`, `b = R^T dT/dt`, per unit of normalised time)."""
     W = torch.as_tensor(viewmat, dtype=torch.float64)
-    dW = (torch.as_tensor(next_viewmat, dtype=torch.float64) - torch.as_tensor(prev_viewmat, dtype=torch.float64))
+    dW = torch.as_tensor(next_viewmat, dtype=torch.float64) - torch.as_tensor(prev_viewmat, dtype=torch.float64)
     dW = dW / max(t_next - t_prev, 1e-12)
     R = W[:3, :3]
     return (R.T @ dW[:3, :3]).float(), (R.T @ dW[:3, 3]).float()

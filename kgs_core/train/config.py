@@ -9,7 +9,6 @@ from ..model.config import ModelConfig
 from ..schema import check_choices, from_fields, json_object
 from .densify import DensifyStrategy
 from .flow import FlowMethod
-from .scene_measures import camera_blur_px, scene_pixels_per_unit
 
 CameraBlur = Literal["off", "poses", "learned"]
 FrameSampling = Literal["uniform", "loss"]
@@ -188,16 +187,19 @@ class TrainConfig:
         if not 0 <= self.kr_check_at <= 1:
             raise ValueError(f"kr_check_at must be a fraction in [0, 1], got {self.kr_check_at}")
         if self.spawn_frames < 0 or self.spawn_max < 1 or not self.spawn_life > 0 or not 0 <= self.spawn_from <= 1:
-            raise ValueError(f"spawn settings: spawn_frames >= 0, spawn_max >= 1, spawn_life > 0 (frames) and "
-                             f"0 <= spawn_from <= 1, got {self.spawn_frames!r}, {self.spawn_max!r}, "
-                             f"{self.spawn_life!r}, {self.spawn_from!r}")
+            raise ValueError(
+                f"spawn settings: spawn_frames >= 0, spawn_max >= 1, spawn_life > 0 (frames) and "
+                f"0 <= spawn_from <= 1, got {self.spawn_frames!r}, {self.spawn_max!r}, "
+                f"{self.spawn_life!r}, {self.spawn_from!r}"
+            )
         if self.exposure is not None and not 0 <= self.exposure <= 1:
             raise ValueError(f"exposure must be in [0, 1] (a fraction of the frame interval), got {self.exposure!r}")
         if not self.lambda_flow >= 0:
             raise ValueError(f"lambda_flow must be >= 0, got {self.lambda_flow!r}")
         if not self.lambda_coarse >= 0 or self.coarse_factor < 1:
-            raise ValueError(f"lambda_coarse must be >= 0 and coarse_factor >= 1 (pixels), got {self.lambda_coarse!r} "
-                             f"and {self.coarse_factor!r}")
+            raise ValueError(
+                f"lambda_coarse must be >= 0 and coarse_factor >= 1 (pixels), got {self.lambda_coarse!r} and {self.coarse_factor!r}"
+            )
 
     def to_dict(self) -> dict:
         from ..migrations import CONFIG_VERSION
@@ -225,8 +227,11 @@ class TrainConfig:
             if k in d:
                 d[k] = tuple(d[k])
         known = {f.name for f in fields(cls)} - {"model", "densify"}
-        return cls(model=ModelConfig.from_dict({"config_version": CONFIG_VERSION, **m}),
-                   densify=from_fields(DensifyStrategy, densify, "densify."), **{k: v for k, v in d.items() if k in known})
+        return cls(
+            model=ModelConfig.from_dict({"config_version": CONFIG_VERSION, **m}),
+            densify=from_fields(DensifyStrategy, densify, "densify."),
+            **{k: v for k, v in d.items() if k in known},
+        )
 
 
 # Both presets' Gaussian budget on the 128² demo (fit_to_scene scales it with the pixel
@@ -245,11 +250,17 @@ def paper_preset(iterations: int = 30_000) -> TrainConfig:
     at = lambda i: max(1, round(i * iterations / 30_000))  # noqa: E731
     # A random start (a scene without SfM points) no larger than the budget, so that
     # densification has room from its first step.
-    return TrainConfig(iterations=iterations, batch_size=2, init_points=MAX_GAUSSIANS,
-                       densify=DensifyStrategy(start=at(500), stop=at(10_000), opacity_reset_at=(at(3000),),
-                                               max_gaussians=MAX_GAUSSIANS),
-                       decompose_at=at(3000), decompose_every=at(2000),
-                       model=ModelConfig(sh_degree=3), eval_every=at(1000), checkpoint_every=at(5000))
+    return TrainConfig(
+        iterations=iterations,
+        batch_size=2,
+        init_points=MAX_GAUSSIANS,
+        densify=DensifyStrategy(start=at(500), stop=at(10_000), opacity_reset_at=(at(3000),), max_gaussians=MAX_GAUSSIANS),
+        decompose_at=at(3000),
+        decompose_every=at(2000),
+        model=ModelConfig(sh_degree=3),
+        eval_every=at(1000),
+        checkpoint_every=at(5000),
+    )
 
 
 FAST_ITERATIONS = 1500  # the fast preset's count on the demo scene (fitted_iterations scales it)
@@ -262,14 +273,31 @@ def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
     what doubling it buys: docs/method.md)."""
     it = iterations
     return TrainConfig(
-        iterations=it, batch_size=1, init_points=8_000,
-        lr_means=4e-4, lr_means_final=4e-6,
-        densify=DensifyStrategy(start=max(1, it // 10), stop=int(0.7 * it), every=150, grad_threshold=2e-4,
-                                opacity_reset_at=(int(0.3 * it),), max_gaussians=MAX_GAUSSIANS),
-        decompose_at=max(1, int(0.2 * it)), decompose_every=max(1, int(0.2 * it)),
-        eval_every=max(1, it // 5), checkpoint_every=max(1, 2 * it // 3), lambda_tv=0.0, lambda_reg=1e-2,
-        lod_levels=1, lod_fractions=(1.0,),  # five levels cost quality at this budget (docs/method.md)
-        lr_deform=5e-3, lr_deform_final=5e-5, lr_grid=1e-2, lr_grid_final=1e-4,
+        iterations=it,
+        batch_size=1,
+        init_points=8_000,
+        lr_means=4e-4,
+        lr_means_final=4e-6,
+        densify=DensifyStrategy(
+            start=max(1, it // 10),
+            stop=int(0.7 * it),
+            every=150,
+            grad_threshold=2e-4,
+            opacity_reset_at=(int(0.3 * it),),
+            max_gaussians=MAX_GAUSSIANS,
+        ),
+        decompose_at=max(1, int(0.2 * it)),
+        decompose_every=max(1, int(0.2 * it)),
+        eval_every=max(1, it // 5),
+        checkpoint_every=max(1, 2 * it // 3),
+        lambda_tv=0.0,
+        lambda_reg=1e-2,
+        lod_levels=1,
+        lod_fractions=(1.0,),  # five levels cost quality at this budget (docs/method.md)
+        lr_deform=5e-3,
+        lr_deform_final=5e-5,
+        lr_grid=1e-2,
+        lr_grid_final=1e-4,
         model=ModelConfig(sh_degree=1, deform_spatial=32, deform_temporal=16, deform_features=16, deform_multires=(1,)),
     )
 
@@ -281,145 +309,20 @@ def finetune_config(parent: TrainConfig, iterations: int, tau: float | None = No
     """Fine-tuning a finished run (its configuration) for `iterations` more, keeping its decomposition
     (at `tau` when given): no densification, no re-decomposition, no opacity reset, one LoD level, the
     position learning rate at its final value."""
-    return replace(parent, iterations=iterations,
-                   densify=replace(parent.densify, start=iterations + 1, stop=0, opacity_reset_at=()),
-                   decompose_at=iterations + 1, decompose_every=0, lod_levels=1, lod_fractions=(1.0,),
-                   lr_means=parent.lr_means_final, eval_every=max(iterations // 5, 1), checkpoint_every=iterations,
-                   time_window_start=1.0,  # the parent has seen the whole clip
-                   model=parent.model if tau is None else replace(parent.model, tau=tau))
-
-
-# The fast preset's constants are tuned on the 128², 60-frame demo scene; these are that scene's
-# size, against which fit_to_scene scales a clip's schedule and budget.
-REFERENCE_PIXELS = 128 * 128
-REFERENCE_FRAMES = 60
-# What τ means on the demo scene: 2e-5 (normalised scene units²) is an RMS image motion of
-# 0.62 px there. fit_to_scene converts this into each scene's units, so that "dynamic" means the
-# same image motion on every scene (docs/method.md).
-TAU_RMS_PX = 0.62
-# FLoD's first-level minimum scale as a fraction of the image width: the 0.02 normalised units
-# the paper preset starts from are 2.8 px on the 128-px demo scene (138.6 px per unit). In units
-# it does not transfer: on walk at 320 px the same 0.02 is 16 px, so the levels that densify
-# (the first three) would keep every Gaussian 4-16 px wide (docs/real-footage.md, "The paper
-# preset on walk").
-LOD_LAMBDA_WIDTH = 0.0217
-MAX_ITERATION_SCALE = 4.0
-# The flow term's weight on real footage (a video ingest): the best of the weights measured,
-# at no extra time; a larger one pulls the person off the photometric fit (docs/real-footage.md,
-# "An optical-flow term").
-VIDEO_FLOW_WEIGHT = 0.003
-# Frames that get spawned Gaussians at each densification on real footage (a video ingest).
-# Spawning puts the person back where the field lost him. Six frames rather than two: with two,
-# the few worst frames took every turn and the clip's last frames, almost as badly fitted, never
-# got one (docs/real-footage.md, "Spawned Gaussians", "Six frames a densification").
-VIDEO_SPAWN_FRAMES = 6
-# The camera's own blur (`camera_blur_px`) from which a video ingest models it (`camera_blur` =
-# "learned"): below it the streak is too short for the blur to change what the model learns
-# (docs/real-footage.md, "The camera's own blur").
-CAMERA_BLUR_MIN_PX = 2.0
-
-
-def fitted_iterations(scene, iterations: int = FAST_ITERATIONS) -> tuple[int, str | None]:
-    """The fast preset's iteration count for `scene`: the demo's scaled by the square root of
-    the clip's frames x pixels over the demo's (1x to 4x), and the reason (None: unchanged)."""
-    cam = scene.train_frames[0].camera
-    n_frames, pixels = len(scene.train_frames), cam.width * cam.height
-    scale = min(MAX_ITERATION_SCALE, max(1.0, (n_frames * pixels / (REFERENCE_FRAMES * REFERENCE_PIXELS)) ** 0.5))
-    if scale == 1.0:
-        return iterations, None
-    n = int(round(iterations * scale, -1))
-    return n, (f"{n}: {n_frames} frames of {cam.width}x{cam.height} are {scale:.2f}^2 times the demo's "
-               f"{REFERENCE_FRAMES} of 128x128")
-
-
-def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
-    """The settings that follow the scene instead of a constant, each skipped when given in
-    `explicit` (so the command line can override every choice); each choice and its reason go
-    into `cfg.fitted`, which run.json keeps. (The fast preset's iteration count is fitted
-    before the preset lays out its schedule: `fitted_iterations`.)
-
-    * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
-    * model.deform_temporal: at least one temporal cell per four frames;
-    * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units;
-    * lod_levels: one on a video ingest (real footage), where FLoD's coarse levels misplace
-      what moves at a second camera (docs/real-footage.md, "Why it loses on kitchen: FLoD");
-    * lod_lambda (with more than one FLoD level): the first level's minimum scale as the same
-      fraction of the image width as on the demo (LOD_LAMBDA_WIDTH), in this scene's units;
-    * lambda_flow: VIDEO_FLOW_WEIGHT on a video ingest (real footage), where the photometric
-      loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
-    * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
-      the field still loses (docs/real-footage.md, "Spawned Gaussians");
-    * redecompose_to_dynamic: False on a video ingest (docs/method.md, "Decompositions in place");
-    * camera_blur: "learned" on a video ingest whose camera's own streak during the exposure
-      (`camera_blur_px`) reaches CAMERA_BLUR_MIN_PX: the render is blurred along the camera's
-      motion as the footage is, and the model stays sharp;
-    * model.time_opacity: on for a video ingest, where the field leaves ghosts of what it
-      could not follow (docs/real-footage.md, "Opacity that varies in time")."""
-    n_frames = len(scene.train_frames)
-    cam = scene.train_frames[0].camera
-    pixels = cam.width * cam.height
-    fitted = dict(cfg.fitted)
-    if "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
-        budget = int(round(cfg.densify.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
-        cfg.densify = replace(cfg.densify, max_gaussians=budget)
-        fitted["densify.max_gaussians"] = f"{budget}: the preset's budget x sqrt({pixels} px / 128^2)"
-    m = cfg.model
-    if "model.deform_temporal" not in explicit and m.deform_temporal < n_frames // 4:
-        cfg.model = m = replace(m, deform_temporal=min(n_frames // 4, 128))
-        fitted["model.deform_temporal"] = f"{m.deform_temporal}: one temporal cell per four of {n_frames} frames"
-    if "model.tau" in explicit and "tau_auto" not in explicit:
-        cfg.tau_auto = False  # a τ given by hand is the τ used
-    ppu = scene_pixels_per_unit(scene)
-    if "model.tau" not in explicit and ppu is not None:
-        cfg.model = m = replace(m, tau=float(f"{(TAU_RMS_PX / ppu) ** 2:.3g}"))
-        fitted["model.tau"] = (f"{m.tau:.3g}: an RMS image motion of {TAU_RMS_PX} px at {ppu:.0f} px per scene unit "
-                               "(median focal length over median point depth)")
-    video = "ingest" in scene.extras and n_frames > 1
-    if not {"lod_levels", "lod_fractions"} & explicit and cfg.lod_levels > 1 and video:
-        cfg.lod_levels, cfg.lod_fractions = 1, (1.0,)
-        fitted["lod_levels"] = ("1: a video ingest; FLoD's coarse levels misplaced a real clip's moving person at the "
-                                "second camera and the finer levels kept it there (docs/real-footage.md; "
-                                "--set lod_levels=5 keeps the paper's five)")
-    if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
-        px = LOD_LAMBDA_WIDTH * cam.width
-        cfg.lod_lambda = float(f"{px / ppu:.3g}")
-        fitted["lod_lambda"] = (f"{cfg.lod_lambda:.3g}: FLoD's first level at a minimum scale of {px:.1f} px "
-                                f"({LOD_LAMBDA_WIDTH:.2%} of the image width, as on the demo) at {ppu:.0f} px per "
-                                "scene unit")
-    if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and video:
-        cfg.lambda_flow = VIDEO_FLOW_WEIGHT
-        fitted["lambda_flow"] = (f"{VIDEO_FLOW_WEIGHT}: a video ingest; optical flow between its frames guides the "
-                                 "moving Gaussians (--set lambda_flow=0 turns it off)")
-    if "spawn_frames" not in explicit and cfg.spawn_frames == 0 and video:
-        cfg.spawn_frames = VIDEO_SPAWN_FRAMES
-        fitted["spawn_frames"] = (f"{VIDEO_SPAWN_FRAMES}: a video ingest; the worst-fitted frames get new dynamic "
-                                  "Gaussians where something moving is still missing (--set spawn_frames=0 turns "
-                                  "it off)")
-    if "flow_vote_method" not in explicit and cfg.flow_vote_method == "dis" and video:
-        cfg.flow_vote_method = "dis_full"
-        fitted["flow_vote_method"] = ("dis_full: a video ingest; the decompositions read DIS's flow down to full resolution, "
-                                       "which sees a small, fast object that its half-resolution search misses "
-                                       "(--set flow_vote_method=dis keeps DIS's medium preset)")
-    if "redecompose_to_dynamic" not in explicit and cfg.redecompose_to_dynamic and video:
-        cfg.redecompose_to_dynamic = False
-        fitted["redecompose_to_dynamic"] = ("False: a video ingest; a re-decomposition turns no static Gaussian dynamic, since "
-                                        "the field's motion where it sits was never fitted to it "
-                                        "(--set redecompose_to_dynamic=true allows it)")
-    # (Only the convolve form of K.R. carries the camera's blur, and only after a decomposition.)
-    blurs = m.kr_form == "convolve" and not {"decompose", "deform"} & set(cfg.ablate)
-    streak = camera_blur_px(scene, cfg.exposure) if video and blurs and "camera_blur" not in explicit else None
-    if cfg.camera_blur == "off" and streak is not None and streak >= CAMERA_BLUR_MIN_PX:
-        cfg.camera_blur = "learned"
-        fitted["camera_blur"] = (f"learned: a video ingest whose camera draws a {streak:.1f} px streak during the "
-                                 "exposure (median), which the render must blur by to match the footage, so that the "
-                                 "model itself can be sharp (--camera-blur off turns it off)")
-    if "model.time_opacity" not in explicit and not m.time_opacity and video:
-        cfg.model = m = replace(m, time_opacity=True)
-        fitted["model.time_opacity"] = ("True: a video ingest; the dynamic Gaussians' opacity varies in time, so "
-                                        "that the loss can fade a ghost the field leaves (--set "
-                                        "model.time_opacity=false turns it off)")
-    cfg.fitted = fitted
-    return cfg
+    return replace(
+        parent,
+        iterations=iterations,
+        densify=replace(parent.densify, start=iterations + 1, stop=0, opacity_reset_at=()),
+        decompose_at=iterations + 1,
+        decompose_every=0,
+        lod_levels=1,
+        lod_fractions=(1.0,),
+        lr_means=parent.lr_means_final,
+        eval_every=max(iterations // 5, 1),
+        checkpoint_every=iterations,
+        time_window_start=1.0,  # the parent has seen the whole clip
+        model=parent.model if tau is None else replace(parent.model, tau=tau),
+    )
 
 
 def check_ablations(ablate) -> None:
@@ -432,11 +335,12 @@ def check_ablations(ablate) -> None:
             raise ValueError(f"unknown ablation {a!r}; one of {', '.join(ABLATIONS)}{hint}")
 
 
-def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budget: bool = True,
-                **overrides) -> TrainConfig:
+def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budget: bool = True, **overrides) -> TrainConfig:
     """The preset with the ablations and overrides applied, fitted to `scene` when given, and,
     with a `time_budget` and a scene (unless `plan_budget` is False), planned to fit it on this
     machine (`budget.fit_time_budget`, which runs a short pilot)."""
+    from .fitting import fit_to_scene, fitted_iterations
+
     given = dict(overrides)
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
@@ -450,8 +354,7 @@ def make_config(preset: str = "fast", ablate: tuple = (), scene=None, plan_budge
         if why:
             overrides, fitted = {**overrides, "iterations": n}, {"iterations": why}
     cfg = PRESETS[preset](**({"iterations": overrides["iterations"]} if "iterations" in overrides else {}))
-    nested = {part: {k[len(part) + 1:]: v for k, v in overrides.items() if k.startswith(part + ".")}
-              for part in NESTED}
+    nested = {part: {k[len(part) + 1 :]: v for k, v in overrides.items() if k.startswith(part + ".")} for part in NESTED}
     cfg = replace(cfg, **{k: v for k, v in overrides.items() if k.split(".")[0] not in NESTED}, ablate=tuple(ablate))
     if nested["densify"]:
         cfg = replace(cfg, densify=replace(cfg.densify, **nested["densify"]))

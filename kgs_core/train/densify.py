@@ -139,7 +139,7 @@ class DensifyStrategy:
         # nothing to any frame and, under the rasteriser's 1/255, gets no gradient either, so
         # it would stay to the end, pure cost (docs/real-footage.md, "The opacity reset").
         keep = torch.ones(len(params), dtype=torch.bool)
-        keep[: n][split] = False
+        keep[:n][split] = False
         opac = torch.sigmoid(params.opacity_logits.detach() + model.peak_opacity_offsets())
         keep &= opac >= self.prune_opacity
         big_world = (torch.exp(params.log_scales.detach()).max(-1).values + model.min_scale) > 0.5 * self.extent

@@ -27,8 +27,14 @@ class ScheduleEvents:
         """Whether K.R. shapes the renders now: on, after a decomposition with dynamic Gaussians, and
         the training exposure above 0."""
         m = self.model
-        return (m.config.kinematic and m.decomposed and not self.static_only and not self.no_decompose
-                and self.exposure > 0 and bool(m.dynamic.any()))
+        return (
+            m.config.kinematic
+            and m.decomposed
+            and not self.static_only
+            and not self.no_decompose
+            and self.exposure > 0
+            and bool(m.dynamic.any())
+        )
 
     def check_kr(self, it: int) -> None:
         """Measures what K.R.'s blur does to the training renders now and, when it does next to
@@ -38,8 +44,7 @@ class ScheduleEvents:
         from ..evaluate import kr_effect, kr_effect_note
 
         m = self.model
-        if (not self.kr_acts() or m.config.kr_form != "convolve" or self.fitted_exposure is not None
-                or self.camera_motion is not None):
+        if not self.kr_acts() or m.config.kr_form != "convolve" or self.fitted_exposure is not None or self.camera_motion is not None:
             return
         effect = kr_effect(m, self.scene.train_frames, self.exposure, self.scene.dt)
         note = kr_effect_note(effect)
@@ -68,18 +73,39 @@ class ScheduleEvents:
         loss = torch.where(has_next, loss, torch.full_like(loss, -1.0))
         # Only frames that fit far worse than the clip's typical one: a scene whose frames all
         # fit about alike gets nothing.
-        worst = [i for i in torch.argsort(loss, descending=True)[: c.spawn_frames].tolist()
-                 if loss[i] > SPAWN_LOSS_RATIO * float(seen.median())]
+        worst = [
+            i for i in torch.argsort(loss, descending=True)[: c.spawn_frames].tolist() if loss[i] > SPAWN_LOSS_RATIO * float(seen.median())
+        ]
         for i in worst:
             frame = self.scene.train_frames[i]
             with torch.no_grad():
-                out, g = render_model(model, frame.camera, frame.time, self.exposure, self.scene.dt, self.background,
-                                      velocity=False, world_transform=self.world_transform(frame))
+                out, g = render_model(
+                    model,
+                    frame.camera,
+                    frame.time,
+                    self.exposure,
+                    self.scene.dt,
+                    self.background,
+                    velocity=False,
+                    world_transform=self.world_transform(frame),
+                )
             viewmat, K = camera_tensors(frame.camera)
-            added = spawn_unexplained(model, self.opt, self.strategy.state, frame.time, viewmat, K, out.image,
-                                      out.depth, self.cache.get(frame), g.means, c.spawn_max,
-                                      c.spawn_life * self.scene.dt, np.random.default_rng([c.seed, it, i]),
-                                      self.next_frame(frame, g.means))
+            added = spawn_unexplained(
+                model,
+                self.opt,
+                self.strategy.state,
+                frame.time,
+                viewmat,
+                K,
+                out.image,
+                out.depth,
+                self.cache.get(frame),
+                g.means,
+                c.spawn_max,
+                c.spawn_life * self.scene.dt,
+                np.random.default_rng([c.seed, it, i]),
+                self.next_frame(frame, g.means),
+            )
             rec = self.spawn_record
             rec["attempts"] += 1
             rec["without_parent"] += added.without_parent
@@ -95,8 +121,13 @@ class ScheduleEvents:
         added = self.spawn_record["added"]
         times = {f.id: f.time for f in self.scene.train_frames}
         by_time = {f"{times[k]:.4f}": n for k, n in sorted(added.items(), key=lambda kv: times[kv[0]])}
-        return {"attempts": self.spawn_record["attempts"], "gaussians": sum(added.values()), "frames": len(added),
-                "by_time": by_time, "without_parent": self.spawn_record["without_parent"]}
+        return {
+            "attempts": self.spawn_record["attempts"],
+            "gaussians": sum(added.values()),
+            "frames": len(added),
+            "by_time": by_time,
+            "without_parent": self.spawn_record["without_parent"],
+        }
 
     @torch.no_grad()
     def next_frame(self, frame: Frame, means: torch.Tensor) -> NextFrame:
@@ -122,17 +153,31 @@ class ScheduleEvents:
         if self.cfg.flow_vote_share > 0:
             start = time.perf_counter()
             by_k = model.dynamic_by_k(tau)
-            moving = flow_moving(model, self.scene.train_frames, self.vote_flows(), by_k, self.cfg.flow_vote_share,
-                                 self.exposure, self.scene.dt, self.world_transform)
+            moving = flow_moving(
+                model,
+                self.scene.train_frames,
+                self.vote_flows(),
+                by_k,
+                self.cfg.flow_vote_share,
+                self.exposure,
+                self.scene.dt,
+                self.world_transform,
+            )
             seconds = time.perf_counter() - start
             if self.flow_vote is None:
-                self.flow_vote = {"iteration": self.iteration + 1, "gaussians": int(moving.sum()),
-                                   "dynamic_by_k": int(by_k.sum()), "later": [], "seconds": 0.0}
+                self.flow_vote = {
+                    "iteration": self.iteration + 1,
+                    "gaussians": int(moving.sum()),
+                    "dynamic_by_k": int(by_k.sum()),
+                    "later": [],
+                    "seconds": 0.0,
+                }
             else:
                 self.flow_vote["later"].append(int(moving.sum()))
             self.flow_vote["seconds"] = round(self.flow_vote["seconds"] + seconds, 2)
-        model.decompose(tau, recompute=False, in_place=self.cfg.decompose_in_place,
-                        keep_static=not self.cfg.redecompose_to_dynamic, also_dynamic=moving)
+        model.decompose(
+            tau, recompute=False, in_place=self.cfg.decompose_in_place, keep_static=not self.cfg.redecompose_to_dynamic, also_dynamic=moving
+        )
 
     def vote_flows(self) -> dict:
         """The flows the decompositions' reading reads: the run's own (flow term or spawning) where they
@@ -142,8 +187,7 @@ class ScheduleEvents:
             return self.flows
         if self._vote_flows is None:
             frames = self.scene.train_frames
-            self._vote_flows = frame_flows(frames, only={f.id for f in read_frames(frames)},
-                                            method=self.cfg.flow_vote_method)
+            self._vote_flows = frame_flows(frames, only={f.id for f in read_frames(frames)}, method=self.cfg.flow_vote_method)
         return self._vote_flows
 
     @torch.no_grad()
@@ -162,9 +206,17 @@ class ScheduleEvents:
         for i in sorted(set(pick.tolist())):
             with torch.enable_grad():
                 ones = torch.ones(len(model), 1, requires_grad=True)
-                out, _ = render_model(model, frames[i].camera, frames[i].time, self.exposure, self.scene.dt,
-                                      colors=ones, static=self.static_only, velocity=False,
-                                      world_transform=self.world_transform(frames[i]))
+                out, _ = render_model(
+                    model,
+                    frames[i].camera,
+                    frames[i].time,
+                    self.exposure,
+                    self.scene.dt,
+                    colors=ones,
+                    static=self.static_only,
+                    velocity=False,
+                    world_transform=self.world_transform(frames[i]),
+                )
                 (grad,) = torch.autograd.grad(out.image.sum(), ones)
             total += grad[:, 0]
         return total
@@ -178,9 +230,13 @@ class ScheduleEvents:
         keep = imp >= self.cfg.lod_prune_importance
         if keep.sum() >= 4:
             model.keep_gaussians(keep, self.opt, self.strategy.state)
-        snap = {"params": {k: v.detach().clone() for k, v in model.params.items()}, **model.per_gaussian.state(),
-                "min_scale": model.min_scale, "knn": None if model._knn is None else model._knn.clone(),
-                "iteration": self.iteration}
+        snap = {
+            "params": {k: v.detach().clone() for k, v in model.params.items()},
+            **model.per_gaussian.state(),
+            "min_scale": model.min_scale,
+            "knn": None if model._knn is None else model._knn.clone(),
+            "iteration": self.iteration,
+        }
         self.levels.append(snap)
         old, new = model.min_scale, self.level_min_scale(level_idx)
         with torch.no_grad():

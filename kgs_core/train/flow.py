@@ -50,7 +50,7 @@ def consistent(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
     tx, ty = gx + forward[..., 0], gy + forward[..., 1]
     back = cv2.remap(backward, tx, ty, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     err = ((forward + back) ** 2).sum(-1)
-    bound = FB_RELATIVE * ((forward ** 2).sum(-1) + (back ** 2).sum(-1)) + FB_ABSOLUTE
+    bound = FB_RELATIVE * ((forward**2).sum(-1) + (back**2).sum(-1)) + FB_ABSOLUTE
     return (err <= bound) & (tx >= 0) & (tx <= W - 1) & (ty >= 0) & (ty <= H - 1)
 
 
@@ -64,9 +64,14 @@ def fused_flow(a: np.ndarray, b: np.ndarray, dis) -> np.ndarray:
     H, W = a.shape
     gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
     a32, b32 = a.astype(np.float32), b.astype(np.float32)
-    errors = [cv2.boxFilter(np.abs(cv2.remap(b32, gx + f[..., 0], gy + f[..., 1], cv2.INTER_LINEAR,
-                                             borderMode=cv2.BORDER_REPLICATE) - a32), -1, (WARP_WINDOW,) * 2)
-              for f in flows]
+    errors = [
+        cv2.boxFilter(
+            np.abs(cv2.remap(b32, gx + f[..., 0], gy + f[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) - a32),
+            -1,
+            (WARP_WINDOW,) * 2,
+        )
+        for f in flows
+    ]
     return np.where((errors[1] < errors[0])[..., None], flows[1], flows[0])
 
 
@@ -78,12 +83,18 @@ def frame_flows(frames: list, only: set[str] | None = None, method: FlowMethod =
     try:
         import cv2
     except ImportError as exc:  # a dependency of the package; a hand-made environment may lack it
-        raise RuntimeError("the optical flow (the flow term, spawning and the decompositions' reading) needs OpenCV: "
-                           "pip install opencv-python-headless (or train with --set lambda_flow=0 "
-                           "--set spawn_frames=0 --set flow_vote_share=0)") from exc
-    dis = cv2.DISOpticalFlow_create({"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
-                                     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-                                     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}[FLOW_PRESET])
+        raise RuntimeError(
+            "the optical flow (the flow term, spawning and the decompositions' reading) needs OpenCV: "
+            "pip install opencv-python-headless (or train with --set lambda_flow=0 "
+            "--set spawn_frames=0 --set flow_vote_share=0)"
+        ) from exc
+    dis = cv2.DISOpticalFlow_create(
+        {
+            "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+            "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+            "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+        }[FLOW_PRESET]
+    )
     if method not in get_args(FlowMethod):
         raise ValueError(f"flow method must be one of {', '.join(get_args(FlowMethod))}, got {method!r}")
     if method == "dis_full":
@@ -137,13 +148,13 @@ def sample(image: Tensor, uv: Tensor) -> Tensor:
     centres at integer coordinates (the rasteriser's convention)."""
     H, W = image.shape[:2]
     grid = torch.stack([(uv[:, 0] + 0.5) / W * 2 - 1, (uv[:, 1] + 0.5) / H * 2 - 1], -1)
-    s = F.grid_sample(image.permute(2, 0, 1)[None].float(), grid[None, None], mode="bilinear",
-                      padding_mode="border", align_corners=False)
+    s = F.grid_sample(image.permute(2, 0, 1)[None].float(), grid[None, None], mode="bilinear", padding_mode="border", align_corners=False)
     return s[0, :, 0].T
 
 
-def flow_residual(x_t: Tensor, x_next: Tensor, cam_t: tuple[Tensor, Tensor], cam_next: tuple[Tensor, Tensor],
-                  flow: Tensor, depth: Tensor) -> Tensor:
+def flow_residual(
+    x_t: Tensor, x_next: Tensor, cam_t: tuple[Tensor, Tensor], cam_next: tuple[Tensor, Tensor], flow: Tensor, depth: Tensor
+) -> Tensor:
     """Per visible Gaussian, the image motion it makes from this frame to the next (`x_t`,
     `x_next` (N, 3) world positions; `cam_*` = (viewmat, K)) minus the flow at its pixel (M, 2);
     `depth` (H, W, 1) is this frame's rendered depth (0 where nothing was drawn). Gaussians whose

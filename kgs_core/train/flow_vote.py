@@ -58,9 +58,17 @@ def read_frames(frames: list[Frame], views: int = FLOW_VOTE_VIEWS) -> list[Frame
 
 
 @torch.no_grad()
-def flow_moving(model: KinematicsGS, frames: list[Frame], flows: dict[str, tuple[int, Tensor]], by_k: Tensor,
-                share: float, exposure: float, dt: float, world_transform=None,
-                views: int = FLOW_VOTE_VIEWS) -> Tensor:
+def flow_moving(
+    model: KinematicsGS,
+    frames: list[Frame],
+    flows: dict[str, tuple[int, Tensor]],
+    by_k: Tensor,
+    share: float,
+    exposure: float,
+    dt: float,
+    world_transform=None,
+    views: int = FLOW_VOTE_VIEWS,
+) -> Tensor:
     """`(N,)` bool: the Gaussians K leaves static (`by_k (N,)`: what K calls dynamic) that sit on
     uncovered independent motion in at least `share` of the read frames where they are visible
     (no deeper than DEPTH_SLACK x the rendered depth at their pixel), and are visible in two or
@@ -73,12 +81,21 @@ def flow_moving(model: KinematicsGS, frames: list[Frame], flows: dict[str, tuple
     for f in read_frames(frames, views):
         if f.id not in flows:  # (frame_flows skips a pair whose sizes differ)
             continue
-        out, g = render_model(model, f.camera, f.time, exposure, dt, colors=cover_colour, velocity=False,
-                              world_transform=world_transform(f) if world_transform else None)
+        out, g = render_model(
+            model,
+            f.camera,
+            f.time,
+            exposure,
+            dt,
+            colors=cover_colour,
+            velocity=False,
+            world_transform=world_transform(f) if world_transform else None,
+        )
         viewmat, K = camera_tensors(f.camera)
         j, flow = flows[f.id]
-        moving = independent_motion(out.depth, viewmat, K, *camera_tensors(frames[j].camera), flow,
-                                    threshold=FLOW_VOTE_PX, relative=FLOW_VOTE_RELATIVE)
+        moving = independent_motion(
+            out.depth, viewmat, K, *camera_tensors(frames[j].camera), flow, threshold=FLOW_VOTE_PX, relative=FLOW_VOTE_RELATIVE
+        )
         moving = torch.from_numpy(large_regions(moving & (out.image[..., 0] < COVERED).numpy()))
         H, W = moving.shape
         uv, z = project(g.means, viewmat, K)

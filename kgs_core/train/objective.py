@@ -25,9 +25,20 @@ class Objective:
             t, noise = t + noise * float(torch.randn(())), 0.0
         camera_motion = None if self.camera_motion is None else self.camera_motion.get(frame.id)
         exposure = self.exposure if self.fitted_exposure is None else self.fitted_exposure.value()
-        out, g = render_model(model, frame.camera, t, exposure, scene.dt, self.background,
-                              noise=noise, static=self.static_only, camera_motion=camera_motion, velocity=False,
-                              world_transform=self.world_transform(frame), absgrad=self.strategy.wants_absgrad(it))
+        out, g = render_model(
+            model,
+            frame.camera,
+            t,
+            exposure,
+            scene.dt,
+            self.background,
+            noise=noise,
+            static=self.static_only,
+            camera_motion=camera_motion,
+            velocity=False,
+            world_transform=self.world_transform(frame),
+            absgrad=self.strategy.wants_absgrad(it),
+        )
         gt = self.cache.get(frame)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if c.lambda_coarse > 0:
@@ -84,6 +95,7 @@ class Objective:
         # (index_select, not [idx]: its backward is the faster one, model/dynamic.py)
         x_next = model.params.means.index_select(0, idx) + g.offsets_dx.index_select(0, idx) + v * (nxt.time - frame.time)
         # (g.means carry this frame's pose correction; the next positions get the next frame's.)
-        res = flow_residual(g.means.index_select(0, idx), self.posed(x_next, nxt), camera_tensors(frame.camera),
-                            camera_tensors(nxt.camera), flow, out.depth)
+        res = flow_residual(
+            g.means.index_select(0, idx), self.posed(x_next, nxt), camera_tensors(frame.camera), camera_tensors(nxt.camera), flow, out.depth
+        )
         return charbonnier(res)

@@ -51,6 +51,10 @@ class PoseCorrection(nn.Module):
             return {}
         deg = torch.rad2deg(d[:, :3].norm(dim=1))
         tr = d[:, 3:].norm(dim=1)
-        return {"frames": len(d), "rotation_deg_median": float(deg.median()), "rotation_deg_max": float(deg.max()),
-                "translation_median": float(tr.median()), "translation_max": float(tr.max())}
-
+        return {
+            "frames": len(d),
+            "rotation_deg_median": float(deg.median()),
+            "rotation_deg_max": float(deg.max()),
+            "translation_median": float(tr.median()),
+            "translation_max": float(tr.max()),
+        }

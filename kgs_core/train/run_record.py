@@ -51,8 +51,7 @@ def evaluation_frames(scene: Scene, count: int) -> list[tuple[Frame, str]]:
 
 
 @torch.no_grad()
-def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background,
-                 static: bool = False) -> tuple[float, float]:
+def heldout_psnr(model: KinematicsGS, scene: Scene, frames, cache: ImageCache, background, static: bool = False) -> tuple[float, float]:
     """Mean PSNR over the evaluation views, and inside their ground-truth dynamic masks (NaN
     when none of them has a non-empty mask): the quality target's metric, logged over time."""
     vals, dyn = [], []
@@ -71,8 +70,10 @@ def kr_note(cfg: TrainConfig, exposure: float) -> str | None:
     if not cfg.model.kinematic or "deform" in cfg.ablate:
         return None
     if exposure <= 0:
-        return ("exposure 0: K.R. has no blur to model and only adds cost (the scene's frames say exposure 0; "
-                "give the video's with --exposure, e.g. 0.5)")
+        return (
+            "exposure 0: K.R. has no blur to model and only adds cost (the scene's frames say exposure 0; "
+            "give the video's with --exposure, e.g. 0.5)"
+        )
     return None
 
 
@@ -89,11 +90,13 @@ def decomposition_note(dynamic_share: float, tau: float, decompose_at: int) -> s
     the flow's reading showed gets lost (it then renders static, a ghost or nothing)."""
     if dynamic_share >= DECOMPOSITION_NOTE_SHARE:
         return None
-    return (f"the decomposition called {dynamic_share:.2%} of the Gaussians dynamic (K under tau {tau:.3g} almost everywhere). "
-            f"In a static scene that is right; if something moves, the field had not learned its motion by the "
-            f"first decomposition (iteration {decompose_at}), the optical flow did not show it either, and it renders "
-            f"static: retrain with a later decomposition "
-            f"(--set decompose_at=N) or --ablate decompose")
+    return (
+        f"the decomposition called {dynamic_share:.2%} of the Gaussians dynamic (K under tau {tau:.3g} almost everywhere). "
+        f"In a static scene that is right; if something moves, the field had not learned its motion by the "
+        f"first decomposition (iteration {decompose_at}), the optical flow did not show it either, and it renders "
+        f"static: retrain with a later decomposition "
+        f"(--set decompose_at=N) or --ablate decompose"
+    )
 
 
 def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str = "held-out PSNR") -> None:
@@ -109,8 +112,9 @@ def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str 
     ax.plot([r["train_seconds"] for r in rows], [r["psnr_heldout"] for r in rows], marker="o", ms=3, label=label)
     dyn = [r for r in rows if not math.isnan(r.get("psnr_heldout_dynamic", float("nan")))]
     if dyn:
-        ax.plot([r["train_seconds"] for r in dyn], [r["psnr_heldout_dynamic"] for r in dyn], marker="o", ms=3,
-                label="inside the dynamic mask")
+        ax.plot(
+            [r["train_seconds"] for r in dyn], [r["psnr_heldout_dynamic"] for r in dyn], marker="o", ms=3, label="inside the dynamic mask"
+        )
         ax.legend(fontsize=7)
     ax.set_xlabel("training time (s)")
     ax.set_ylabel("PSNR (dB)")
@@ -130,20 +134,28 @@ class RunRecord:
 
     def checkpoint(self) -> Path:
         path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"
-        save_torch(path, {
-            "iteration": self.iteration, "train_seconds": self.train_seconds, "wall_seconds": self.wall_seconds(),
-            "model": self.model.state(),
-            "opt": self.opt.state_dict(), "net_opt": self.net_opt.state_dict(), "levels": self.levels,
-            "log": self.log_rows, "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
-            "strategy": dict(self.strategy.state),
-            "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
-            "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
-            "frame_loss": self.frame_loss.clone(),
-            "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
-            "kr_check": self.kr_check,
-            "flow_vote": self.flow_vote,
-            "spawn_record": self.spawn_record,
-        })
+        save_torch(
+            path,
+            {
+                "iteration": self.iteration,
+                "train_seconds": self.train_seconds,
+                "wall_seconds": self.wall_seconds(),
+                "model": self.model.state(),
+                "opt": self.opt.state_dict(),
+                "net_opt": self.net_opt.state_dict(),
+                "levels": self.levels,
+                "log": self.log_rows,
+                "rng": {"torch": torch.get_rng_state(), "python": random.getstate()},
+                "strategy": dict(self.strategy.state),
+                "camera_motion": None if self.camera_motion is None else self.camera_motion.state_dict(),
+                "pose_correction": None if self.pose_correction is None else self.pose_correction.state_dict(),
+                "frame_loss": self.frame_loss.clone(),
+                "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
+                "kr_check": self.kr_check,
+                "flow_vote": self.flow_vote,
+                "spawn_record": self.spawn_record,
+            },
+        )
         return path
 
     def restore(self, path: Path) -> None:
@@ -172,8 +184,12 @@ class RunRecord:
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
         self.flow_vote = state.get("flow_vote")  # (absent from older checkpoints)
-        self.spawn_record = {"attempts": 0, "added": {}, "without_parent": 0,  # (older checkpoints lack some)
-                             **(state.get("spawn_record") or {})}
+        self.spawn_record = {
+            "attempts": 0,
+            "added": {},
+            "without_parent": 0,  # (older checkpoints lack some)
+            **(state.get("spawn_record") or {}),
+        }
         torch.set_rng_state(state["rng"]["torch"])
         random.setstate(state["rng"]["python"])
 
@@ -189,13 +205,21 @@ class RunRecord:
         plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)
         if info["status"] == "training":
             info["status"] = "done"
-        info.update(iteration=self.iteration, train_seconds=round(self.train_seconds, 2), lod_levels=len(self.levels) + 1,
-                    final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None, **counts)
+        info.update(
+            iteration=self.iteration,
+            train_seconds=round(self.train_seconds, 2),
+            lod_levels=len(self.levels) + 1,
+            final_psnr_heldout=self.log_rows[-1]["psnr_heldout"] if self.log_rows else None,
+            **counts,
+        )
         if self.model.decomposed and not self.static_only and not self.no_decompose:
             tau = self.model.config.tau
             info["tau"] = tau
-            info["tau_choice"] = (f"picked from the distribution of K (Otsu on log10 K), not below {self.tau_floor:.3g}"
-                                  if self.cfg.tau_auto and tau > self.tau_floor else f"the configured {tau:.3g}")
+            info["tau_choice"] = (
+                f"picked from the distribution of K (Otsu on log10 K), not below {self.tau_floor:.3g}"
+                if self.cfg.tau_auto and tau > self.tau_floor
+                else f"the configured {tau:.3g}"
+            )
             note = decomposition_note(counts["dynamic_share"], tau, self.cfg.decompose_at)
             if note:
                 info["decomposition_note"] = note
@@ -231,8 +255,7 @@ class RunRecord:
         if not self.kr_acts():
             return
         motion = None if self.camera_motion is None else (lambda f: self.camera_motion.get(f.id))
-        info["kr_effect"] = kr_effect(self.model, self.scene.train_frames, self.exposure, self.scene.dt,
-                                      camera_motion=motion)
+        info["kr_effect"] = kr_effect(self.model, self.scene.train_frames, self.exposure, self.scene.dt, camera_motion=motion)
         note = kr_effect_note(info["kr_effect"])
         if note:
             info["kr_note"] = note

@@ -1,4 +1,4 @@
-"""What the fast preset's fitting (`config.fit_to_scene`) measures of a scene from its cameras
+"""What the fast preset's fitting (`fitting.fit_to_scene`) measures of a scene from its cameras
 and SfM points: pixels per scene unit, and the streak the camera's own motion draws."""
 
 from __future__ import annotations

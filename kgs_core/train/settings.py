@@ -62,22 +62,58 @@ COUNT, AMOUNT = Bound(0, 2**31 - 1), Bound(0, 1e6)
 # The bounds that differ: sizes that set memory and time (a request must not ask for a
 # machine's worth), fractions, and the few settings that may be negative or must be positive.
 BOUNDS: dict[str, Bound] = {
-    "iterations": Bound(1, 1_000_000), "time_budget": Bound(0, 7 * 24 * 3600), "batch_size": Bound(1, 16), "seed": Bound(0, 2**31 - 1),
-    "init_points": Bound(1, 1_000_000), "densify.max_gaussians": Bound(1, 5_000_000),
-    "coarse_factor": Bound(1, 64), "spawn_frames": Bound(0, 1000), "spawn_max": Bound(1, 100_000),
-    "spawn_life": Bound(0, 1000, above=True), "lod_levels": Bound(1, 8), "lod_fractions": Bound(0, 1, above=True, length=8),
-    "lod_rho": Bound(0, 1, above=True), "lod_importance_views": Bound(1, 1000), "eval_every": Bound(1, 2**31 - 1),
-    "eval_frames": Bound(1, 1000), "checkpoint_every": Bound(1, 2**31 - 1), "nonfinite_max_restores": Bound(0, 100),
-    "nonfinite_lr_factor": Bound(0, 1, above=True), "reg_static_samples": Bound(0, 1_000_000),
-    "densify.opacity_reset_at": Bound(0, 2**31 - 1, length=100), "densify.every": Bound(1, 2**31 - 1),
-    "model.sh_degree": Bound(0, 3), "model.feature_dim": Bound(1, 256), "model.knn": Bound(1, 64),
-    "model.K_times": Bound(2, 256), "model.deform_spatial": Bound(2, 512), "model.deform_temporal": Bound(1, 1024),
-    "model.deform_features": Bound(1, 256), "model.deform_multires": Bound(1, 16, length=4),
-    "model.deform_width": Bound(1, 1024), "model.deform_depth": Bound(0, 8), "model.tau": Bound(0, 1e6, above=True),
-    "model.kappa_init": Bound(-1e3, 1e3), "model.bound": Bound(0, 1e6, above=True),
-    **{key: FRACTION for key in ("exposure", "spawn_from", "noise_until", "noise_delay", "noise_w_delay",
-                                 "frame_sampling_mix", "time_window_start", "lod_prune_importance", "kr_check_at",
-                                 "flow_vote_share", "densify.prune_opacity", "densify.percent_dense")},
+    "iterations": Bound(1, 1_000_000),
+    "time_budget": Bound(0, 7 * 24 * 3600),
+    "batch_size": Bound(1, 16),
+    "seed": Bound(0, 2**31 - 1),
+    "init_points": Bound(1, 1_000_000),
+    "densify.max_gaussians": Bound(1, 5_000_000),
+    "coarse_factor": Bound(1, 64),
+    "spawn_frames": Bound(0, 1000),
+    "spawn_max": Bound(1, 100_000),
+    "spawn_life": Bound(0, 1000, above=True),
+    "lod_levels": Bound(1, 8),
+    "lod_fractions": Bound(0, 1, above=True, length=8),
+    "lod_rho": Bound(0, 1, above=True),
+    "lod_importance_views": Bound(1, 1000),
+    "eval_every": Bound(1, 2**31 - 1),
+    "eval_frames": Bound(1, 1000),
+    "checkpoint_every": Bound(1, 2**31 - 1),
+    "nonfinite_max_restores": Bound(0, 100),
+    "nonfinite_lr_factor": Bound(0, 1, above=True),
+    "reg_static_samples": Bound(0, 1_000_000),
+    "densify.opacity_reset_at": Bound(0, 2**31 - 1, length=100),
+    "densify.every": Bound(1, 2**31 - 1),
+    "model.sh_degree": Bound(0, 3),
+    "model.feature_dim": Bound(1, 256),
+    "model.knn": Bound(1, 64),
+    "model.K_times": Bound(2, 256),
+    "model.deform_spatial": Bound(2, 512),
+    "model.deform_temporal": Bound(1, 1024),
+    "model.deform_features": Bound(1, 256),
+    "model.deform_multires": Bound(1, 16, length=4),
+    "model.deform_width": Bound(1, 1024),
+    "model.deform_depth": Bound(0, 8),
+    "model.tau": Bound(0, 1e6, above=True),
+    "model.kappa_init": Bound(-1e3, 1e3),
+    "model.bound": Bound(0, 1e6, above=True),
+    **{
+        key: FRACTION
+        for key in (
+            "exposure",
+            "spawn_from",
+            "noise_until",
+            "noise_delay",
+            "noise_w_delay",
+            "frame_sampling_mix",
+            "time_window_start",
+            "lod_prune_importance",
+            "kr_check_at",
+            "flow_vote_share",
+            "densify.prune_opacity",
+            "densify.percent_dense",
+        )
+    },
 }
 
 
@@ -128,27 +164,48 @@ class NamedSetting:
 
 NAMED: dict[str, NamedSetting] = {
     "iterations": NamedSetting("iterations", "override the preset's iteration count (its schedule scales with it)"),
-    "time_budget": NamedSetting("time_budget", "train within this time on this machine, e.g. 10m or 600 (seconds): a "
-                                "short pilot picks the iterations and Gaussian budget that fit, recorded in run.json "
-                                "(default: none, the preset's schedule)", parse=parse_duration),
+    "time_budget": NamedSetting(
+        "time_budget",
+        "train within this time on this machine, e.g. 10m or 600 (seconds): a "
+        "short pilot picks the iterations and Gaussian budget that fit, recorded in run.json "
+        "(default: none, the preset's schedule)",
+        parse=parse_duration,
+    ),
     "seed": NamedSetting("seed", "training seed"),
-    "tau": NamedSetting("model.tau", "static/dynamic threshold on the temporal variance K (normalised scene units^2; "
-                        "default: fitted to the scene, an RMS image motion of 0.62 px)"),
-    "exposure": NamedSetting("exposure", "the training video's exposure, a fraction of the frame interval (default: the "
-                             "scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off"),
+    "tau": NamedSetting(
+        "model.tau",
+        "static/dynamic threshold on the temporal variance K (normalised scene units^2; "
+        "default: fitted to the scene, an RMS image motion of 0.62 px)",
+    ),
+    "exposure": NamedSetting(
+        "exposure",
+        "the training video's exposure, a fraction of the frame interval (default: the "
+        "scene's; ingest assumes 0.5). 0 turns the kinematic blur (K.R.) off",
+    ),
     "velocity": NamedSetting("model.velocity", "velocity estimate of the kinematic basis"),
-    "basis": NamedSetting("model.basis", "kinematic frame: the paper's (reference-axis switch), branch-free, or "
-                          "continuous (principal)"),
-    "kr_form": NamedSetting("model.kr_form", "kinematic refinement: the paper's projection onto the velocity frame, or "
-                            "the predicted covariance convolved with the motion during the exposure (docs/method.md)"),
-    "camera_blur": NamedSetting("camera_blur", "also blur every Gaussian along the camera's own motion during the "
-                                "exposure (hand-held shake): from the poses' differences, or learned per frame from "
-                                "there (default: learned for a video ingest whose camera draws a streak of 2 px or "
-                                "more during the exposure, else off; docs/method.md)"),
-    "pose_refine": NamedSetting("pose_refine", "fit a rigid correction of each training camera's pose, for footage "
-                                "whose structure-from-motion poses are poor (default off; docs/real-footage.md)"),
-    "on_nonfinite": NamedSetting("on_nonfinite", "NaN/Inf in training: stop with an error naming the tensor (default), "
-                                 "or restore the last good checkpoint and continue with a lower learning rate"),
+    "basis": NamedSetting("model.basis", "kinematic frame: the paper's (reference-axis switch), branch-free, or continuous (principal)"),
+    "kr_form": NamedSetting(
+        "model.kr_form",
+        "kinematic refinement: the paper's projection onto the velocity frame, or "
+        "the predicted covariance convolved with the motion during the exposure (docs/method.md)",
+    ),
+    "camera_blur": NamedSetting(
+        "camera_blur",
+        "also blur every Gaussian along the camera's own motion during the "
+        "exposure (hand-held shake): from the poses' differences, or learned per frame from "
+        "there (default: learned for a video ingest whose camera draws a streak of 2 px or "
+        "more during the exposure, else off; docs/method.md)",
+    ),
+    "pose_refine": NamedSetting(
+        "pose_refine",
+        "fit a rigid correction of each training camera's pose, for footage "
+        "whose structure-from-motion poses are poor (default off; docs/real-footage.md)",
+    ),
+    "on_nonfinite": NamedSetting(
+        "on_nonfinite",
+        "NaN/Inf in training: stop with an error naming the tensor (default), "
+        "or restore the last good checkpoint and continue with a lower learning rate",
+    ),
 }
 
 
@@ -199,15 +256,20 @@ def parse_setting(text: str) -> tuple[str, object]:
     want, allowed = setting_type(key), choices(setting_type(key))
     number = isinstance(value, (int, float)) and not isinstance(value, bool)
     ok = (value is None and default is None) or (
-        value in allowed if allowed is not None else
-        isinstance(value, bool) if want is bool else
-        number if want is float else
-        isinstance(value, want) and not isinstance(value, bool))
+        value in allowed
+        if allowed is not None
+        else isinstance(value, bool)
+        if want is bool
+        else number
+        if want is float
+        else isinstance(value, want) and not isinstance(value, bool)
+    )
     if not ok and allowed is not None:
         raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {raw!r}")
     if not ok:
-        kind = ({bool: "true or false", float: "a number", int: "a whole number", str: "a word",
-                 tuple: "a JSON list"}.get(want, getattr(want, "__name__", str(want))))
+        kind = {bool: "true or false", float: "a number", int: "a whole number", str: "a word", tuple: "a JSON list"}.get(
+            want, getattr(want, "__name__", str(want))
+        )
         raise ValueError(f"{key} takes {kind} (default {default!r}), got {raw!r}")
     value = float(value) if want is float and value is not None else value
     return key, check_setting(key, value)
@@ -215,5 +277,4 @@ def parse_setting(text: str) -> tuple[str, object]:
 
 def named_overrides(values: dict) -> dict:
     """`make_config` overrides from {name in NAMED: value}; None (not given) is left out."""
-    return {NAMED[name].key: NAMED[name].check(value) for name, value in values.items()
-            if name in NAMED and value is not None}
+    return {NAMED[name].key: NAMED[name].check(value) for name, value in values.items() if name in NAMED and value is not None}

@@ -16,7 +16,7 @@ field: each joins a parent that moves as the flow at its pixel says (not merely 
 dynamic Gaussian, which on real footage is often a wall that K calls dynamic), and its loss does
 not train the field (`KinematicsGS._spawned_offsets`): present for a frame, only its own
 parameters learn. With neither, real-clip runs smeared a wall; with the parent rule alone, a
-sign; with both, nothing. On for video ingests (`config.VIDEO_SPAWN_FRAMES`; docs/real-footage.md,
+sign; with both, nothing. On for video ingests (`fitting.VIDEO_SPAWN_FRAMES`; docs/real-footage.md,
 "Spawned Gaussians").
 
 A moving pixel that no dynamic Gaussian follows (an object the model has lost everywhere, so
@@ -78,8 +78,16 @@ class NextFrame:
     time: float
 
 
-def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: Tensor, next_K: Tensor,
-                       flow: Tensor, threshold: float = INDEPENDENT_MOTION_PX, relative: float = 0.0) -> np.ndarray:
+def independent_motion(
+    depth: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    next_viewmat: Tensor,
+    next_K: Tensor,
+    flow: Tensor,
+    threshold: float = INDEPENDENT_MOTION_PX,
+    relative: float = 0.0,
+) -> np.ndarray:
     """`(H, W)` bool: pixels whose optical flow to the next frame (`flow` (H, W, 2), NaN where
     unreliable) differs by more than `threshold` pixels from the motion the rendered scene
     (`depth` (H, W, 1), 0 where nothing was drawn) would make if it stood still: something moves
@@ -99,8 +107,7 @@ def independent_motion(depth: Tensor, viewmat: Tensor, K: Tensor, next_viewmat: 
         # (a hand-held pan's near surfaces move furthest), and pixels that leave the next frame
         # have no true flow: count neither.
         nxt = uv_next.reshape(H, W, 2)
-        inside = ((nxt[..., 0] >= BORDER_PX) & (nxt[..., 0] < W - BORDER_PX)
-                  & (nxt[..., 1] >= BORDER_PX) & (nxt[..., 1] < H - BORDER_PX))
+        inside = (nxt[..., 0] >= BORDER_PX) & (nxt[..., 0] < W - BORDER_PX) & (nxt[..., 1] >= BORDER_PX) & (nxt[..., 1] < H - BORDER_PX)
         moving &= inside & (diff > relative * still.norm(dim=-1))
     return moving.numpy()
 
@@ -123,9 +130,22 @@ def large_regions(mask: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, viewmat: Tensor, K: Tensor,
-                      image: Tensor, depth: Tensor, target: Tensor, means: Tensor, max_new: int,
-                      life: float, rng: np.random.Generator, nxt: NextFrame | None = None) -> Spawned:
+def spawn_unexplained(
+    model: KinematicsGS,
+    optimizer,
+    state: dict,
+    t: float,
+    viewmat: Tensor,
+    K: Tensor,
+    image: Tensor,
+    depth: Tensor,
+    target: Tensor,
+    means: Tensor,
+    max_new: int,
+    life: float,
+    rng: np.random.Generator,
+    nxt: NextFrame | None = None,
+) -> Spawned:
     """Adds up to `max_new` dynamic Gaussians at the unexplained pixels of one training frame
     (`image`, `depth` (H, W, 1): its render at time `t`; `target`: the frame; `viewmat`, `K`:
     its camera; `means` (N, 3): every Gaussian's position at `t`, used for the dynamic ones;
@@ -206,9 +226,14 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     quats = torch.zeros(m, 4)
     quats[:, 0] = 1
     new = GaussianParams(
-        means=world, quats=quats, log_scales=scale, opacity_logits=torch.zeros(m),
+        means=world,
+        quats=quats,
+        log_scales=scale,
+        opacity_logits=torch.zeros(m),
         sh0=rgb_to_sh0(target[ys, xs].clamp(0, 1).float())[:, None, :],
-        sh_rest=torch.zeros(m, *p.sh_rest.shape[1:]), features=p.features.detach()[parents].clone())
+        sh_rest=torch.zeros(m, *p.sh_rest.shape[1:]),
+        features=p.features.detach()[parents].clone(),
+    )
     lifespan = torch.tensor([t, life]).repeat(m, 1)
     if model.config.spawned_motion == "own":
         # The flow moves the pixel to `pixels + f` by the next frame: the point at the same
@@ -224,7 +249,7 @@ def spawn_unexplained(model: KinematicsGS, optimizer, state: dict, t: float, vie
     # t. Its coarse-to-fine neighbours and fine-residual features are then the parent's, so the
     # deformation moves it with the parent, and at t it lands on its pixel (up to how much the
     # field varies between the two).
-    shift = (means[parents] - p.means.detach()[parents])
+    shift = means[parents] - p.means.detach()[parents]
     canonical = model.params.means.detach().clone()
     canonical[n0:] = world - shift
     model.params = set_param(model.params, optimizer, "means", canonical)

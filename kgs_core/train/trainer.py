@@ -48,7 +48,6 @@ def check_finite(it: int, **tensors) -> None:
             raise NonFiniteError(f"non-finite values in {name} at iteration {it}")
 
 
-
 # The time window (`time_window_start`) covers the whole clip at this fraction of the warm-up,
 # so that the field sees every frame for the warm-up's last quarter before K is computed: with
 # the window ending at the decomposition itself, the sheet's decomposition IoU fell from 0.95 to 0.8.
@@ -60,9 +59,17 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
     `Objective`'s (train/objective.py), the schedule's events `ScheduleEvents`'
     (train/events.py), checkpoints and the final save `RunRecord`'s (train/run_record.py)."""
 
-    def __init__(self, scene: Scene, run_dir: str | Path, cfg: TrainConfig, progress: bool = True,
-                 on_log: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
-                 on_step: Callable[[int, float], None] | None = None, threads=None):
+    def __init__(
+        self,
+        scene: Scene,
+        run_dir: str | Path,
+        cfg: TrainConfig,
+        progress: bool = True,
+        on_log: Callable[[dict], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        on_step: Callable[[int, float], None] | None = None,
+        threads=None,
+    ):
         self.scene, self.cfg = scene, cfg
         self.threads = threads  # a kgs_core.threads.ThreadTuner, or None (the count stays as it is)
         self.run_dir = Path(run_dir)
@@ -85,8 +92,13 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         n_levels = max(1, cfg.lod_levels)
         fr = list(cfg.lod_fractions)[-n_levels:] if n_levels > 1 else [1.0]
         self.level_ends = [int(round(f * cfg.iterations)) for f in fr]
-        self.noise = TimeNoise(cfg.noise_init_frames * scene.dt, cfg.noise_final_frames * scene.dt,
-                               int(cfg.noise_until * cfg.iterations), int(cfg.noise_delay * cfg.iterations), cfg.noise_w_delay)
+        self.noise = TimeNoise(
+            cfg.noise_init_frames * scene.dt,
+            cfg.noise_final_frames * scene.dt,
+            int(cfg.noise_until * cfg.iterations),
+            int(cfg.noise_delay * cfg.iterations),
+            cfg.noise_w_delay,
+        )
         # The exposure K.R. models: the config's when given (`--exposure`), else the scene's.
         self.exposure = scene.exposure if cfg.exposure is None else float(cfg.exposure)
         # fit_exposure: learned from there (`self.exposure` follows it after each step).
@@ -97,13 +109,15 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.tau_floor = cfg.model.tau
         self.static_only = "deform" in cfg.ablate
         self.no_decompose = "decompose" in cfg.ablate
-        self.camera_motion = (CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned")
-                              if cfg.camera_blur != "off" else None)
+        self.camera_motion = CameraMotion(scene.train_frames, learned=cfg.camera_blur == "learned") if cfg.camera_blur != "off" else None
         self.pose_correction = PoseCorrection(scene.train_frames) if cfg.pose_refine else None
         # lambda_flow: each training frame's flow to the next of its camera (train/flow.py).
         # (Also what spawning reads: where something moves on its own, train/spawn.py.)
-        self.flows = (frame_flows(scene.train_frames, method=cfg.flow_method) if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0)
-                      and not self.static_only else {})
+        self.flows = (
+            frame_flows(scene.train_frames, method=cfg.flow_method)
+            if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0) and not self.static_only
+            else {}
+        )
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
@@ -156,33 +170,54 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         n = len(self.level_ends)
         if level_idx >= n - 1:
             return 0.0
-        return self.cfg.lod_lambda * self.cfg.lod_rho ** level_idx
+        return self.cfg.lod_lambda * self.cfg.lod_rho**level_idx
 
     def make_strategy(self) -> DensifyStrategy:
         return dataclasses.replace(self.cfg.densify)  # this run's own copy, with fresh statistics
 
     def make_optimizers(self) -> None:
         c = self.cfg
-        lrs = {"means": c.lr_means, "quats": c.lr_quats, "log_scales": c.lr_scales, "opacity_logits": c.lr_opacity,
-               "sh0": c.lr_sh0, "sh_rest": c.lr_sh_rest, "features": c.lr_features}
+        lrs = {
+            "means": c.lr_means,
+            "quats": c.lr_quats,
+            "log_scales": c.lr_scales,
+            "opacity_logits": c.lr_opacity,
+            "sh0": c.lr_sh0,
+            "sh_rest": c.lr_sh_rest,
+            "features": c.lr_features,
+        }
         self.opt = make_optimizer(self.model.params, lrs)
         nets = self.model.network_parameters()
-        self.net_opt = torch.optim.Adam([
-            {"params": nets["grid"], "lr": c.lr_grid, "name": "grid"},
-            {"params": nets["deform_mlp"] + nets["fine_mlp"], "lr": c.lr_deform, "name": "mlp"},
-            {"params": nets["kappa"], "lr": c.lr_kappa, "name": "kappa"},
-        ] + ([{"params": [self.camera_motion.motion], "lr": c.lr_camera_motion, "name": "camera_motion"}]
-             if c.camera_blur == "learned" else [])
-          + ([{"params": [self.pose_correction.delta], "lr": c.lr_pose, "name": "pose"}]
-             if self.pose_correction is not None else [])
-          + ([{"params": [self.fitted_exposure.logit], "lr": c.lr_exposure, "name": "exposure"}]
-             if self.fitted_exposure is not None else []), eps=1e-15, fused=True)
+        self.net_opt = torch.optim.Adam(
+            [
+                {"params": nets["grid"], "lr": c.lr_grid, "name": "grid"},
+                {"params": nets["deform_mlp"] + nets["fine_mlp"], "lr": c.lr_deform, "name": "mlp"},
+                {"params": nets["kappa"], "lr": c.lr_kappa, "name": "kappa"},
+            ]
+            + (
+                [{"params": [self.camera_motion.motion], "lr": c.lr_camera_motion, "name": "camera_motion"}]
+                if c.camera_blur == "learned"
+                else []
+            )
+            + ([{"params": [self.pose_correction.delta], "lr": c.lr_pose, "name": "pose"}] if self.pose_correction is not None else [])
+            + (
+                [{"params": [self.fitted_exposure.logit], "lr": c.lr_exposure, "name": "exposure"}]
+                if self.fitted_exposure is not None
+                else []
+            ),
+            eps=1e-15,
+            fused=True,
+        )
 
     def set_learning_rates(self, it: int) -> None:
         """Schedules (exponential decay) times `lr_scale` (lowered by each NaN recovery)."""
         c = self.cfg
-        schedules = {"means": (c.lr_means, c.lr_means_final), "grid": (c.lr_grid, c.lr_grid_final),
-                     "mlp": (c.lr_deform, c.lr_deform_final), "pose": (c.lr_pose, c.lr_pose_final)}
+        schedules = {
+            "means": (c.lr_means, c.lr_means_final),
+            "grid": (c.lr_grid, c.lr_grid_final),
+            "mlp": (c.lr_deform, c.lr_deform_final),
+            "pose": (c.lr_pose, c.lr_pose_final),
+        }
         for g in [*self.opt.param_groups, *self.net_opt.param_groups]:
             g.setdefault("base_lr", g["lr"])
             if g["name"] in schedules:
@@ -271,12 +306,12 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
         changed = self.strategy.step(model, self.opt, nxt)
-        if (changed and c.spawn_frames > 0 and model.decomposed and not self.static_only
-                and nxt >= c.spawn_from * c.iterations):
+        if changed and c.spawn_frames > 0 and model.decomposed and not self.static_only and nxt >= c.spawn_from * c.iterations:
             self.spawn(nxt)
         if not self.static_only and not self.no_decompose:
-            if nxt == c.decompose_at or (model.decomposed and c.decompose_every and nxt > c.decompose_at
-                                         and (nxt - c.decompose_at) % c.decompose_every == 0):
+            if nxt == c.decompose_at or (
+                model.decomposed and c.decompose_every and nxt > c.decompose_at and (nxt - c.decompose_at) % c.decompose_every == 0
+            ):
                 self.decompose()
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
@@ -291,14 +326,21 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
     def log(self, it: int, loss: float) -> dict:
         p, p_dyn = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
         counts = decomposition_counts(self.model, self.static_only)
-        row = {"iteration": it, "train_seconds": round(self.train_seconds, 3), "wall_seconds": round(self.wall_seconds(), 3),
-               "loss": loss, "psnr_heldout": p, "psnr_heldout_dynamic": p_dyn, "gaussians": counts["gaussians"],
-               "dynamic_share": counts["dynamic_share"], "exposure": round(self.exposure, 5)}
+        row = {
+            "iteration": it,
+            "train_seconds": round(self.train_seconds, 3),
+            "wall_seconds": round(self.wall_seconds(), 3),
+            "loss": loss,
+            "psnr_heldout": p,
+            "psnr_heldout_dynamic": p_dyn,
+            "gaussians": counts["gaussians"],
+            "dynamic_share": counts["dynamic_share"],
+            "exposure": round(self.exposure, 5),
+        }
         self.log_rows.append(row)
         head = list(row)
         # (.get: rows read back from a log written before a column existed, on resume)
-        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r.get(k, float('nan'))}" for k in head)
-                                                  for r in self.log_rows) + "\n"
+        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r.get(k, float('nan'))}" for k in head) for r in self.log_rows) + "\n"
         atomic_write_text(self.run_dir / "log.csv", text)
         if self.on_log:
             self.on_log(row)
@@ -306,8 +348,9 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
 
     def log_progress(self, bar, loss: float) -> None:
         row = self.log(self.iteration, loss)
-        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"],
-                        dynamic=f"{row['dynamic_share']:.0%}")
+        bar.set_postfix(
+            loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"], dynamic=f"{row['dynamic_share']:.0%}"
+        )
 
     def check_gradients(self, it: int) -> None:
         """NaN/Inf in any gradient: an error naming the parameter (a Gaussian attribute, a
@@ -338,8 +381,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.restores += 1
         self.lr_scale *= self.cfg.nonfinite_lr_factor
         self.restore(ckpts[-1])
-        self.events.append({"iteration": self.iteration, "event": "restored", "reason": str(exc),
-                            "lr_scale": self.lr_scale})
+        self.events.append({"iteration": self.iteration, "event": "restored", "reason": str(exc), "lr_scale": self.lr_scale})
         if self.progress:
             print(f"{exc}: restored {ckpts[-1].name}, learning rates x{self.lr_scale:g}")
 
@@ -366,11 +408,18 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         scene_root = Path(self.scene.root).resolve()
         # The scene both as an absolute path (for people) and relative to the run (what a
         # copied or moved workspace, or data folder, still finds): `LoadedRun.scene_path`.
-        info = {"status": "training", "scene": str(scene_root), "scene_from_run": os.path.relpath(scene_root, self.run_dir.resolve()),
-                "scene_name": self.scene.name,
-                "config": cfg.to_dict(), "normalization": self.scene.normalization.to_dict(),
-                "exposure": self.exposure, "dt": self.scene.dt,
-                "frames": len(self.scene.frames), "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height]}
+        info = {
+            "status": "training",
+            "scene": str(scene_root),
+            "scene_from_run": os.path.relpath(scene_root, self.run_dir.resolve()),
+            "scene_name": self.scene.name,
+            "config": cfg.to_dict(),
+            "normalization": self.scene.normalization.to_dict(),
+            "exposure": self.exposure,
+            "dt": self.scene.dt,
+            "frames": len(self.scene.frames),
+            "image_size": [self.scene.frames[0].camera.width, self.scene.frames[0].camera.height],
+        }
         note = kr_note(cfg, self.exposure)
         if note:
             info["kr_note"] = note
@@ -384,8 +433,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             self.checkpoint()  # a good state to fall back to before the first scheduled checkpoint
         if not self.log_rows:
             self.log(0, float("nan"))
-        bar = tqdm(total=cfg.iterations, initial=self.iteration, disable=not self.progress, desc="train", unit="it",
-                   dynamic_ncols=True)
+        bar = tqdm(total=cfg.iterations, initial=self.iteration, disable=not self.progress, desc="train", unit="it", dynamic_ncols=True)
         loss = float("nan")
         try:
             while self.iteration < cfg.iterations:
@@ -433,6 +481,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.checkpoint()
         self.save_final(info)
         self.info = info
+
 
 def train(scene: Scene, run_dir: str | Path, cfg: TrainConfig, resume: bool = False, progress: bool = True, **kw) -> dict:
     return Trainer(scene, run_dir, cfg, progress=progress, **kw).run(resume=resume)

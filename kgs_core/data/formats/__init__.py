@@ -26,8 +26,7 @@ def detect_format(root: Path) -> str:
     if is_colmap(root):
         return "colmap"
     raise SceneError(
-        f"{root}: unknown dataset layout (looked for dataset.json [Nerfies], transforms_train.json [D-NeRF], "
-        "sparse/0/cameras.bin [COLMAP])"
+        f"{root}: unknown dataset layout (looked for dataset.json [Nerfies], transforms_train.json [D-NeRF], sparse/0/cameras.bin [COLMAP])"
     )
 
 

@@ -99,10 +99,17 @@ def load_colmap(root: Path, images_dir: str = "images") -> Scene:
         if split not in ("train", "test"):
             raise SceneError(f"{entry_where}: field 'split' should be train or test, got {json.dumps(split)[:40]}")
         cam = rec.cameras[im.camera_id]
-        frames.append(Frame(id=Path(im.name).stem, image_path=path, time=number(info, "time", entry_where),
-                            camera=Camera(K=K, viewmat=viewmat, width=int(cam.width), height=int(cam.height), distortion=dist),
-                            exposure=number(info, "exposure", entry_where, 0.0), split=split,
-                            camera_id=number(info, "camera_id", entry_where, 0, integer=True)))
+        frames.append(
+            Frame(
+                id=Path(im.name).stem,
+                image_path=path,
+                time=number(info, "time", entry_where),
+                camera=Camera(K=K, viewmat=viewmat, width=int(cam.width), height=int(cam.height), distortion=dist),
+                exposure=number(info, "exposure", entry_where, 0.0),
+                split=split,
+                camera_id=number(info, "camera_id", entry_where, 0, integer=True),
+            )
+        )
     frames.sort(key=lambda f: (f.camera_id, f.time, f.id))
     pts = list(rec.points3D.values())
     points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
@@ -132,8 +139,9 @@ def write_colmap(scene: Scene, root: Path) -> None:
                 model, params = "OPENCV", [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2], d[0], d[1], d[2], d[3]]
             else:
                 model, params = "PINHOLE", [c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]]
-            rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=c.width, height=c.height,
-                                                            params=params, camera_id=cam_ids[key]))
+            rec.add_camera_with_trivial_rig(
+                pycolmap.Camera(model=model, width=c.width, height=c.height, params=params, camera_id=cam_ids[key])
+            )
         name = f"{f.id}{f.image_path.suffix}"
         image = pycolmap.Image(name=name, camera_id=cam_ids[key], image_id=k)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(c.viewmat[:3]))
@@ -145,7 +153,10 @@ def write_colmap(scene: Scene, root: Path) -> None:
     rec.write(str(out))
     from .common import write_json
 
-    write_json(root / "times.json", {
-        f"{f.id}{f.image_path.suffix}": {"time": f.time, "camera_id": f.camera_id, "split": f.split, "exposure": f.exposure}
-        for f in scene.frames
-    })
+    write_json(
+        root / "times.json",
+        {
+            f"{f.id}{f.image_path.suffix}": {"time": f.time, "camera_id": f.camera_id, "split": f.split, "exposure": f.exposure}
+            for f in scene.frames
+        },
+    )

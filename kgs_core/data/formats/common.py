@@ -96,8 +96,7 @@ def files_inside(scene, root: Path) -> None:
         for kind in ("image_path", "sharp_path", "mask_path", "motion_path"):
             path = getattr(frame, kind)
             if path is not None and not Path(path).resolve().is_relative_to(base):
-                raise SceneError(f"{base.name}: frame {frame.id!r}: its {kind.removesuffix('_path')} leaves the "
-                                 "dataset folder")
+                raise SceneError(f"{base.name}: frame {frame.id!r}: its {kind.removesuffix('_path')} leaves the dataset folder")
 
 
 def json_object_file(path: Path) -> dict:

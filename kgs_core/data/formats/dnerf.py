@@ -52,13 +52,20 @@ def load_dnerf(root: Path) -> Scene:
             def extra(key: str) -> Path | None:
                 return inside(root, field(fr, key, w, str), f"{w} field '{key}'") if key in fr else None
 
-            frames.append(Frame(
-                id=str(fr.get("id", f"{split_file}_{k:04d}")), image_path=img, time=time,
-                camera=Camera(K=K, viewmat=viewmat, width=width, height=height),
-                exposure=number(fr, "exposure", w, 0.0), split=split,
-                camera_id=number(fr, "camera_id", w, 0 if split == "train" else 1, integer=True),
-                sharp_path=extra("sharp_file_path"), mask_path=extra("mask_file_path"), motion_path=extra("motion_file_path"),
-            ))
+            frames.append(
+                Frame(
+                    id=str(fr.get("id", f"{split_file}_{k:04d}")),
+                    image_path=img,
+                    time=time,
+                    camera=Camera(K=K, viewmat=viewmat, width=width, height=height),
+                    exposure=number(fr, "exposure", w, 0.0),
+                    split=split,
+                    camera_id=number(fr, "camera_id", w, 0 if split == "train" else 1, integer=True),
+                    sharp_path=extra("sharp_file_path"),
+                    mask_path=extra("mask_file_path"),
+                    motion_path=extra("motion_file_path"),
+                )
+            )
     if not frames:
         raise SceneError(f"{root}: no frames in transforms_*.json")
     # val and test often repeat the same frames: keep one of each id.
@@ -89,8 +96,12 @@ def write_dnerf(scene: Scene, root: Path) -> None:
                 raise SceneError(f"frame {f.id}: D-NeRF needs one square-pixel focal length per split")
             c2w = np.linalg.inv(c.viewmat) @ GL_TO_CV
             entry = {
-                "file_path": _rel(f.image_path, root), "time": f.time, "transform_matrix": c2w.tolist(),
-                "id": f.id, "exposure": f.exposure, "camera_id": f.camera_id,
+                "file_path": _rel(f.image_path, root),
+                "time": f.time,
+                "transform_matrix": c2w.tolist(),
+                "id": f.id,
+                "exposure": f.exposure,
+                "camera_id": f.camera_id,
             }
             for key, p in (("sharp_file_path", f.sharp_path), ("mask_file_path", f.mask_path), ("motion_file_path", f.motion_path)):
                 if p is not None:

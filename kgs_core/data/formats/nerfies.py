@@ -51,8 +51,13 @@ def _camera(path: Path, scale: int) -> Camera:
     viewmat = np.eye(4)
     viewmat[:3, :3] = R
     viewmat[:3, 3] = -R @ pos
-    cam = Camera(K=K, viewmat=viewmat, width=int(size[0]), height=int(size[1]),
-                 distortion=np.array([radial[0], radial[1], tangential[0], tangential[1], radial[2]], dtype=float))
+    cam = Camera(
+        K=K,
+        viewmat=viewmat,
+        width=int(size[0]),
+        height=int(size[1]),
+        distortion=np.array([radial[0], radial[1], tangential[0], tangential[1], radial[2]], dtype=float),
+    )
     return cam.scaled(1.0 / scale) if scale != 1 else cam
 
 
@@ -83,8 +88,7 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
         missing = [i for i in ids if warp[i] is None]
         if missing:
             raise SceneError(f"{meta_path}: frame {missing[0]} has no 'time', 'time_id' or 'warp_id'")
-        warp = {i: number(meta[i], "time_id" if "time_id" in meta[i] else "warp_id", f"{meta_path} frame {i!r}")
-                for i in ids}
+        warp = {i: number(meta[i], "time_id" if "time_id" in meta[i] else "warp_id", f"{meta_path} frame {i!r}") for i in ids}
         max_warp = max(warp.values()) or 1
 
     frames = []
@@ -99,11 +103,20 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
             p = inside(root, f"{kind}/{scale}x/{i}{ext}", f"{where} id {i!r}")
             return p if p.is_file() else None
 
-        frames.append(Frame(
-            id=i, image_path=find_image(root, f"rgb/{scale}x/{i}", f"{where} id {i!r}"), time=t, camera=cam,
-            exposure=number(m, "exposure", w, 0.0), split=split, camera_id=number(m, "camera_id", w, 0, integer=True),
-            sharp_path=extra("sharp", ".png"), mask_path=extra("mask", ".png"), motion_path=extra("motion", ".npy"),
-        ))
+        frames.append(
+            Frame(
+                id=i,
+                image_path=find_image(root, f"rgb/{scale}x/{i}", f"{where} id {i!r}"),
+                time=t,
+                camera=cam,
+                exposure=number(m, "exposure", w, 0.0),
+                split=split,
+                camera_id=number(m, "camera_id", w, 0, integer=True),
+                sharp_path=extra("sharp", ".png"),
+                mask_path=extra("mask", ".png"),
+                motion_path=extra("motion", ".npy"),
+            )
+        )
     # `ids` is the capture order: a time that goes backwards along it is an error (raised by
     # Scene's validation, prefixed with the file that holds the times below).
 
@@ -127,14 +140,23 @@ def load_nerfies(root: Path, scale: int = 1) -> Scene:
         where_sc = str(root / "scene.json")
         if not isinstance(sc, dict):
             raise SceneError(f"{where_sc}: expected a JSON object")
-        norm = Normalization(center=matrix(sc.get("center", [0, 0, 0]), (3,), where_sc, "center"),
-                             scale=number(sc, "scale", where_sc, 1.0, positive=True))
+        norm = Normalization(
+            center=matrix(sc.get("center", [0, 0, 0]), (3,), where_sc, "center"), scale=number(sc, "scale", where_sc, 1.0, positive=True)
+        )
     extras = read_json(root / "kgs.json") if (root / "kgs.json").is_file() else {}
     if not isinstance(extras, dict):
         raise SceneError(f"{root / 'kgs.json'}: expected a JSON object")
     try:
-        return Scene(name=root.name, root=root, frames=frames, points=points, point_colors=colors,
-                     normalization=norm, source_format="nerfies", extras=extras)
+        return Scene(
+            name=root.name,
+            root=root,
+            frames=frames,
+            points=points,
+            point_colors=colors,
+            normalization=norm,
+            source_format="nerfies",
+            extras=extras,
+        )
     except SceneError as exc:
         raise SceneError(f"{meta_path}: {exc}") from None
 
@@ -160,23 +182,30 @@ def write_nerfies(scene: Scene, root: Path) -> None:
     The scene's coordinates are written as they are; scene.json records its normalisation."""
     root = Path(root)
     ids = [f.id for f in scene.frames]
-    write_json(root / "dataset.json", {
-        "count": len(ids), "num_exemplars": len(scene.train_frames), "ids": ids,
-        "train_ids": [f.id for f in scene.train_frames], "val_ids": [f.id for f in scene.test_frames],
-    })
+    write_json(
+        root / "dataset.json",
+        {
+            "count": len(ids),
+            "num_exemplars": len(scene.train_frames),
+            "ids": ids,
+            "train_ids": [f.id for f in scene.train_frames],
+            "val_ids": [f.id for f in scene.test_frames],
+        },
+    )
     by_cam: dict[int, list[Frame]] = {}
     for f in scene.frames:
         by_cam.setdefault(f.camera_id, []).append(f)
     meta = {}
     for frames in by_cam.values():
         for k, f in enumerate(sorted(frames, key=lambda f: f.time)):
-            meta[f.id] = {"warp_id": k, "appearance_id": k, "camera_id": f.camera_id, "time_id": k,
-                          "time": f.time, "exposure": f.exposure}
+            meta[f.id] = {"warp_id": k, "appearance_id": k, "camera_id": f.camera_id, "time_id": k, "time": f.time, "exposure": f.exposure}
     write_json(root / "metadata.json", meta)
     centers = np.stack([f.camera.center for f in scene.frames])
     dist = np.linalg.norm(centers, axis=1)
-    write_json(root / "scene.json", {**scene.normalization.to_dict(), "near": float(max(dist.min() * 0.05, 1e-3)),
-                                     "far": float(dist.max() * 4 + 1)})
+    write_json(
+        root / "scene.json",
+        {**scene.normalization.to_dict(), "near": float(max(dist.min() * 0.05, 1e-3)), "far": float(dist.max() * 4 + 1)},
+    )
     for f in scene.frames:
         write_json(root / "camera" / f"{f.id}.json", camera_json(f.camera))
         copy_into(f.image_path, root / "rgb" / "1x" / f"{f.id}{f.image_path.suffix}")

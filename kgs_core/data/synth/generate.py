@@ -44,8 +44,12 @@ def camera_rays(viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> 
 def render(world: World, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, t: float) -> Rendered:
     o, d = camera_rays(viewmat, K, width, height)
     res = world.trace(o, d, t)
-    return Rendered(res.color.reshape(height, width, 3), res.obj.reshape(height, width),
-                    res.local.reshape(height, width, 3), res.depth.reshape(height, width))
+    return Rendered(
+        res.color.reshape(height, width, 3),
+        res.obj.reshape(height, width),
+        res.local.reshape(height, width, 3),
+        res.depth.reshape(height, width),
+    )
 
 
 def project(points: np.ndarray, viewmat: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -105,14 +109,18 @@ def synthesize(
             t = i * dt
             for cam_id, cam_at in rigs.items():
                 fid = f"c{cam_id}_{i:05d}"
-                paths = {kind: tmp / kind / "1x" / f"{fid}{ext}" for kind, ext in
-                         (("rgb", ".png"), ("sharp", ".png"), ("mask", ".png"), ("motion", ".npy"))}
+                paths = {
+                    kind: tmp / kind / "1x" / f"{fid}{ext}"
+                    for kind, ext in (("rgb", ".png"), ("sharp", ".png"), ("mask", ".png"), ("motion", ".npy"))
+                }
                 sharp = render(world, cam_at(t), K, size, size, t)
                 frame_exposure = exposure if cam_id == 0 else 0.0
                 if frame_exposure > 0:
                     offsets = (np.arange(n_sub) + 0.5) / n_sub - 0.5  # midpoints of equal slices
-                    subs = [render(world, cam_at(t + o * dt * frame_exposure), K, size, size, t + o * dt * frame_exposure).color
-                            for o in offsets]
+                    subs = [
+                        render(world, cam_at(t + o * dt * frame_exposure), K, size, size, t + o * dt * frame_exposure).color
+                        for o in offsets
+                    ]
                     blurry = np.mean(subs, axis=0)
                 else:
                     blurry = sharp.color
@@ -120,26 +128,46 @@ def synthesize(
                 write_image(paths["sharp"], sharp.color)
                 write_mask(paths["mask"], np.isin(sharp.obj, list(dynamic)))
                 write_motion(paths["motion"], image_motion(world, sharp, cam_at, K, t, dt))
-                scene_frames.append(Frame(
-                    id=fid, image_path=paths["rgb"], time=t,
-                    camera=Camera(K=K.copy(), viewmat=cam_at(t), width=size, height=size),
-                    exposure=frame_exposure, split="train" if cam_id == 0 else "test", camera_id=cam_id,
-                    sharp_path=paths["sharp"], mask_path=paths["mask"], motion_path=paths["motion"],
-                ))
+                scene_frames.append(
+                    Frame(
+                        id=fid,
+                        image_path=paths["rgb"],
+                        time=t,
+                        camera=Camera(K=K.copy(), viewmat=cam_at(t), width=size, height=size),
+                        exposure=frame_exposure,
+                        split="train" if cam_id == 0 else "test",
+                        camera_id=cam_id,
+                        sharp_path=paths["sharp"],
+                        mask_path=paths["mask"],
+                        motion_path=paths["motion"],
+                    )
+                )
                 if cam_id == 0 and i in point_frames:
                     pts, cols = surface_points(world, sharp, cam_at(t), K, t, dynamic, keep_dynamic=True)
                     point_sets.append(pts)
                     color_sets.append(cols)
         scene_frames.sort(key=lambda f: (f.camera_id, f.time))
         scene = Scene(
-            name=out.name, root=tmp, frames=scene_frames,
-            points=np.concatenate(point_sets), point_colors=np.concatenate(color_sets),
+            name=out.name,
+            root=tmp,
+            frames=scene_frames,
+            points=np.concatenate(point_sets),
+            point_colors=np.concatenate(color_sets),
             source_format="synthetic",
-            extras={"fps": SYNTH_FPS,
-                    "generator": {"scene": name, "blur": blur, "exposure": exposure, "seed": seed, "size": size,
-                                  "frames": frames, "subframes": n_sub,
-                                  "dynamic_objects": [world.objects[k].name for k in sorted(dynamic)],
-                                  "points": "surface samples of the visible geometry in 5 frames (stands in for SfM)"}},
+            extras={
+                "fps": SYNTH_FPS,
+                "generator": {
+                    "scene": name,
+                    "blur": blur,
+                    "exposure": exposure,
+                    "seed": seed,
+                    "size": size,
+                    "frames": frames,
+                    "subframes": n_sub,
+                    "dynamic_objects": [world.objects[k].name for k in sorted(dynamic)],
+                    "points": "surface samples of the visible geometry in 5 frames (stands in for SfM)",
+                },
+            },
         )
         scene.normalize()
         scene.extras["normalized"] = True

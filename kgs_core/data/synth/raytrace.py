@@ -68,7 +68,7 @@ class DieTexture:
         }
         col = np.empty(uv.shape[:-1] + (3,))
         col[:] = (0.95, 0.93, 0.88)
-        border = (np.minimum(uv, 1 - uv).min(axis=-1) < 0.04)
+        border = np.minimum(uv, 1 - uv).min(axis=-1) < 0.04
         col[border] = (0.7, 0.15, 0.1)
         for f in range(6):
             sel = face == f

@@ -61,10 +61,12 @@ def room(seed: int) -> list[Object]:
     return [
         Object("floor", Plane(8, 8), Texture(seed + 10, (0.55, 0.45, 0.35), checker=16), static(np.eye(3), (0, 0, 0))),
         Object("back wall", Plane(8, 4), Texture(seed + 20, (0.45, 0.55, 0.6), checker=10), static(UPRIGHT, (0, 3, 2))),
-        Object("left wall", Plane(8, 4), Texture(seed + 30, (0.6, 0.5, 0.55), checker=10),
-               static(rot_z(math.pi / 2) @ UPRIGHT, (-3, 0, 2))),
-        Object("right wall", Plane(8, 4), Texture(seed + 40, (0.5, 0.6, 0.45), checker=10),
-               static(rot_z(-math.pi / 2) @ UPRIGHT, (3, 0, 2))),
+        Object(
+            "left wall", Plane(8, 4), Texture(seed + 30, (0.6, 0.5, 0.55), checker=10), static(rot_z(math.pi / 2) @ UPRIGHT, (-3, 0, 2))
+        ),
+        Object(
+            "right wall", Plane(8, 4), Texture(seed + 40, (0.5, 0.6, 0.45), checker=10), static(rot_z(-math.pi / 2) @ UPRIGHT, (3, 0, 2))
+        ),
     ]
 
 
@@ -129,8 +131,15 @@ def sheet(seed: int) -> list[Object]:
         hang = 0.25 + 0.75 * np.clip(0.5 - y / h, 0, 1)  # the top edge barely moves
         return 0.13 * np.sin(2 * math.pi * (1.1 * x - 1.5 * t)) * hang
 
-    return [Object("sheet", Sheet(w, h, amp, height_field), Texture(seed + 70, (0.8, 0.75, 0.3), checker=10, contrast=0.8),
-                   static(UPRIGHT, (0, 0.4, 0.8)), dynamic=True)]
+    return [
+        Object(
+            "sheet",
+            Sheet(w, h, amp, height_field),
+            Texture(seed + 70, (0.8, 0.75, 0.3), checker=10, contrast=0.8),
+            static(UPRIGHT, (0, 0.4, 0.8)),
+            dynamic=True,
+        )
+    ]
 
 
 def cross(seed: int) -> list[Object]:
@@ -141,8 +150,13 @@ def cross(seed: int) -> list[Object]:
         return rigid(rot_z(-2 * t), (1.3 - 2.6 * t, 0.5, 0.22))
 
     return [
-        Object("ball", Ellipsoid(lambda _t: np.array([0.25, 0.25, 0.25])), Texture(seed + 80, (0.9, 0.3, 0.3), checker=6),
-               ball_pose, dynamic=True),
+        Object(
+            "ball",
+            Ellipsoid(lambda _t: np.array([0.25, 0.25, 0.25])),
+            Texture(seed + 80, (0.9, 0.3, 0.3), checker=6),
+            ball_pose,
+            dynamic=True,
+        ),
         Object("box", Box((0.22, 0.22, 0.22)), Texture(seed + 90, (0.3, 0.8, 0.4), checker=4), box_pose, dynamic=True),
     ]
 
@@ -172,8 +186,12 @@ def spin(seed: int) -> list[Object]:
     def pose(t: float) -> np.ndarray:
         return rigid(rot_z(2 * math.pi * 3.0 * t), (-0.45 + 0.9 * t, -0.2, table_top + half[2]))
 
-    table = Object("table", Box((0.95, 0.55, table_top / 2)), Texture(seed + 140, (0.55, 0.4, 0.3), checker=2, contrast=0.35),
-                   static(np.eye(3), (0.0, -0.1, table_top / 2)))
+    table = Object(
+        "table",
+        Box((0.95, 0.55, table_top / 2)),
+        Texture(seed + 140, (0.55, 0.4, 0.3), checker=2, contrast=0.35),
+        static(np.eye(3), (0.0, -0.1, table_top / 2)),
+    )
     toy = Object("toy", Box(tuple(half)), Texture(seed + 150, (0.95, 0.8, 0.1), checker=3, contrast=0.7), pose, dynamic=True)
     return [table, toy]
 
@@ -197,8 +215,12 @@ def panel(seed: int, amplitude_deg: float = 20.0, size: float = 1.0) -> list[Obj
 def furniture(seed: int) -> list[Object]:
     return [
         Object("crate", Box((0.3, 0.25, 0.3)), Texture(seed + 100, (0.7, 0.5, 0.3), checker=5), static(rot_z(0.4), (-0.9, 0.9, 0.3))),
-        Object("globe", Ellipsoid(lambda _t: np.array([0.3, 0.3, 0.3])), Texture(seed + 110, (0.3, 0.5, 0.7), checker=8),
-               static(np.eye(3), (1.0, 1.0, 0.3))),
+        Object(
+            "globe",
+            Ellipsoid(lambda _t: np.array([0.3, 0.3, 0.3])),
+            Texture(seed + 110, (0.3, 0.5, 0.7), checker=8),
+            static(np.eye(3), (1.0, 1.0, 0.3)),
+        ),
     ]
 
 
