@@ -39,9 +39,8 @@ from .sfm import MAPPERS, run_sfm
 from .video import count_frames, decode_video, frame_rate
 
 AUTO_MAX_FRAMES = 300  # frames kept from a long video when no stride is given
-# Seconds per frame at 320 px on two cores (docs/results.md, "Ingest": walk, kitchen and kitchen
-# x2 end to end): decode and write, features, sequential matching, keyframe mapping with the lens
-# refit. Only for the estimate printed at the start.
+# Seconds per frame at 320 px on two cores by stage, measured end to end (docs/results.md,
+# "Ingest"); only for the estimate printed at the start.
 SECONDS_PER_FRAME_320 = {"decode": 0.018, "features": 0.024, "matching": 0.017, "mapping": 0.045}
 FIXED_CAMERA_FOV_DEG = 60.0  # assumed horizontal field of view when no SfM runs
 

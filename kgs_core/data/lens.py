@@ -75,9 +75,9 @@ def refine_lens(rec, iterations: int = LENS_ITERATIONS, probe: dict | None = Non
 
     `probe`: the same refit's report on a subset of the model (the keyframe model,
     `SfmResult.lens_probe`). Where it gained less than MIN_LENS_GAIN, the whole model is not
-    refitted: the keyframe probe's gain has followed the whole model's within half a point
-    where both are small, and exceeded it where they are large (walk: 16-18 % against 15 %), so
-    the whole refit would not be kept (the report keeps the probe under `probe`)."""
+    refitted: the keyframe probe's gain follows the whole model's where both are small and
+    exceeds it where they are large, so the whole refit would not be kept (docs/data.md,
+    "Ingest speed and pose quality"; the report keeps the probe under `probe`)."""
     import pycolmap
 
     if iterations < 1:
@@ -110,9 +110,8 @@ def refine_lens(rec, iterations: int = LENS_ITERATIONS, probe: dict | None = Non
     ba.refine_extra_params = True
     ba.print_summary = False
     use_iterative_schur(ba)
-    # A probe of LENS_PROBE_ITERATIONS first: where it gains less than a third of MIN_LENS_GAIN,
-    # the rest cannot reach it (on a 672-frame clip: 0.1 % after 5 iterations, 0.2 % after 10;
-    # on walk 13.9 % and 15.0 %), and stopping there saves half the refit's 13 s.
+    # A probe of LENS_PROBE_ITERATIONS first: where it gains less than a third of MIN_LENS_GAIN
+    # the rest cannot reach it, and stopping there saves half the refit.
     done = 0
     for run in (min(LENS_PROBE_ITERATIONS, iterations), iterations - LENS_PROBE_ITERATIONS):
         if run <= 0:

@@ -100,11 +100,9 @@ def extract_and_match(db: Path, images: Path, names_a: list[str], names_b: list[
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     verification = pycolmap.TwoViewGeometryOptions()
-    # Most of matching's time is the geometric verification's RANSAC, and most of that was its
-    # floor of 100 trials: neighbouring video frames share most of their matches, where the
-    # 99.9 % confidence needs a handful of trials. With a floor of 20 (the confidence rule still
-    # decides above it) matching kitchen x2's 5,697 pairs took 15 s against 28 s, and the same
-    # pairs verified with the same inliers (5,502 and 498k against 5,497 and 499k; docs/data.md).
+    # Neighbouring video frames share most of their matches, where the confidence rule needs a
+    # handful of RANSAC trials: COLMAP's floor of 100 was most of matching's time, and a floor
+    # of 20 verifies the same pairs (docs/data.md, "Ingest speed and pose quality").
     verification.ransac.min_num_trials = 20
     announce("matching")
     if progress:
@@ -229,7 +227,7 @@ def map_keyframes(
     (out / "keyframes").mkdir(parents=True, exist_ok=True)
     opts = _pipeline_options(pycolmap.IncrementalPipelineOptions, keyframes, seed)
     # Small enough for a short clip's keyframes, large enough that the mapper discards a stray
-    # fragment and tries another start instead of keeping it (3 split kitchen into 3-image models).
+    # fragment and tries another start instead of keeping it (3 kept 3-image fragments).
     opts.min_model_size = min(10, max(3, len(keyframes) // 2))
     # A keyframe graph that falls apart makes the mapper start model after model from new initial
     # pairs (196 discarded models in one 336 + 336 frame ingest, minutes instead of seconds).
@@ -350,8 +348,7 @@ def _register_rest(d, model, images: list, progress: bool) -> tuple[dict, list[i
     posed in earlier passes, through the 3D points of their PnP inliers. Sequential matching
     pairs a frame only with the frames a power of two positions away, so with keyframes every 8th
     frame, a frame 3 or 5 frames from both neighbouring keyframes shares no verified pair with
-    either (a quarter of kitchen x2's frames), but it does with the frames 1 or 2 away, which the
-    first pass poses."""
+    either, but it does with the frames 1 or 2 away, which the first pass poses."""
     partners = _verified_partners(d)
     observed = {}  # (posed image id, keypoint index) -> 3D point id
     for im in model.images.values():
@@ -471,11 +468,9 @@ def run_sfm(
         posed = {im.name for im in rec.images.values() if im.has_pose} if rec is not None else set()
         fraction = sum(n in posed for n in names_a) / max(len(names_a), 1)
         if mapper == "auto" and name == "keyframes" and seed == 0 and fraction < min_registered and (rec is not None or error is not None):
-            # Whether a keyframe graph falls apart or falls short depends on the mapper's seed as
-            # much as on the frames: on one kitchen x2 frame set seeds 0 and 1 gave fragments, 2
-            # and 3 a model of all 168 keyframes, in 13-16 s, where the denser keyframes and the
-            # incremental mapper took minutes (docs/data.md, "Ingest speed and pose quality"). Keyframes that
-            # formed no model at all (too few of them) are not retried.
+            # Whether a keyframe graph falls apart depends on the mapper's seed as much as on the
+            # frames, and another seed costs seconds where the fallbacks cost minutes (docs/data.md,
+            # "Ingest speed and pose quality"). Keyframes that formed no model (too few) are not retried.
             order.insert(0, (name, step, KEYFRAME_RETRY_SEED))
         attempts.append(
             {

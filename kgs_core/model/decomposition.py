@@ -62,8 +62,8 @@ class Decomposition:
         difference of its time-averaged offsets, so that on average over the clip it renders
         where it did. Without it a dynamic Gaussian that turns static jumps by its mean offset:
         K measures how much the offset varies, not how large it is, and on real footage the
-        field's mean offsets (median 0.14 scene units on walk, about 90 px) are larger than
-        their variation (docs/method.md, "Decompositions in place")."""
+        field's mean offsets are larger than their variation (docs/method.md, "Decompositions
+        in place")."""
         if tau is not None:
             self.config.tau = tau
         if recompute:
@@ -134,9 +134,9 @@ def otsu_tau(K: Tensor, floor: float, bins: int = 128) -> float:
     """A decomposition threshold picked from the distribution of K: Otsu's threshold on log10 K (the
     cut that best separates the still mode from the moving tail), never below `floor` (the
     fixed τ, which says what "still" means for a clean scene). On real footage the field also
-    absorbs residual pose error and noise, so every Gaussian's K sits well above a fixed τ
-    (walk: a mode at an RMS image motion of 2.6 px) and a fixed τ calls 93-99 % of them
-    dynamic; the moving objects are the tail above that mode."""
+    absorbs residual pose error and noise, so almost every Gaussian's K sits above a fixed τ;
+    the moving objects are the tail above that mode (docs/method.md, "Settings
+    that follow the scene")."""
     lk = torch.log10(K.double().clamp_min(1e-12))
     if len(lk) < 2 or float(lk.max() - lk.min()) < 1e-9:
         return floor

@@ -73,12 +73,11 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             "kappa": [self.kappa],
         }
 
-    # Per-Gaussian state (parameters with their Adam moments, dynamic flags, K, lifespans, own
-    # velocities, a strategy's statistics) is resized in lock-step by `keep_gaussians` and
-    # `add_gaussians` only, C.F.'s graph included: carried, not rebuilt, since each fine residual
-    # is fitted to its neighbours' offsets (docs/real-footage.md, "The paper preset on walk").
-    # The per-Gaussian state, read and written by name (the decomposition sets `dynamic`, spawning
-    # `lifespan`); resized only through `set_params`, `keep_gaussians`, `add_gaussians`. Setting
+    # The per-Gaussian state (model/per_gaussian.py), read and written by name (the decomposition
+    # sets `dynamic`, spawning `lifespan`), is resized in lock-step with the parameters, their
+    # Adam moments and a strategy's statistics only through `set_params`, `keep_gaussians` and
+    # `add_gaussians`, C.F.'s graph included: carried, not rebuilt, since each fine residual is
+    # fitted to its neighbours' offsets (docs/real-footage.md, "The paper preset on walk"). Setting
     # a field makes a new container, so that a shallow copy of the model (the server's τ copies)
     # never writes into the container it shares with the original.
     dynamic = property(lambda self: self.per_gaussian.dynamic, lambda self, v: self._set_state(dynamic=v))
@@ -160,8 +159,8 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
         if noise > 0:
             tt[0] = tt[0] + noise * torch.randn(n)
         # The field is evaluated for the rows that read it: under "own" not for the spawned
-        # Gaussians (on walk three quarters of the dynamic set at the end of training), whose
-        # rows stay zero here and are replaced by their own line in `_spawned_offsets`.
+        # Gaussians (on real footage most of the dynamic set by the end), whose rows stay zero
+        # here and are replaced by their own line in `_spawned_offsets`.
         own = self.lifespan[idx, 1].isfinite() if self.config.spawned_motion == "own" else None
         rows = None if own is None or not own.any() else torch.nonzero(~own).squeeze(1)
         field_idx, field_tt = (idx, tt) if rows is None else (idx[rows], [t[rows] for t in tt])

@@ -159,8 +159,8 @@ class TrainConfig:
     # At this fraction of the iterations (after the decomposition, so that K.R. has trained a while)
     # K.R.'s effect on the training renders is measured (`evaluate.kr_effect`), and K.R. is
     # turned off for the rest of the run when its blur does next to nothing: then its velocity
-    # samples are pure cost (walk: the same scores in 16 % less time; docs/real-footage.md,
-    # "What K.R.'s blur does on real footage"). 0 never checks.
+    # samples are pure cost (docs/real-footage.md, "What K.R.'s blur does on real footage").
+    # 0 never checks.
     kr_check_at: float = 0.4
     # At every decomposition, a Gaussian that K calls static but that sits on pixels the optical flow
     # shows moving on their own, where no K-dynamic Gaussian draws, in at least this share of
@@ -234,11 +234,9 @@ class TrainConfig:
         )
 
 
-# Both presets' Gaussian budget on the 128² demo (fit_to_scene scales it with the pixel
-# count). For the paper preset: the paper ends with 33-62k Gaussians on its BARD-GS scenes at
-# full resolution (its appendix table); without a tighter budget than the 500k once used here,
-# densification reached 280k on walk at 320 px by iteration 8,500 and a two-core step grew to
-# 3-4 s (docs/real-footage.md, "The paper preset on walk").
+# Both presets' Gaussian budget on the 128² demo (fit_to_scene scales it with the pixel count):
+# near the paper's own final counts, where an unbounded paper preset grew until a two-core step
+# took seconds (docs/real-footage.md, "The paper preset on walk").
 MAX_GAUSSIANS = 30_000
 
 

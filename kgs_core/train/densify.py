@@ -84,9 +84,8 @@ class DensifyStrategy:
         is an opacity-reset count: each logit at most logit(0.01) less what it gains at its
         most opaque time (`KinematicsGS.peak_opacity_offsets`). Capping the logit alone
         would leave a dynamic Gaussian that the time opacity fades at every time below the
-        rasteriser's 1/255, where it gets no gradient and never comes back: on kitchen, one
-        seed in five lost every moving Gaussian that way, and the person became a ghost of
-        static ones (docs/real-footage.md, "The opacity reset")."""
+        rasteriser's 1/255, where it gets no gradient and never comes back, and a moving
+        person became a ghost of static Gaussians (docs/real-footage.md, "The opacity reset")."""
         if it in self.opacity_reset_at:
             op = model.params.opacity_logits.detach()
             cap = torch.logit(torch.tensor(0.01)) - model.peak_opacity_offsets()

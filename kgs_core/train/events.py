@@ -67,7 +67,7 @@ class ScheduleEvents:
         if len(seen) == 0:
             return
         # Only frames with a flow to the next one of their camera: without it nothing says what
-        # moves on its own, and ungated spawning filled kitchen's not-yet-fitted background
+        # moves on its own, and ungated spawning filled a not-yet-fitted background
         # (docs/real-footage.md, "Spawned Gaussians"). So each camera's last frame gets none.
         has_next = torch.tensor([f.id in self.flows for f in self.scene.train_frames])
         loss = torch.where(has_next, loss, torch.full_like(loss, -1.0))

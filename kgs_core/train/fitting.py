@@ -18,11 +18,10 @@ REFERENCE_FRAMES = 60
 # 0.62 px there. fit_to_scene converts this into each scene's units, so that "dynamic" means the
 # same image motion on every scene (docs/method.md).
 TAU_RMS_PX = 0.62
-# FLoD's first-level minimum scale as a fraction of the image width: the 0.02 normalised units
-# the paper preset starts from are 2.8 px on the 128-px demo scene (138.6 px per unit). In units
-# it does not transfer: on walk at 320 px the same 0.02 is 16 px, so the levels that densify
-# (the first three) would keep every Gaussian 4-16 px wide (docs/real-footage.md, "The paper
-# preset on walk").
+# FLoD's first-level minimum scale as a fraction of the image width (the paper preset's 0.02
+# normalised units on the demo scene): in scene units it does not transfer, and on real footage
+# the levels that densify would keep every Gaussian many pixels wide (docs/real-footage.md,
+# "The paper preset on walk").
 LOD_LAMBDA_WIDTH = 0.0217
 MAX_ITERATION_SCALE = 4.0
 # The flow term's weight on real footage (a video ingest): the best of the weights measured,

@@ -12,8 +12,8 @@ moves on its own where the flow differs from the motion the rendered scene would
 stood still (`spawn.independent_motion`) by more than FLOW_VOTE_PX and by more than
 FLOW_VOTE_RELATIVE of that still motion. The relative test is what makes it usable on real
 footage: a hand-held pan's depth errors move the predicted still motion in proportion to it,
-and at an absolute pixel the test marked 10-30 % of kitchen's pixels as moving (the person is
-5 %). Of those pixels it keeps the ones that the Gaussians K already calls dynamic cover under
+and at an absolute pixel the test marked several times the moving person's pixels as moving.
+Of those pixels it keeps the ones that the Gaussians K already calls dynamic cover under
 half, in solid regions (`spawn.large_regions`); a Gaussian that K leaves static and that sits on
 such pixels in at least `share` of the sampled frames where it is visible becomes dynamic (at
 a re-decomposition: stays dynamic, and on the synthetic scenes' two-way re-decompositions also turns dynamic,

@@ -78,8 +78,7 @@ class Objective:
           baseline throughout), a Gaussian on its own line (`spawned_motion="own"`) moves by its
           `own_velocity`, and every other one is read as standing still, so that the flow
           asks for the depth whose parallax explains it. Reading the field at the next time
-          instead was measured no better on walk (two seeds and the benchmark) and 18 % slower
-          (docs/real-footage.md, "An optical-flow term")."""
+          instead measured no better and slower (docs/real-footage.md, "An optical-flow term")."""
         j, flow = self.flows[frame.id]
         nxt = self.scene.train_frames[j]
         model = self.model

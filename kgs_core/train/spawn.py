@@ -1,8 +1,8 @@
 """Dynamic Gaussians spawned where a training frame stays unexplained (`spawn_frames`, 0: off).
 
 The photometric loss moves a Gaussian only while its splat overlaps the pixels it should
-explain. When the Gaussians that followed a moving object drift off it (on walk, the person in
-the last quarter of the clip, docs/real-footage.md), nothing brings them back: the static
+explain. When the Gaussians that followed a moving object drift off it (docs/real-footage.md,
+"Spawned Gaussians"), nothing brings them back: the static
 background fills those pixels, and 3DGS densification, which clones Gaussians with large
 position gradients, has nothing there to clone. This step adds what is missing where it is
 missing: in the training frames that fit worst, at pixels the render still gets wrong where the
