@@ -166,15 +166,19 @@ def test_settings_follow_the_clip(walk):
     # 0.02 is 16 px on walk at 320 px), fitted only where there is more than one level.
     from kgs_core.train.fitting import LOD_LAMBDA_WIDTH
 
-    # A video ingest trains the paper preset with one level (FLoD misplaced kitchen's person at the
-    # sharp camera); five levels when asked for, with the first one's scale fitted.
+    # The paper preset is the paper as written on a video ingest too: five levels (the first
+    # one's scale fitted: the paper leaves λ open), τ = 2e-5 fixed, K.R. by eqs. 9-19 on the
+    # predicted Σ, none of the additions the fast preset fits to real footage.
     paper = make_config("paper", scene=walk)
-    assert paper.lod_levels == 1 and paper.lod_fractions == (1.0,) and "lod_levels" in paper.fitted
-    assert "lod_lambda" not in paper.fitted
-    five = make_config("paper", scene=walk, lod_levels=5)
-    assert five.lod_levels == 5 and "lod_levels" not in five.fitted
-    # Levels laid out by hand are kept too.
-    assert make_config("paper", scene=walk, lod_fractions=(0.5, 1.0)).lod_levels == 5
+    five = paper
+    assert paper.lod_levels == 5 and "lod_levels" not in paper.fitted and "lod_lambda" in paper.fitted
+    assert paper.model.tau == 2e-5 and not paper.tau_auto and "model.tau" not in paper.fitted
+    assert (paper.model.kr_form, paper.model.kr_inputs, paper.model.velocity) == ("paper", "predicted", "paper")
+    assert paper.lambda_flow == 0 and paper.spawn_frames == 0 and paper.flow_vote_share == 0
+    assert not paper.model.time_opacity and paper.camera_blur == "off" and paper.kr_check_at == 0
+    assert paper.reg_static_samples > 0 and paper.noise_until <= paper.decompose_at / paper.iterations
+    assert paper.model.deform_temporal == 25 and not paper.decompose_in_place
+    assert make_config("paper", scene=walk, lod_levels=1).lod_levels == 1
     width = walk.train_frames[0].camera.width
     assert five.lod_lambda * ppu == pytest.approx(LOD_LAMBDA_WIDTH * width, rel=1e-2) and "lod_lambda" in five.fitted
     assert "lod_lambda" not in cfg.fitted and cfg.lod_lambda == make_config("fast").lod_lambda

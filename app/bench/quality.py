@@ -151,6 +151,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=0, help="scene and training seed")
     ap.add_argument("--iterations", type=int, default=600, help="iterations of the first configuration")
     ap.add_argument(
+        "--preset",
+        default="fast",
+        choices=["fast", "paper"],
+        help="the preset every configuration starts from (paper: the paper as written, its schedule scaled to --iterations)",
+    )
+    ap.add_argument(
         "--budget",
         default="time",
         choices=["time", "iterations"],
@@ -260,7 +266,7 @@ def main(argv: list[str]) -> int:
     )
     scene = load_scene(folder)
     print(
-        f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, fast preset, "
+        f"# {args.scene} {args.size}^2, {args.frames} frames, {args.blur} blur, seed {args.seed}, {args.preset} preset, "
         f"{args.iterations} iterations for {names[0]}, same {args.budget} for the others; "
         f"{machine()}"
     )
@@ -283,7 +289,7 @@ def main(argv: list[str]) -> int:
         over = config_overrides(name)
         ablate = over.pop("ablate", ())
         cfg = make_config(
-            "fast", ablate=ablate, iterations=iterations, eval_every=max(iterations // 10, 1), seed=args.seed, **over
+            args.preset, ablate=ablate, iterations=iterations, eval_every=max(iterations // 10, 1), seed=args.seed, **over
         )  # a curve, not three points
         run_dir = root / (config_slug(name) + suffix)
         return Trainer(scene, run_dir, cfg, progress=False)

@@ -11,6 +11,7 @@ from .kinematics import Basis
 
 Velocity = Literal["paper", "physical"]
 KRForm = Literal["convolve", "paper"]
+KRInputs = Literal["canonical", "predicted"]
 SpawnedMotion = Literal["own", "field"]
 
 
@@ -42,8 +43,13 @@ class ModelConfig:
     # covariance) or "paper" (eqs. 9-14: projection onto the kinematic frame, sigma_z + eta |v| dt e).
     # convolve is the default because it measured better on every scene (docs/method.md).
     kr_form: KRForm = "convolve"
+    # The paper form's inputs: "predicted", the paper's (Σ the covariance the field predicts,
+    # R(q) exp(δr) and s exp(λ_s δs), r_z that prediction's axis of largest scale, with its
+    # gradient); "canonical", Σ the canonical covariance and r_z its axis, detached, so that δr
+    # and δs act once (docs/method.md, "The paper preset").
+    kr_inputs: KRInputs = "canonical"
     lambda_s: float = 0.1
-    still_len: float = 1e-3  # per-frame motion below which the kinematic frame fades out
+    still_len: float = 1e-3  # per-frame motion below which the kinematic frame fades out (0: never)
     kappa_init: float = -2.0  # sigmoid(-2) = 0.12: the lower bound of eta
     deform_spatial: int = 64
     deform_temporal: int = 25

@@ -21,7 +21,7 @@ from .config import ModelConfig
 from .decomposition import Decomposition
 from .deformation import DeformationField, FineResidual, Offsets, TimeOpacity
 from .gaussians import GaussianParams, GaussiansAt, append, presence, select
-from .kinematics import motion_blur_covariance, refine_covariance, residual_covariance, safe_norm, velocity_from_offsets
+from .kinematics import motion_blur_covariance, refine_covariance, residual_covariance, safe_norm, so3_exp, velocity_from_offsets
 from .neighbours import NeighbourGraph, checked_knn
 from .per_gaussian import PerGaussian, check_rows
 
@@ -382,8 +382,8 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
           `+ (dt e)^2 / 12 v_rel v_rel^T`, `v_rel` being `v` plus the camera's own motion when
           `camera_motion` is given; sweep `v_rel dt e` when `e > 0`.
         - K.R., `kr_form="paper"`: velocity as above; covariance by eqs. 9-14 in the `basis`
-          frame (`refine_covariance`: `basis` matters only here); `camera_motion` ignored; no
-          sweep.
+          frame (`refine_covariance`: `basis` matters only here) from `kr_inputs`' Σ and r_z;
+          `camera_motion` ignored; no sweep.
         - K.R., convolve, `e = 0`, `velocity=False`: velocity None (not computed); covariance
           residual (what the convolve form gives at `e = 0`); no sweep.
 
@@ -417,8 +417,12 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
                 sweep = None
         elif kinematic:
             speed = safe_norm(v)
-            R = quat_to_rotmat(quats)
-            r_z = torch.gather(R, 2, scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
+            if cfg.kr_inputs == "predicted":  # the field's prediction: R(q) exp(dr), s exp(lambda_s ds)
+                R, axis_scales = quat_to_rotmat(quats) @ so3_exp(off.dr), scales * torch.exp(cfg.lambda_s * off.ds)
+                cov6_pred = residual_covariance(quats, scales, off, cfg.lambda_s)
+            else:
+                R, axis_scales = quat_to_rotmat(quats).detach(), scales.detach()
+            r_z = torch.gather(R, 2, axis_scales.argmax(-1)[:, None, None].expand(-1, 3, 1)).squeeze(-1)
             cov6 = pack_covariance(
                 refine_covariance(
                     unpack_covariance(cov6_pred),
@@ -426,7 +430,7 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
                     speed * dt * exposure,
                     off.ds,
                     off.dr,
-                    r_z.detach(),
+                    r_z,
                     self.kappa,
                     speed * dt,
                     basis=cfg.basis,

@@ -153,7 +153,8 @@ def refine_covariance(
         kappa: scalar; `sigmoid(kappa)` is the lower bound of the alignment factor eta.
         frame_len: `(N,)` `|v| dt`, how far the Gaussian moves in one frame.
         still_len: below this per-frame motion the velocity direction is noise, so the result
-            blends toward `sigma` with weight `frame_len^2 / (frame_len^2 + still_len^2)`.
+            blends toward `sigma` with weight `frame_len^2 / (frame_len^2 + still_len^2)`; 0:
+            no blend (the paper's).
 
     Steps (paper eqs. 9-14): `sigma_k^2 = u_k^T Sigma u_k`; `s' = (sigma_x, sigma_y, sigma_z +
     eta * blur_len)`; `eta = max(|r_z . u_z|, sigmoid(kappa))`; `log s = log s' + lambda_s *
@@ -169,6 +170,8 @@ def refine_covariance(
     R = Rk @ so3_exp(delta_r)
     M = R * torch.exp(log_s)[..., None, :]
     sigma_kin = M @ M.transpose(-1, -2)
+    if still_len <= 0:
+        return sigma_kin
     w = (frame_len * frame_len / (frame_len * frame_len + still_len * still_len))[..., None, None]
     return (1 - w) * sigma + w * sigma_kin
 

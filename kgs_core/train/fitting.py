@@ -51,11 +51,12 @@ def fitted_iterations(scene, iterations: int = FAST_ITERATIONS) -> tuple[int, st
     return n, (f"{n}: {n_frames} frames of {cam.width}x{cam.height} are {scale:.2f}^2 times the demo's {REFERENCE_FRAMES} of 128x128")
 
 
-def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
+def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = True) -> TrainConfig:
     """The settings that follow the scene instead of a constant, each skipped when given in
     `explicit` (so the command line can override every choice); each choice and its reason go
     into `cfg.fitted`, which run.json keeps. (The fast preset's iteration count is fitted
-    before the preset lays out its schedule: `fitted_iterations`.)
+    before the preset lays out its schedule: `fitted_iterations`.) `additions=False` (the paper
+    preset) fits only the Gaussian budget and FLoD's first scale, which the paper leaves open.
 
     * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
     * model.deform_temporal: at least one temporal cell per four frames;
@@ -83,12 +84,23 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
         cfg.densify = replace(cfg.densify, max_gaussians=budget)
         fitted["densify.max_gaussians"] = f"{budget}: the preset's budget x sqrt({pixels} px / 128^2)"
     m = cfg.model
+    ppu = scene_pixels_per_unit(scene)
+    if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
+        px = LOD_LAMBDA_WIDTH * cam.width
+        cfg.lod_lambda = float(f"{px / ppu:.3g}")
+        fitted["lod_lambda"] = (
+            f"{cfg.lod_lambda:.3g}: FLoD's first level at a minimum scale of {px:.1f} px "
+            f"({LOD_LAMBDA_WIDTH:.2%} of the image width, as on the demo) at {ppu:.0f} px per "
+            "scene unit"
+        )
+    if not additions:
+        cfg.fitted = fitted
+        return cfg
     if "model.deform_temporal" not in explicit and m.deform_temporal < n_frames // 4:
         cfg.model = m = replace(m, deform_temporal=min(n_frames // 4, 128))
         fitted["model.deform_temporal"] = f"{m.deform_temporal}: one temporal cell per four of {n_frames} frames"
     if "model.tau" in explicit and "tau_auto" not in explicit:
         cfg.tau_auto = False  # a τ given by hand is the τ used
-    ppu = scene_pixels_per_unit(scene)
     if "model.tau" not in explicit and ppu is not None:
         cfg.model = m = replace(m, tau=float(f"{(TAU_RMS_PX / ppu) ** 2:.3g}"))
         fitted["model.tau"] = (
@@ -102,14 +114,6 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str]) -> TrainConfig:
             "1: a video ingest; FLoD's coarse levels misplaced a real clip's moving person at the "
             "second camera and the finer levels kept it there (docs/real-footage.md; "
             "--set lod_levels=5 keeps the paper's five)"
-        )
-    if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
-        px = LOD_LAMBDA_WIDTH * cam.width
-        cfg.lod_lambda = float(f"{px / ppu:.3g}")
-        fitted["lod_lambda"] = (
-            f"{cfg.lod_lambda:.3g}: FLoD's first level at a minimum scale of {px:.1f} px "
-            f"({LOD_LAMBDA_WIDTH:.2%} of the image width, as on the demo) at {ppu:.0f} px per "
-            "scene unit"
         )
     if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and video:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
