@@ -78,8 +78,13 @@ export const editing = {
   },
 
   // How `picked` changes the selection: the mode menu, or Shift (add) and Alt (subtract).
-  combine(picked, e = null) {
-    const mode = e && e.altKey ? "subtract" : e && e.shiftKey ? "add" : $("sel-mode").value;
+  // The selection mode a pointer event asks for: Alt subtracts, Shift adds, else the menu's.
+  selectionMode(e = null) {
+    return e && e.altKey ? "subtract" : e && e.shiftKey ? "add" : $("sel-mode").value;
+  },
+
+  // `picked` combined with the selection by `mode` ("replace", "add" or "subtract").
+  combine(picked, mode) {
     if (mode === "add") return new Set([...this.selected, ...picked]);
     if (mode === "subtract") return new Set([...this.selected].filter((i) => !picked.has(i)));
     return picked;
@@ -92,7 +97,7 @@ export const editing = {
 
   // The moving object under canvas pixel (u, v): the nearest visible splat within a few pixels,
   // then every dynamic Gaussian connected to it (the server's select-object).
-  async selectObjectAt(u, v, e = null) {
+  async selectObjectAt(u, v, mode = this.selectionMode()) {
     const r = 8;
     const hits = this.pick((a, b) => (a - u) ** 2 + (b - v) ** 2 <= r * r, true);
     const d = this.dynamic;
@@ -101,7 +106,7 @@ export const editing = {
     if (!seed) { this.status("no moving object under the cursor"); return 0; }
     const res = await api(`/api/runs/${this.runId}/select-object`, { method: "POST",
       body: { index: seed[0], t: this.t, lod: this.lod } });
-    this.setSelection(this.combine(new Set(res.indices), e));
+    this.setSelection(this.combine(new Set(res.indices), mode));
     this.status(`object: ${res.indices.length.toLocaleString()} moving Gaussians`);
     return res.indices.length;
   },
@@ -112,7 +117,7 @@ export const editing = {
     const u = (e.clientX - r.left) * sx, v = (e.clientY - r.top) * sy;
     const box = $("select-box");
     if (this.tool === "object") {
-      if (phase === "up") this.selectObjectAt(u, v, e);
+      if (phase === "up") this.selectObjectAt(u, v, this.selectionMode(e));
       return;
     }
     if (this.tool === "box") {
@@ -123,14 +128,15 @@ export const editing = {
                                  width: `${Math.abs(u - u0) / sx}px`, height: `${Math.abs(v - v0) / sy}px` });
       if (phase === "up") {
         box.style.display = "none";
-        this.selectBox(u0, v0, u, v, e);
+        this.selectBox(u0, v0, u, v, this.selectionMode(e));
         this.boxStart = null;
       }
     } else if (this.tool === "brush") {
       if (phase === "down") {  // a stroke in "replace" starts a new selection, then grows it
         this.brushing = true;
-        this.brushSubtract = e.altKey || (!e.shiftKey && $("sel-mode").value === "subtract");
-        if (!e.altKey && !e.shiftKey && $("sel-mode").value === "replace") this.selected = new Set();
+        const mode = this.selectionMode(e);
+        this.brushSubtract = mode === "subtract";
+        if (mode === "replace") this.selected = new Set();
       }
       if (phase === "up") this.brushing = false;
       if (!this.brushing) return;
@@ -141,12 +147,11 @@ export const editing = {
     }
   },
 
-  // `e`: the pointer event (its Shift and Alt), or a mode name ("replace", "add", "subtract").
-  selectBox(u0, v0, u1, v1, e = null) {
+  // The Gaussians in a canvas box, combined with the selection by `mode`.
+  selectBox(u0, v0, u1, v1, mode = this.selectionMode()) {
     const [a0, a1] = [Math.min(u0, u1), Math.max(u0, u1)], [b0, b1] = [Math.min(v0, v1), Math.max(v0, v1)];
     const picked = this.pick((u, v) => u >= a0 && u <= a1 && v >= b0 && v <= b1);
-    const how = typeof e === "string" ? { shiftKey: e === "add", altKey: e === "subtract" } : e;
-    this.setSelection(this.combine(picked, how));
+    this.setSelection(this.combine(picked, mode));
     return picked.size;
   },
 
