@@ -1,7 +1,7 @@
 """Every change to a saved layout, in one place: run.json (`migrate_run_json`), its training
 configuration (`config`, `migrate_config`), the model configuration (`config.model`, model.pt's
-`config`, `migrate_model_config`) and a saved model's state (model.pt, checkpoints:
-`migrate_model_state`), read back whatever version wrote them.
+`config`, `migrate_model_config`) and a saved model (model.pt, checkpoints:
+`migrate_saved_model`), read back whatever version wrote them.
 
 run.json carries `format_version`; each configuration `config_version` from version 1 on (a
 dict without one is version 0, every run saved before the number existed). Each function steps
@@ -108,31 +108,27 @@ def migrate_config(d: dict) -> dict:
     return d
 
 
-def migrate_model_state(state: dict, version: int | None = None) -> dict:
-    """A saved model's state (`KinematicsGS.state`) or a level snapshot of any version, its
-    per-Gaussian fields under their current names; the version is its model configuration's
-    (a snapshot, which has none, takes its model's: `version`)."""
-    if version is None:
-        config = state.get("config")
-        version = config.get("config_version", 0) if isinstance(config, dict) else CONFIG_VERSION
-    return _renamed(state, STATE_RENAMES) if isinstance(version, int) and version < 2 else state
+def _model_version(state: dict) -> int:
+    """The layout version of a saved model state: its model configuration's (a state is saved
+    with its configuration); a config without a number is version 0."""
+    config = state.get("config")
+    version = config.get("config_version", 0) if isinstance(config, dict) else CONFIG_VERSION
+    return version if isinstance(version, int) else CONFIG_VERSION
 
 
 def migrate_saved_model(saved: dict) -> dict:
-    """model.pt or a checkpoint (`{"model": state, "levels": [snapshot, ...], ...}`) with the
-    model, its level snapshots and a checkpoint's records in the current layout."""
+    """model.pt or a checkpoint (`{"model": state, "levels": [snapshot, ...], ...}`) in the
+    current layout: the model's and every level snapshot's per-Gaussian fields under their
+    current names, and a checkpoint's copy of run.json's records. The one place a saved model
+    is upgraded: `KinematicsGS.from_state` reads the current layout."""
     model = saved.get("model")
-    if not isinstance(model, dict):
+    if not isinstance(model, dict) or _model_version(model) >= 2:
         return saved
-    config = model.get("config")
-    version = config.get("config_version", 0) if isinstance(config, dict) else CONFIG_VERSION
     levels = saved.get("levels")
-    if isinstance(version, int) and version < 2:
-        saved = _renamed(saved, RUN_JSON_RENAMES)  # a checkpoint's copy of run.json's records
     return {
-        **saved,
-        "model": migrate_model_state(model, version),
-        "levels": [migrate_model_state(s, version) if isinstance(s, dict) else s for s in levels] if isinstance(levels, list) else levels,
+        **_renamed(saved, RUN_JSON_RENAMES),
+        "model": _renamed(model, STATE_RENAMES),
+        "levels": [_renamed(s, STATE_RENAMES) if isinstance(s, dict) else s for s in levels] if isinstance(levels, list) else levels,
     }
 
 

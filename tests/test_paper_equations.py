@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from kgs_core.model.kinematics import kinematic_basis, refine_covariance
 
@@ -213,7 +214,7 @@ def test_the_paper_form_reads_the_inputs_the_paper_names(tmp_path, inputs):
         got = m.at(t, exposure=e, dt=dt)
         dyn = torch.nonzero(m.dynamic).squeeze(1)
         off = m.offsets(dyn, t)
-        R0 = quat_rotmat_np(m.params.quats[dyn].double().numpy())
+        R0 = Rotation.from_quat(m.params.quats[dyn].double().numpy()[:, [1, 2, 3, 0]]).as_matrix()  # scipy: xyzw
         s0 = m.scales()[dyn].double().numpy()
         kappa = float(m.kappa)
     dx, dr, ds = (x.double().numpy() for x in (off.dx, off.dr, off.ds))
@@ -228,13 +229,3 @@ def test_the_paper_form_reads_the_inputs_the_paper_names(tmp_path, inputs):
     other = "canonical" if inputs == "predicted" else "predicted"
     np.testing.assert_allclose(cov, np.stack(want[inputs]), rtol=2e-3, atol=1e-9)
     assert np.abs(cov - np.stack(want[other])).max() > 100 * np.abs(cov - np.stack(want[inputs])).max()
-
-
-def quat_rotmat_np(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices from wxyz quaternions (normalised), written out for the test."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    rows = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]  # fmt: skip
-    return np.stack([np.stack(r, -1) for r in rows], -2)

@@ -472,9 +472,6 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
 
     @classmethod
     def from_state(cls, state: dict) -> "KinematicsGS":
-        from ..migrations import migrate_model_state
-
-        state = migrate_model_state(state)  # a model saved by an older version
         params = GaussianParams(**{k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
         n = len(params)
         check_rows(params.items(), n, "params.")
