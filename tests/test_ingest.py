@@ -172,7 +172,7 @@ def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tm
     the keyframes are every 2nd frame (8 of 16: four keyframes formed a model only some of the
     time) and the pairs of frames 3, 7, 11 and 15 with every keyframe are hidden; their pairs
     with frames 1, 5, 9 and 13, which the first pass poses, are not."""
-    from kgs_core.data import sfm
+    from kgs_core.data import register, sfm
     from kgs_core.data.frame_cache import frame_set
 
     monkeypatch.setattr(sfm, "MIN_KEYFRAMES", 0)
@@ -181,7 +181,7 @@ def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tm
     names = meta["names_a"]
     with sfm._open_db(folder / "database.db") as d:
         index = {im.image_id: names.index(im.name) for im in d.read_all_images()}
-    real = sfm._verified_partners
+    real = register.verified_partners
 
     def hidden(i, j):
         return index[i] % 4 == 3 and index[j] % 2 == 0
@@ -189,7 +189,7 @@ def test_frames_without_a_keyframe_pair_are_posed_in_a_later_pass(room_video, tm
     def without_keyframe_pairs(d):
         return {i: [j for j in js if not (hidden(i, j) or hidden(j, i))] for i, js in real(d).items()}
 
-    monkeypatch.setattr(sfm, "_verified_partners", without_keyframe_pairs)
+    monkeypatch.setattr(register, "verified_partners", without_keyframe_pairs)
     stages = {}
     rec = sfm.map_keyframes(folder / "database.db", folder / "images", tmp_path / "work", names, [], 2, progress=False, stages=stages)
     assert rec.num_reg_images() == len(names)
@@ -438,3 +438,45 @@ def test_lens_refit_follows_the_keyframe_probe():
     # A probe without a result (its adjustment failed) decides nothing.
     assert lens_gain({"before_px": 1.0, "kept": False, "reason": "the adjustment failed"}) is None
     assert refine_lens(whole, probe={"before_px": 1.0, "kept": False})[1]["kept"]
+
+
+def test_the_global_mapper_maps_the_video(room_video, tmp_path):
+    """`--mapper global` (GLOMAP) runs through pycolmap's own options (its pipeline has no
+    triangulator of its own to seed) and poses the clip."""
+    video, _ = room_video
+    report = ingest(video, tmp_path / "scene", max_size=None, exposure=0.0, holdout_every=0, mapper="global", progress=False)
+    assert report.mapper == "global" and report.attempts[0]["outcome"] == "ok"
+    assert report.registered_fraction >= 0.9 and report.mean_reprojection_error_px < 1.5
+
+
+def test_a_keyframe_model_with_a_strong_radial_term_gets_a_second_opinion_and_the_better_fit_is_kept(room_video, tmp_path, monkeypatch):
+    """A long focal length with strong pincushion and the true lens reproject almost alike, and
+    the keyframe mapper settles in either: where the keyframe model's radial term is strong (here:
+    made so), auto maps the frames with the incremental mapper too and keeps the model that
+    reprojects better, both attempts recorded with their errors. A weak one maps once."""
+    from kgs_core.data import sfm
+    from kgs_core.data.frame_cache import frame_set
+
+    video, _ = room_video
+    folder, meta, _ = frame_set(video, None, 1, None, None, tmp_path / "cache", False, tmp_path)
+    once = sfm_of_frames(folder, meta, tmp_path / "work", "auto", 4)
+    assert [a["mapper"] for a in once.attempts] == ["keyframes"] and sfm.strong_radial(once.rec) is None
+    real = sfm.map_keyframes
+
+    def pincushion(*args, **kw):
+        rec = real(*args, **kw)
+        for cam in rec.cameras.values():
+            params = cam.params.copy()
+            params[3] = 2 * sfm.STRONG_RADIAL
+            cam.params = params
+        return rec
+
+    monkeypatch.setattr(sfm, "map_keyframes", pincushion)
+    result = sfm_of_frames(folder, meta, tmp_path / "work2", "auto", 4)
+    first, second = result.attempts
+    assert (first["mapper"], second["mapper"]) == ("keyframes", "incremental") and result.mapper == "incremental"
+    assert first["outcome"] == second["outcome"] == "ok" and first["reprojection_px"] > second["reprojection_px"]
+    assert sfm.strong_radial(result.rec) is None
+    assert sfm.reprojection_px(result.rec) == pytest.approx(second["reprojection_px"], abs=1e-3)
+    # An explicit mapper is what runs.
+    assert [a["mapper"] for a in sfm_of_frames(folder, meta, tmp_path / "work3", "keyframes", 4).attempts] == ["keyframes"]

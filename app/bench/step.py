@@ -93,7 +93,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument(
         "--levels",
         help="comma-separated image divisors, e.g. 1,2,4: also time the first configuration's "
-        "step at each resolution level (the flow term off at every level)",
+        "step at each resolution level (as the training's downscales draws them)",
     )
     args = ap.parse_args(argv)
     names = select_configs(args.configs)
@@ -144,7 +144,7 @@ def main(argv: list[str]) -> int:
         divisors = [int(k) for k in args.levels.split(",")]
         times = time_levels(tr, divisors, args.steps, args.warmup + args.repeats * args.steps)
         cam = tr.scene.train_frames[0].camera
-        print(f"\n{name}: a step at each resolution level (flow term off), best of two interleaved rounds")
+        print(f"\n{name}: a step at each resolution level, best of two interleaved rounds")
         print("| level | ms a step | against the first |\n| --- | ---: | ---: |")
         for k in divisors:
             print(f"| 1/{k} ({cam.width // k}x{cam.height // k}) | {times[k]:.1f} | {times[k] / times[divisors[0]]:.2f} |")
@@ -156,44 +156,22 @@ def main(argv: list[str]) -> int:
 
 
 def time_levels(trainer, divisors: list[int], steps: int, start: int) -> dict[int, float]:
-    """Milliseconds a step with every frame's camera and image at 1/k of its size, for each k
-    (intrinsics scaled, images area-averaged), interleaved twice, the best kept. The flow term is
-    off at every level (its flow is at full size); the scene is left as it was."""
-    import dataclasses
-
-    import torch.nn.functional as F
-
-    tr, scene = trainer, trainer.scene
-    full = {f.id: f.camera for f in scene.frames}
-    images = {f.id: tr.cache.get(f) for f in scene.train_frames}
-    cfg, tr.cfg = tr.cfg, dataclasses.replace(tr.cfg, lambda_flow=0.0)
-
-    def level(k: int) -> None:
-        for f in scene.frames:
-            c = full[f.id]
-            K = c.K.copy()
-            K[:2] /= k
-            f.camera = c if k == 1 else dataclasses.replace(c, K=K, width=c.width // k, height=c.height // k)
-        for f in scene.train_frames:
-            img, w, h = images[f.id], f.camera.width, f.camera.height
-            if k > 1:
-                img = F.adaptive_avg_pool2d(img[: h * k, : w * k].permute(2, 0, 1)[None], (h, w))[0].permute(1, 2, 0)
-            tr.cache._imgs[(f.id, "image")] = img.contiguous()
-
+    """Milliseconds a step at each image divisor k (the training's own coarse-to-fine levels,
+    train/image_levels.py: intrinsics scaled, images and flows area-averaged), interleaved
+    twice, the best kept."""
     best, it = {}, start
     try:
         for _ in range(2):
             for k in divisors:
-                level(k)
+                trainer.divisor_override = k
                 t0 = time.perf_counter()
                 for _ in range(steps):
-                    tr.train_step(it)
+                    trainer.train_step(it)
                     it += 1
                 ms = 1000 * (time.perf_counter() - t0) / steps
                 best[k] = min(best.get(k, ms), ms)
     finally:
-        level(1)
-        tr.cfg = cfg
+        trainer.divisor_override = None
     return best
 
 

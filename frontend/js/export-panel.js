@@ -64,8 +64,9 @@ export const exportPanel = {
 
   async startExport() {
     const body = this.exportBody();
-    const job = await api(`/api/runs/${this.runId}/exports`, { method: "POST", body });
+    // The last export's link goes at once: until the request returns it would fetch the old file.
     $("export-status").textContent = `${body.format}: starting…`;
+    const job = await api(`/api/runs/${this.runId}/exports`, { method: "POST", body });
     this.pollExport(job.id, body.format);
     return job;
   },

@@ -12,7 +12,8 @@ mappers that trade speed for robustness.
   then extended to all of them. The slowest, and the fallback when the others fail.
 
 `auto` tries keyframes (a second seed when they fall short), keyframes twice as dense, then
-incremental, and records every attempt. Frames are named so that the
+incremental, and records every attempt; a keyframe model with a strong radial term also gets the
+incremental mapper's, and the better fit is kept. Frames are named so that the
 two synchronised videos interleave in time (`f00012_a`, `f00012_b`); sequential matching orders
 images by name and, with `quadratic_overlap`, pairs each image with the ones 1, 2, 4, 8, ...
 positions later (only those: COLMAP 4's quadratic overlap has no linear part). Keyframes
@@ -32,8 +33,8 @@ import numpy as np
 
 from ..job_options import MAPPERS  # noqa: E402,F401  (declared with ingest's options)
 from ..progress import announce, progress_bar
+from .register import cam_from_world, register_rest
 
-MIN_CORRESPONDENCES = 12  # 2D-3D matches needed before a frame is posed by absolute pose
 MAX_REPROJECTION_ERROR_PX = 4.0
 MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
 # Keyframes every 8th frame where that leaves this many per camera and a second camera gives each
@@ -41,6 +42,11 @@ MIN_KEYFRAMES = 12  # fewer training keyframes than this: the step halves
 # without the twins (docs/data.md, "Ingest speed and pose quality").
 LONG_CLIP_KEYFRAMES = 32
 KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with this seed (run_sfm)
+# A keyframe model whose radial term is stronger than this (|k1| of SIMPLE_RADIAL) gets auto a second
+# model from the incremental mapper, and the one with the lower reprojection error is kept: a long
+# focal length with strong pincushion and the true one with little distortion reproject almost
+# alike, and the keyframe mapper settles in either (docs/data.md, "A second opinion on the lens").
+STRONG_RADIAL = 0.25
 
 
 @dataclass
@@ -137,9 +143,11 @@ def _pipeline_options(cls, names: list[str] | None = None, seed: int = 0):
     opts = cls()
     opts.num_threads = 2
     opts.random_seed = seed
-    if hasattr(opts, "mapper"):  # the pipeline's seed does not reach its mapper and triangulator
-        opts.mapper.random_seed = seed
-        opts.triangulation.random_seed = seed
+    # The pipeline's seed does not reach its mapper and triangulator (the global pipeline has
+    # no triangulator of its own).
+    for part in ("mapper", "triangulation"):
+        if hasattr(opts, part):
+            getattr(opts, part).random_seed = seed
     if names is not None:
         opts.image_names = names
     return opts
@@ -172,6 +180,26 @@ def map_global(db: Path, images: Path, out: Path):
     shutil.copyfile(db, local)
     recs = pycolmap.global_mapping(local, images, out, options=_pipeline_options(pycolmap.GlobalPipelineOptions))
     return _largest(recs)
+
+
+def strong_radial(rec) -> float | None:
+    """The largest |k1| of `rec`'s SIMPLE_RADIAL or RADIAL cameras when above STRONG_RADIAL, else None."""
+    k1 = [abs(float(c.params[3])) for c in rec.cameras.values() if c.model_name in ("SIMPLE_RADIAL", "RADIAL")]
+    return max(k1) if k1 and max(k1) > STRONG_RADIAL else None
+
+
+def reprojection_px(rec) -> float:
+    """`rec`'s mean reprojection error in pixels, from its current cameras, poses and points."""
+    rec.update_point_3d_errors()
+    return float(rec.compute_mean_reprojection_error())
+
+
+def _better(rec, fraction: float, best, min_registered: float) -> bool:
+    """Whether `rec` (posing `fraction` of the training frames) beats `best`: more frames posed,
+    or, where both pose enough, a lower mean reprojection error."""
+    if fraction >= min_registered and best[1] >= min_registered:
+        return reprojection_px(rec) < reprojection_px(best[0].rec)
+    return fraction > best[1]
 
 
 def keyframe_time_budget(keyframes: int) -> int:
@@ -212,7 +240,7 @@ def map_keyframes(
     lens_probe: dict | None = None,
 ):
     """Incremental SfM on the keyframes (the mapper's random `seed`), absolute pose for every other
-    frame (`_register_rest`), triangulation from all frames and (with `adjust`) one global bundle
+    frame (`register.register_rest`), triangulation from all frames and (with `adjust`) one global bundle
     adjustment. None when the keyframes form no model; KeyframesFellApart when none of their
     models holds half of them. `stages` receives the seconds of each step, and the frames posed
     in each registration pass (`register_passes`); `lens_probe`, when given, the report of the
@@ -251,11 +279,11 @@ def map_keyframes(
         lens_probe.update(refine_lens(model, iterations=LENS_PROBE_ITERATIONS)[1], images=model.num_reg_images())
         stages["lens_probe"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    posed = {im.name: (im.camera_id, _cam_from_world(im)) for im in model.images.values() if im.has_pose}
+    posed = {im.name: (im.camera_id, cam_from_world(im)) for im in model.images.values() if im.has_pose}
     with _open_db(db) as d:
         by_name = {im.name: im for im in d.read_all_images()}
         rest = [n for n in names_a + names_b if n not in posed]
-        more, passes = _register_rest(d, model, [by_name[n] for n in rest], progress)
+        more, passes = register_rest(d, model, [by_name[n] for n in rest], progress)
         posed.update(more)
         stages["register_passes"] = passes
         stages["register"] = time.perf_counter() - t0
@@ -323,89 +351,6 @@ def drop_outlier_points(rec, max_error_px: float = MAX_REPROJECTION_ERROR_PX) ->
     return len(bad)
 
 
-def _cam_from_world(im):
-    return im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-
-
-def _verified_partners(d) -> dict[int, list[int]]:
-    """image id -> the images it has a verified two-view geometry with."""
-    import pycolmap
-
-    pair_ids, counts = d.read_two_view_geometry_num_inliers()
-    partners: dict[int, list[int]] = {}
-    for pair_id, count in zip(pair_ids, counts):
-        if count > 0:
-            a, b = pycolmap.pair_id_to_image_pair(int(pair_id))
-            partners.setdefault(a, []).append(b)
-            partners.setdefault(b, []).append(a)
-    return partners
-
-
-def _register_rest(d, model, images: list, progress: bool) -> tuple[dict, list[int]]:
-    """`({name: (camera id, cam_from_world)}, frames posed in each pass)` for the `images` that
-    absolute pose can place against `model`'s points, in passes. The first pass uses each image's
-    verified matches to the model's images; each later pass also uses its matches to the images
-    posed in earlier passes, through the 3D points of their PnP inliers. Sequential matching
-    pairs a frame only with the frames a power of two positions away, so with keyframes every 8th
-    frame, a frame 3 or 5 frames from both neighbouring keyframes shares no verified pair with
-    either, but it does with the frames 1 or 2 away, which the first pass poses."""
-    partners = _verified_partners(d)
-    observed = {}  # (posed image id, keypoint index) -> 3D point id
-    for im in model.images.values():
-        if im.has_pose:
-            for j, p in enumerate(im.points2D):
-                if p.has_point3D():
-                    observed[(im.image_id, j)] = p.point3D_id
-    references = {im.image_id for im in model.images.values() if im.has_pose}
-    posed, passes, remaining = {}, [], list(images)
-    while remaining:
-        found = {}
-        desc = "register" if not passes else f"register, pass {len(passes) + 1}"
-        for image in progress_bar(remaining, desc=desc, show=progress):
-            pose = _absolute_pose(d, model, image, [p for p in partners.get(image.image_id, ()) if p in references], observed)
-            if pose is not None:
-                found[image.name] = (image, *pose)
-        if not found:
-            break
-        for name, (image, cam_from_world, inliers) in found.items():
-            posed[name] = (image.camera_id, cam_from_world)
-            references.add(image.image_id)
-            observed.update(((image.image_id, kp), pid) for kp, pid in inliers)
-        remaining = [im for im in remaining if im.name not in found]
-        passes.append(len(found))
-    return posed, passes
-
-
-def _absolute_pose(d, model, image, references: list[int], observed: dict):
-    """`(cam_from_world, [(keypoint index, 3D point id) of the inliers])` of one database image,
-    from its verified matches to the posed `references` whose keypoints see 3D points
-    (`observed`), by LO-RANSAC PnP and refinement; or None."""
-    import pycolmap
-
-    corr = {}  # keypoint index -> 3D point id (first reference's match wins)
-    for rid in references:
-        matches = d.read_two_view_geometry(image.image_id, rid).inlier_matches
-        if matches is None or len(matches) == 0:
-            continue
-        for mine, theirs in np.asarray(matches):  # (read in the order asked: this image's keypoint first)
-            pid = observed.get((rid, int(theirs)))
-            if pid is not None:
-                corr.setdefault(int(mine), pid)
-    if len(corr) < MIN_CORRESPONDENCES:
-        return None
-    idx = np.fromiter(corr, int)
-    points2d = np.asarray(d.read_keypoints(image.image_id))[idx, :2].astype(np.float64)
-    points3d = np.stack([model.points3D[corr[i]].xyz for i in idx]).astype(np.float64)
-    camera = model.cameras[image.camera_id] if image.camera_id in model.cameras else None
-    if camera is None:
-        return None
-    found = pycolmap.estimate_and_refine_absolute_pose(points2d, points3d, camera)
-    if found is None or found["num_inliers"] < MIN_CORRESPONDENCES:
-        return None
-    inliers = idx[np.asarray(found["inlier_mask"], bool)]
-    return found["cam_from_world"], [(int(k), corr[int(k)]) for k in inliers]
-
-
 def run_sfm(
     db: Path,
     images: Path,
@@ -422,7 +367,8 @@ def run_sfm(
     """Maps the frames of `db` with `mapper`. `auto` tries keyframes (once more with another seed
     when they fall apart or pose too few frames), keyframes twice as dense, then incremental, and keeps
     the first model that poses at least `min_registered` of the training frames (else the one
-    that posed the most). Returns None when no mapper produced a model. With `probe_lens`, a
+    that posed the most); a keyframe model with a strong radial term (`strong_radial`) is set
+    against the incremental mapper's, the lower reprojection error kept. Returns None when no mapper produced a model. With `probe_lens`, a
     keyframe model also gets the lens refit's probe (`SfmResult.lens_probe`)."""
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
@@ -441,6 +387,7 @@ def run_sfm(
         else [(mapper, keyframe_step, 0)]
     )
     attempts, best = [], None
+    second_opinion = False  # a keyframe model with a strong radial term: the incremental mapper's, then stop
     while order:
         name, step, seed = order.pop(0)
         out = work / (f"sparse_{name}" + (f"_{step}_{seed}" if name == "keyframes" else ""))
@@ -482,9 +429,15 @@ def run_sfm(
                 **({"stages": {k: round(v, 2) if isinstance(v, float) else v for k, v in stages.items()}} if stages else {}),
             }
         )
-        if rec is not None and (best is None or fraction > best[1]):
+        if rec is not None:
+            attempts[-1]["reprojection_px"] = round(reprojection_px(rec), 4)
+        if rec is not None and (best is None or _better(rec, fraction, best, min_registered)):
             best = (SfmResult(rec=rec, mapper=name, lens_probe=probe or None), fraction)
-        if rec is not None and fraction >= min_registered:
+        if second_opinion or rec is not None and fraction >= min_registered:
+            if not second_opinion and mapper == "auto" and name == "keyframes" and strong_radial(rec) is not None:
+                order.insert(0, ("incremental", None, 0))
+                second_opinion = True
+                continue
             break
     if best is None:
         return None

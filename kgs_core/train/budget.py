@@ -19,6 +19,8 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from .image_levels import divisor_changes, image_divisor
+
 # Steps timed at each Gaussian count of the pilot (after one untimed step); the median counts.
 PILOT_STEPS = 7
 # Training frames the pilot uses (its flows are computed for these only).
@@ -52,31 +54,47 @@ def parse_duration(text: str | float | int) -> float:
 @dataclass(frozen=True)
 class StepCost:
     """Seconds a training step costs on this machine at `n` Gaussians: `fixed + per_gaussian * n`
-    (per-pixel work, and per-Gaussian work), from two pilot measurements."""
+    (per-pixel work, and per-Gaussian work), from two pilot measurements; `fixed_at` holds the
+    fixed part at each image divisor above 1 (coarse-to-fine images, `downscales`), where the
+    per-pixel work shrinks and the per-Gaussian work stays."""
 
     fixed: float
     per_gaussian: float
+    fixed_at: tuple[tuple[int, float], ...] = ()
 
-    def at(self, n: float) -> float:
-        return self.fixed + self.per_gaussian * n
+    def at(self, n: float, divisor: int = 1) -> float:
+        return dict(self.fixed_at).get(divisor, self.fixed) + self.per_gaussian * n
 
     def run_seconds(self, cfg, start: int) -> float:
         """The run's training time for `cfg` starting from `start` Gaussians: the count held
         until densification starts, grown linearly to the budget by its stop (densification
-        usually reaches it sooner: an overestimate), then held."""
+        usually reaches it sooner: an overestimate), then held; each stretch at its image size."""
         n_it, d = cfg.iterations, cfg.densify
         top = max(start, d.max_gaussians)
         grow_from, grow_to = min(d.start, n_it), min(max(d.stop, d.start), n_it)
-        flat_before = grow_from * self.at(start)
-        ramp = (grow_to - grow_from) * self.at(0.5 * (start + top))
-        flat_after = (n_it - grow_to) * self.at(top)
-        return flat_before + ramp + flat_after
+
+        def count(x: float) -> float:
+            if x <= grow_from:
+                return start
+            if x >= grow_to:
+                return top
+            return start + (top - start) * (x - grow_from) / (grow_to - grow_from)
+
+        # Between these steps the count is linear and the image size fixed, and the cost is
+        # linear in the count: each stretch costs its length at its middle's count.
+        cuts = sorted({0, n_it, grow_from, grow_to, *divisor_changes(n_it, cfg.downscales, cfg.downscale_until)})
+        total = 0.0
+        for a, b in zip(cuts, cuts[1:]):
+            k = image_divisor(a, n_it, cfg.downscales, cfg.downscale_until)
+            total += (b - a) * self.at(count(0.5 * (a + b)), k)
+        return total
 
 
 def pilot_cost(cfg, scene) -> tuple[StepCost, int, int]:
     """Times `PILOT_STEPS` real training steps of `cfg` on `PILOT_FRAMES` of `scene`'s training
     frames at its initial Gaussians and at its Gaussian budget (copies of them), the median
-    step of each, and fits `StepCost`; also returns the two counts."""
+    step of each, and fits `StepCost`; with coarse-to-fine images, also at each smaller size
+    at the initial count. Also returns the two counts."""
     from .trainer import Trainer
 
     pilot_scene = replace(scene, frames=scene.train_frames[:PILOT_FRAMES])
@@ -85,19 +103,29 @@ def pilot_cost(cfg, scene) -> tuple[StepCost, int, int]:
         tr = Trainer(pilot_scene, tmp, quiet, progress=False)
         tr.init_model()
         start = len(tr.model)
+        divisors = [2**j for j in range(1, cfg.downscales + 1)]
+        coarse = {k: _median_step(tr, k) for k in divisors}
         points = []
         for target in (start, max(2 * start, cfg.densify.max_gaussians)):
             _grow(tr, target)
-            tr.train_step(0)  # untimed: first-call costs
-            times = []
-            for i in range(PILOT_STEPS):
-                t0 = time.perf_counter()
-                tr.train_step(1 + i)
-                times.append(time.perf_counter() - t0)
-            points.append((len(tr.model), statistics.median(times)))
+            points.append((len(tr.model), _median_step(tr, 1)))
     (n0, t0_), (n1, t1_) = points
     per = max(0.0, (t1_ - t0_) / max(n1 - n0, 1))
-    return StepCost(fixed=max(t0_ - per * n0, 0.0), per_gaussian=per), n0, n1
+    fixed_at = tuple((k, max(t - per * n0, 0.0)) for k, t in coarse.items())
+    return StepCost(fixed=max(t0_ - per * n0, 0.0), per_gaussian=per, fixed_at=fixed_at), n0, n1
+
+
+def _median_step(trainer, divisor: int) -> float:
+    """The median of `PILOT_STEPS` timed steps at image `divisor` (after one untimed step:
+    first-call costs)."""
+    trainer.divisor_override = divisor
+    trainer.train_step(0)
+    times = []
+    for i in range(PILOT_STEPS):
+        t0 = time.perf_counter()
+        trainer.train_step(1 + i)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def _grow(trainer, target: int) -> None:
@@ -128,10 +156,11 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
     preset_it, preset_g = cfg.iterations, cfg.densify.max_gaussians
     full = cost.run_seconds(cfg, start)
     pilot = f"a pilot of {1000 * cost.at(start):.0f} ms a step at {start:,} Gaussians and {1000 * cost.at(top):.0f} ms at {top:,}"
+    # (A budget fitted to the scene has its reason there already: the plan follows it.)
+    why = f"{cfg.fitted['time_budget']}; " if "time_budget" in cfg.fitted else f"{budget:.0f} s: "
     if full <= target:
-        cfg.fitted["time_budget"] = (
-            f"{budget:.0f} s: the preset's {preset_it} iterations up to {preset_g:,} Gaussians fit ({full:.0f} s planned from {pilot})"
-        )
+        fits_all = f"the preset's {preset_it} iterations up to {preset_g:,} Gaussians fit"
+        cfg.fitted["time_budget"] = f"{why}{fits_all} ({full:.0f} s planned from {pilot})"
         return cfg
     fits = lambda n, g: cost.run_seconds(remake(n, g), start) <= target  # noqa: E731
     g = preset_g
@@ -149,10 +178,11 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
             f"{cost.run_seconds(remake(MIN_ITERATIONS, g), start) / HEADROOM:.0f} s ({pilot})"
         )
     out = remake(n, g)
+    out.time_budget = budget
     planned = cost.run_seconds(out, start)
     fewer = f", a Gaussian budget of {g:,} of its {preset_g:,}" if g != preset_g else ""
     out.fitted["time_budget"] = (
-        f"{budget:.0f} s: {n} of the preset's {preset_it} iterations{fewer} ({planned:.0f} s "
+        f"{why}{n} of the preset's {preset_it} iterations{fewer} ({planned:.0f} s "
         f"planned, the preset's would take {full:.0f} s; from {pilot})"
     )
     return out

@@ -33,6 +33,11 @@ class TrainConfig:
     # the iterations, and for a small budget the Gaussian budget, that fit (train/budget.py).
     time_budget: float = 0.0
     batch_size: int = 1
+    # Coarse-to-fine images: the first `downscale_until` of the iterations train on frames
+    # area-averaged by 2^downscales, halved at equal shares of it, full size after; per-pixel
+    # work (rasteriser, SSIM) then costs a quarter per halving (0: full size throughout).
+    downscales: int = 0
+    downscale_until: float = 0.5
     seed: int = 0
     init_points: int = 20_000  # SfM points used to initialise (random subset when more)
     # learning rates (position: exponential decay from init to final; the rest constant)
@@ -333,8 +338,8 @@ PRESETS = {"fast": fast_preset, "paper": paper_preset}
 
 def finetune_config(parent: TrainConfig, iterations: int, tau: float | None = None) -> "TrainConfig":
     """Fine-tuning a finished run (its configuration) for `iterations` more, keeping its decomposition
-    (at `tau` when given): no densification, no re-decomposition, no opacity reset, one LoD level, the
-    position learning rate at its final value."""
+    (at `tau` when given): no densification, no re-decomposition, no opacity reset, one LoD level,
+    full-size images, the position learning rate at its final value."""
     return replace(
         parent,
         iterations=iterations,
@@ -343,6 +348,7 @@ def finetune_config(parent: TrainConfig, iterations: int, tau: float | None = No
         decompose_every=0,
         lod_levels=1,
         lod_fractions=(1.0,),
+        downscales=0,  # the parent has trained at full size
         lr_means=parent.lr_means_final,
         eval_every=max(iterations // 5, 1),
         checkpoint_every=iterations,

@@ -5,6 +5,7 @@ size, speed and kind (real footage). Each choice and its reason go into `TrainCo
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from .config import FAST_ITERATIONS, TrainConfig
@@ -24,6 +25,17 @@ TAU_RMS_PX = 0.62
 # "The paper preset on walk").
 LOD_LAMBDA_WIDTH = 0.0217
 MAX_ITERATION_SCALE = 4.0
+# The coarse-to-fine images' smallest level (`downscales`) is at least this wide: frames twice
+# as wide or more start at a half (a quarter, ...) of their size, where a step's per-pixel work
+# costs a quarter, and reach full size halfway (docs/method.md, "Coarse-to-fine images").
+COARSE_MIN_WIDTH = 400
+# A video ingest at full size (frames at least twice COARSE_MIN_WIDTH wide) trains within this
+# many seconds per training frame on this machine unless iterations or a time budget are given:
+# the budget's plan picks the iterations and the Gaussian budget (train/budget.py). The preset's
+# pixel-scaled schedule is three to five times longer there and measured no better at the sharp
+# camera (docs/real-footage.md, "Full size in minutes").
+SECONDS_PER_FRAME = 3.5
+MIN_DEFAULT_BUDGET = 120  # seconds: a short clip's budget still fits a useful run
 # The flow term's weight on real footage (a video ingest): the best of the weights measured,
 # at no extra time; a larger one pulls the person off the photometric fit (docs/real-footage.md,
 # "An optical-flow term").
@@ -59,6 +71,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     preset) fits only the Gaussian budget and FLoD's first scale, which the paper leaves open.
 
     * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
+    * downscales: coarse-to-fine images for frames at least twice COARSE_MIN_WIDTH wide;
+    * time_budget: SECONDS_PER_FRAME a training frame for a video ingest at full size, unless
+      iterations or a budget were given (make_config then plans the run to fit it);
     * model.deform_temporal: at least one temporal cell per four frames;
     * model.tau: the demo's RMS image motion (TAU_RMS_PX) in this scene's units;
     * lod_levels: one on a video ingest (real footage), where FLoD's coarse levels misplace
@@ -96,6 +111,24 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     if not additions:
         cfg.fitted = fitted
         return cfg
+    if "downscales" not in explicit and cfg.downscales == 0 and cam.width >= 2 * COARSE_MIN_WIDTH:
+        cfg.downscales = int(math.log2(cam.width / COARSE_MIN_WIDTH))
+        k = 2**cfg.downscales
+        fitted["downscales"] = (
+            f"{cfg.downscales}: {cam.width}x{cam.height} frames; the first "
+            f"{cfg.downscale_until:.0%} of the iterations start on them at 1/{k} of the size "
+            f"({cam.width // k} px wide, at least {COARSE_MIN_WIDTH}), where a step's per-pixel work "
+            "costs far less (--set downscales=0 trains at full size throughout)"
+        )
+    video = "ingest" in scene.extras and n_frames > 1
+    if video and cam.width >= 2 * COARSE_MIN_WIDTH and cfg.time_budget == 0 and not {"iterations", "time_budget"} & explicit:
+        cfg.time_budget = max(MIN_DEFAULT_BUDGET, round(SECONDS_PER_FRAME * n_frames))
+        fitted["time_budget"] = (
+            f"{cfg.time_budget} s ({SECONDS_PER_FRAME:g} s for each of {n_frames} frames, at least "
+            f"{MIN_DEFAULT_BUDGET}): a video ingest "
+            f"at full size ({cam.width}x{cam.height}) trains within a time on this machine (--iterations "
+            "or --time-budget instead)"
+        )
     if "model.deform_temporal" not in explicit and m.deform_temporal < n_frames // 4:
         cfg.model = m = replace(m, deform_temporal=min(n_frames // 4, 128))
         fitted["model.deform_temporal"] = f"{m.deform_temporal}: one temporal cell per four of {n_frames} frames"
@@ -107,7 +140,6 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
             f"{m.tau:.3g}: an RMS image motion of {TAU_RMS_PX} px at {ppu:.0f} px per scene unit "
             "(median focal length over median point depth)"
         )
-    video = "ingest" in scene.extras and n_frames > 1
     if not {"lod_levels", "lod_fractions"} & explicit and cfg.lod_levels > 1 and video:
         cfg.lod_levels, cfg.lod_fractions = 1, (1.0,)
         fitted["lod_levels"] = (

@@ -14,8 +14,8 @@ from .flow import charbonnier, flow_residual
 
 
 class Objective:
-    """`loss_for` and `flow_term`; read the trainer's `model`, `cfg`, `scene`, `cache`, `flows`,
-    `noise`, `camera_motion` and pose correction."""
+    """`loss_for` and `flow_term`; read the trainer's `model`, `cfg`, `scene`, `views` (frames
+    at the step's image size), `noise`, `camera_motion` and pose correction."""
 
     def loss_for(self, frame: Frame, it: int) -> tuple[torch.Tensor, Rendered]:
         c, scene, model = self.cfg, self.scene, self.model
@@ -24,10 +24,11 @@ class Objective:
         if noise > 0 and not c.noise_per_gaussian:  # one shift for every Gaussian
             t, noise = t + noise * float(torch.randn(())), 0.0
         camera_motion = None if self.camera_motion is None else self.camera_motion.get(frame.id)
+        k = self.image_divisor(it)
         exposure = self.exposure if self.fitted_exposure is None else self.fitted_exposure.value()
         out, g = render_model(
             model,
-            frame.camera,
+            self.views.camera(frame, k),
             t,
             exposure,
             scene.dt,
@@ -39,12 +40,12 @@ class Objective:
             world_transform=self.world_transform(frame),
             absgrad=self.strategy.wants_absgrad(it),
         )
-        gt = self.cache.get(frame)
+        gt = self.views.image(frame, k)
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if c.lambda_coarse > 0:
             loss = loss + c.lambda_coarse * coarse_l1(out.image, gt, c.coarse_factor)
         if c.lambda_flow > 0 and frame.id in self.flows and g.dynamic.any():
-            loss = loss + c.lambda_flow * self.flow_term(frame, out, g)
+            loss = loss + c.lambda_flow * self.flow_term(frame, out, g, k)
         if not self.static_only:
             if c.lambda_reg > 0 and g.offsets_dx is not None:
                 # L_reg: mean |dx| over the dynamic set plus mean |dx| over the static set. The
@@ -63,10 +64,11 @@ class Objective:
             loss = loss + c.lambda_ani * (s.max(-1).values / (s.min(-1).values + c.eps_ani)).mean()
         return loss, out
 
-    def flow_term(self, frame: Frame, out: Rendered, g) -> torch.Tensor:
+    def flow_term(self, frame: Frame, out: Rendered, g, k: int = 1) -> torch.Tensor:
         """The flow term (train/flow.py) for the Gaussians that deform: their positions at this
         frame's time as rendered, and at the next frame's time, each under its own frame's
-        pose correction when poses are refined. The next position is the rendered one moved
+        pose correction when poses are refined; at image divisor `k` (the render's size), with
+        the residuals in full-size pixels so that the term weighs the same at every size. The next position is the rendered one moved
         over the frame interval by a velocity the step already has; the field is not evaluated
         again (a second evaluation cost 15-39 % of a step):
 
@@ -79,7 +81,7 @@ class Objective:
           `own_velocity`, and every other one is read as standing still, so that the flow
           asks for the depth whose parallax explains it. Reading the field at the next time
           instead measured no better and slower (docs/real-footage.md, "An optical-flow term")."""
-        j, flow = self.flows[frame.id]
+        j, flow = self.views.flow(frame, k)
         nxt = self.scene.train_frames[j]
         model = self.model
         live = g.extras.get("dynamic_velocity")
@@ -94,7 +96,6 @@ class Objective:
         # (index_select, not [idx]: its backward is the faster one, model/dynamic.py)
         x_next = model.params.means.index_select(0, idx) + g.offsets_dx.index_select(0, idx) + v * (nxt.time - frame.time)
         # (g.means carry this frame's pose correction; the next positions get the next frame's.)
-        res = flow_residual(
-            g.means.index_select(0, idx), self.posed(x_next, nxt), camera_tensors(frame.camera), camera_tensors(nxt.camera), flow, out.depth
-        )
-        return charbonnier(res)
+        cameras = camera_tensors(self.views.camera(frame, k)), camera_tensors(self.views.camera(nxt, k))
+        res = flow_residual(g.means.index_select(0, idx), self.posed(x_next, nxt), *cameras, flow, out.depth)
+        return charbonnier(res * k)

@@ -65,6 +65,7 @@ BOUNDS: dict[str, Bound] = {
     "iterations": Bound(1, 1_000_000),
     "time_budget": Bound(0, 7 * 24 * 3600),
     "batch_size": Bound(1, 16),
+    "downscales": Bound(0, 4),
     "seed": Bound(0, 2**31 - 1),
     "init_points": Bound(1, 1_000_000),
     "densify.max_gaussians": Bound(1, 5_000_000),
@@ -101,6 +102,7 @@ BOUNDS: dict[str, Bound] = {
         key: FRACTION
         for key in (
             "exposure",
+            "downscale_until",
             "spawn_from",
             "noise_until",
             "noise_delay",
@@ -168,7 +170,7 @@ NAMED: dict[str, NamedSetting] = {
         "time_budget",
         "train within this time on this machine, e.g. 10m or 600 (seconds): a "
         "short pilot picks the iterations and Gaussian budget that fit, recorded in run.json "
-        "(default: none, the preset's schedule)",
+        "(default: 3.5 s a frame for a video ingest at full size, else none: the preset's schedule)",
         parse=parse_duration,
     ),
     "seed": NamedSetting("seed", "training seed"),

@@ -28,6 +28,7 @@ from .densify import DensifyStrategy
 from .events import ScheduleEvents
 from .exposure import FittedExposure
 from .flow import frame_flows
+from .image_levels import LevelViews, image_divisor
 from .objective import Objective
 from .pose_refine import PoseCorrection
 from .run_record import ImageCache, RunRecord, evaluation_frames, heldout_psnr, kr_note
@@ -118,6 +119,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0) and not self.static_only
             else {}
         )
+        self.views = LevelViews(self.cache, self.flows)
+        self.divisor_override: int | None = None  # every step at this image divisor (the budget's pilot)
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
@@ -258,6 +261,13 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         p = (1 - c.frame_sampling_mix) / n + c.frame_sampling_mix * self.frame_loss / self.frame_loss.sum()
         return [int(i) for i in torch.multinomial(p, k, replacement=False)]
 
+    def image_divisor(self, it: int) -> int:
+        """The training images' size divisor at step `it` (`downscales`, train/image_levels.py)."""
+        if self.divisor_override is not None:
+            return self.divisor_override
+        c = self.cfg
+        return image_divisor(it, c.iterations, c.downscales, c.downscale_until)
+
     def train_step(self, it: int) -> float:
         c = self.cfg
         self.set_learning_rates(it)
@@ -279,10 +289,10 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             if phase:
                 phase("backward")
             total += value / len(picks)
-            outs.append((out, frame))
+            outs.append(out)
         # (check_gradients after the last backward has seen every accumulated gradient.)
-        for out, frame in outs:
-            self.strategy.accumulate(out, frame.camera.width, frame.camera.height)
+        for out in outs:
+            self.strategy.accumulate(out, out.image.shape[1], out.image.shape[0])
         self.opt.step()
         self.net_opt.step()
         self.opt.zero_grad(set_to_none=True)
