@@ -189,3 +189,15 @@ def test_fine_tuning_a_run_trains_at_full_size(walk):
 
     parent = make_config("fast", scene=walk, downscales=1)
     assert parent.downscales == 1 and finetune_config(parent, 100).downscales == 0
+
+
+def test_the_pilot_times_each_smaller_size(walk):
+    """With coarse-to-fine images the budget's pilot also times a step at each smaller size (at
+    the initial count), which the plan then charges for its share of the run."""
+    from kgs_core.train import budget
+
+    cfg = make_config("fast", scene=walk, downscales=1, **{"densify.max_gaussians": 4000})
+    cost, start, _ = budget.pilot_cost(cfg, walk)
+    fixed = dict(cost.fixed_at)
+    assert list(fixed) == [2] and fixed[2] >= 0 and cost.at(start, 2) > 0
+    assert budget.pilot_cost(replace(cfg, downscales=0), walk)[0].fixed_at == ()

@@ -68,9 +68,10 @@ class Objective:
         """The flow term (train/flow.py) for the Gaussians that deform: their positions at this
         frame's time as rendered, and at the next frame's time, each under its own frame's
         pose correction when poses are refined; at image divisor `k` (the render's size), with
-        the residuals in full-size pixels so that the term weighs the same at every size. The next position is the rendered one moved
-        over the frame interval by a velocity the step already has; the field is not evaluated
-        again (a second evaluation cost 15-39 % of a step):
+        the residuals in full-size pixels so that the term weighs the same at every size. The
+        next position is the rendered one moved over the frame interval by a velocity the step
+        already has; the field is not evaluated again (a second evaluation cost 15-39 % of a
+        step):
 
         - where K.R. computed the dynamic Gaussians' velocity (after the decomposition, exposure > 0),
           that velocity: the term supervises what K.R.'s blur reads, and it does not see the
