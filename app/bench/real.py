@@ -320,7 +320,11 @@ def main(argv: list[str]) -> int:
         scene_dir = ingest_cached(name, blur, sharp, args.size, root)
         scene = load_scene(scene_dir)
 
-        iterations = args.iterations or make_config(args.preset, scene=scene).iterations
+        # Every configuration trains the full method's plan: at full size a time budget's
+        # (its iterations and Gaussian budget, train/fitting.py), else the fitted iterations.
+        planned = make_config(args.preset, scene=scene)
+        iterations = args.iterations or planned.iterations
+        plan = {"densify.max_gaussians": planned.densify.max_gaussians} if not args.iterations and planned.time_budget else {}
         print(
             f"# {name}: {len(scene.train_frames)} training + {len(scene.test_frames)} sharp frames at "
             f"{scene.frames[0].camera.width}x{scene.frames[0].camera.height}; {iterations} iterations for "
@@ -331,8 +335,8 @@ def main(argv: list[str]) -> int:
         for seed in seeds:
             runs = root / "runs" / name / (f"s{seed}" if len(seeds) > 1 else "")
 
-            def trainer_for(config: str, iterations: int, suffix: str, scene=scene, runs=runs, seed=seed) -> Trainer:
-                over = {**config_overrides(config), "iterations": iterations}
+            def trainer_for(config: str, iterations: int, suffix: str, scene=scene, runs=runs, seed=seed, plan=plan) -> Trainer:
+                over = {**plan, **config_overrides(config), "iterations": iterations}
                 ablate = over.pop("ablate", ())
                 cfg = make_config(args.preset, ablate=ablate, seed=seed, scene=scene, **over)
                 cfg.eval_every = max(cfg.iterations // 10, 1)
