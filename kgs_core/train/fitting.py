@@ -32,8 +32,8 @@ COARSE_MIN_WIDTH = 400
 # A video ingest at full size (frames at least twice COARSE_MIN_WIDTH wide) trains within this
 # many seconds per training frame on this machine unless iterations or a time budget are given:
 # the budget's plan picks the iterations and the Gaussian budget (train/budget.py). The preset's
-# pixel-scaled schedule is three to five times longer there and measured no better at the sharp
-# camera (docs/real-footage.md, "Full size in minutes").
+# pixel-scaled schedule takes far longer there and scored no better at the sharp camera
+# (docs/real-footage.md, "Full size in minutes").
 SECONDS_PER_FRAME = 3.5
 MIN_DEFAULT_BUDGET = 120  # seconds: a short clip's budget still fits a useful run
 # The flow term's weight on real footage (a video ingest): the best of the weights measured,
