@@ -195,9 +195,24 @@ def test_the_pilot_times_each_smaller_size(walk):
     """With coarse-to-fine images the budget's pilot also times a step at each smaller size (at
     the initial count), which the plan then charges for its share of the run."""
     from kgs_core.train import budget
+    from kgs_core.train import trainer as trainer_module
+
+    sizes = []
+    real = trainer_module.Trainer.loss_for
+
+    def recording(self, frame, it):
+        loss, out = real(self, frame, it)
+        sizes.append(out.image.shape[1])
+        return loss, out
 
     cfg = make_config("fast", scene=walk, downscales=1, **{"densify.max_gaussians": 4000})
-    cost, start, _ = budget.pilot_cost(cfg, walk)
-    fixed = dict(cost.fixed_at)
-    assert list(fixed) == [2] and fixed[2] >= 0 and cost.at(start, 2) > 0
-    assert budget.pilot_cost(replace(cfg, downscales=0), walk)[0].fixed_at == ()
+    W = walk.train_frames[0].camera.width
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(trainer_module.Trainer, "loss_for", recording)
+        cost, start, _ = budget.pilot_cost(cfg, walk)
+        # Its steps at half size were drawn at half size, then the full-size ones at full size.
+        steps = 1 + budget.PILOT_STEPS
+        assert sizes[:steps] == [W // 2] * steps and set(sizes[steps:]) == {W}
+        assert [k for k, _ in cost.fixed_at] == [2]
+        sizes.clear()
+        assert budget.pilot_cost(replace(cfg, downscales=0), walk)[0].fixed_at == () and set(sizes) == {W}

@@ -111,7 +111,8 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     if not additions:
         cfg.fitted = fitted
         return cfg
-    if "downscales" not in explicit and cfg.downscales == 0 and cam.width >= 2 * COARSE_MIN_WIDTH:
+    full_size = cam.width >= 2 * COARSE_MIN_WIDTH  # (frames at the size BARD-GS and users film)
+    if "downscales" not in explicit and cfg.downscales == 0 and full_size:
         cfg.downscales = int(math.log2(cam.width / COARSE_MIN_WIDTH))
         k = 2**cfg.downscales
         fitted["downscales"] = (
@@ -121,7 +122,7 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
             "costs far less (--set downscales=0 trains at full size throughout)"
         )
     video = "ingest" in scene.extras and n_frames > 1
-    if video and cam.width >= 2 * COARSE_MIN_WIDTH and cfg.time_budget == 0 and not {"iterations", "time_budget"} & explicit:
+    if video and full_size and cfg.time_budget == 0 and not {"iterations", "time_budget"} & explicit:
         cfg.time_budget = max(MIN_DEFAULT_BUDGET, round(SECONDS_PER_FRAME * n_frames))
         fitted["time_budget"] = (
             f"{cfg.time_budget} s ({SECONDS_PER_FRAME:g} s for each of {n_frames} frames, at least "
