@@ -181,10 +181,23 @@ class Edits(Response):
     history: dict | None = Field(None, description="earlier and undone layers, oldest first: {undo: [{label, layer}], redo: [...]}")
 
 
+class CameraShake(Response):
+    """The camera's own motion within one training frame's exposure (`train/camera_motion.py`):
+    a still world point `x` moves relative to that camera like `(w × x + b)` per unit of
+    normalised time."""
+
+    t: float = Field(description="the training frame's normalised time")
+    w: list[float] = Field(min_length=3, max_length=3, description="angular velocity")
+    b: list[float] = Field(min_length=3, max_length=3, description="linear part")
+
+
 class LearnedBlur(Response):
     objects: bool = Field(description="K.R.'s blur along each moving Gaussian's motion acts in this run")
     camera: str = Field(description="the camera's own blur: off, poses or learned")
     note: str
+    camera_motion: list[CameraShake] | None = Field(
+        None, description="the learned shake per training frame, in time order; an 'as captured' view applies the nearest"
+    )
 
 
 class RunDetail(RunSummary):

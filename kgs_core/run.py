@@ -71,8 +71,9 @@ def read_run_json(run_dir: Path) -> dict:
 def learned_blur(info: dict) -> dict:
     """What a run's "as captured" render can show, from its run.json `info`: `objects` (K.R.'s
     blur along each moving Gaussian's motion acts), `camera` (the camera's own motion within
-    the exposure was modelled: "off", "poses" or "learned") and `note`, a sentence for the
-    viewer beside its exposure control."""
+    the exposure was modelled: "off", "poses" or "learned"), `note`, a sentence for the viewer
+    beside its exposure control, and `camera_motion`, the learned shake per training frame
+    (`train/camera_motion.py: camera_motion_records`) where the run kept it."""
     from .evaluate import KR_MIN_GAIN_DB
 
     cfg = info.get("config") or {}
@@ -99,13 +100,23 @@ def learned_blur(info: dict) -> dict:
         why = "blur along each moving Gaussian's motion within the exposure (K.R.)"
         if measured is not None:
             why += f", visible in {measured.get('changed_share', 0):.1%} of the training pixels"
-    cam = (
-        "the camera's own shake is not modelled (train with --camera-blur learned)"
-        if camera == "off"
-        else "the camera's own shake was modelled at the training cameras only, so a free view shows the objects' blur"
-    )
-    lead = f"exposure {exposure:.2f}: " + ("shows the learned " if objects else "next to no learned blur; ")
-    return {"objects": objects, "camera": camera, "note": f"{lead}{why}; {cam}"}
+    records = info.get("camera_motion") if camera != "off" else None
+    if camera == "off":
+        cam = "the camera's own shake is not modelled (train with --camera-blur learned)"
+    elif records:
+        cam = f"the camera's own shake ({camera}) at the training frame nearest in time, applied to the whole scene"
+    else:
+        cam = "the camera's own shake was modelled, but this run did not keep it (trained before runs saved it)"
+    if objects:
+        note = f"shows the learned {why}" + (f", and {cam}" if records else f"; {cam}")
+    elif records:
+        note = f"shows {cam}; {why}"
+    else:
+        note = f"next to no learned blur; {why}; {cam}"
+    out = {"objects": objects, "camera": camera, "note": f"exposure {exposure:.2f}: {note}"}
+    if records:
+        out["camera_motion"] = records
+    return out
 
 
 @dataclass

@@ -19,8 +19,9 @@ from .edits import EditLayer, load_edits, save_edits
 from .export.bake import Baked, baked_from
 from .model.decomposition import K_histogram, decomposition_counts
 from .model.gaussians import presence
-from .run import LoadedRun, load_run
+from .run import LoadedRun, learned_blur, load_run
 from .splat_buffer import F16_MAX, cov_scale, new_buffer, pack_buffer, pack_sh_buffer, rgba_of
+from .train.camera_motion import nearest_camera_motion
 
 _STOP = threading.Event()  # set at interpreter exit: builders stop between samples
 _BUILDERS: set[threading.Thread] = set()
@@ -344,6 +345,14 @@ class RunView:
                 tr = self._trajectories[key] = Trajectories(self, m, lod, self.version, key[2])
         return tr if tr.ready.is_set() else None
 
+    def camera_shake(self, t: float, exposure: float):
+        """The camera's shake an "as captured" render at `t` shows (the nearest training frame's,
+        `learned_blur`), None when sharp or when the run kept none. Static Gaussians get it in
+        the client (the static set is sent once); the dynamic set and server renders here."""
+        if not exposure > 0:
+            return None
+        return nearest_camera_motion(learned_blur(self.run.info).get("camera_motion"), float(t))
+
     @torch.no_grad()
     def dynamic_buffer(self, t: float, exposure: float = 0.0, lod: int | None = None, velocity: bool = True, exact: bool = False) -> bytes:
         """The dynamic set at `t`: interpolated from the trajectory cache when it is ready (and
@@ -354,11 +363,13 @@ class RunView:
             return pack_buffer(
                 header, np.zeros((0, 3)), np.zeros((0, 6)), np.zeros((0, 4)), np.zeros(0), np.zeros((0, 3)) if velocity else None
             )
-        tr = None if (exact or not self.use_trajectories) else self.trajectories(lod, exposure)
+        shake = self.camera_shake(t, exposure)
+        # (The trajectory cache samples the objects' motion alone: the camera's shake changes per frame.)
+        tr = None if (exact or shake is not None or not self.use_trajectories) else self.trajectories(lod, exposure)
         if tr is not None and tr.key[1] == version:
             return tr.buffer(float(t), keep, {**header, "interpolated": True}, velocity)
         with self.compute:  # without velocities a sharp frame skips their field samples
-            idx_t, g = m.at_dynamic(float(t), exposure, self.dt, velocity=velocity)
+            idx_t, g = m.at_dynamic(float(t), exposure, self.dt, velocity=velocity, camera_motion=shake)
         idx, means, covs = idx_t.numpy(), g.means.numpy(), g.covars6.numpy()
         vels = g.velocity.numpy() if g.velocity is not None else None
         rgba = rgba_of(g.sh, g.opacities)
@@ -371,7 +382,8 @@ class RunView:
         """All kept Gaussians at `t` (for server-side renders), optionally only one set."""
         lod, m, keep, _ = self.state(lod)
         with self.compute:
-            g = m.at_static() if self.run.static_only else m.at(float(t), exposure=exposure, dt=self.dt)
+            shake = self.camera_shake(t, exposure)
+            g = m.at_static() if self.run.static_only else m.at(float(t), exposure=exposure, dt=self.dt, camera_motion=shake)
         dyn = self._dynamic_mask(m)
         sel = keep & {"all": True, "static": ~dyn, "dynamic": dyn}[subset]
         return baked_from(g, sel, dynamic=dyn), lod

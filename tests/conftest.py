@@ -212,3 +212,17 @@ def pixels(page, t: float | None = None) -> np.ndarray:
     page.evaluate("kgs.drawn()")
     d = page.evaluate("kgs.readPixels()")
     return np.array(d["rgb"], dtype=np.float64).reshape(d["height"], d["width"], 3)
+
+
+def shake_run(run_dir, w=(0.0, 0.0, 2.0), b=(3.0, 0.0, 0.0)) -> None:
+    """Gives a copied run a learned camera shake (the same for every training frame), as a run
+    trained with `--camera-blur learned` keeps it in run.json: strong enough to blur a 48 px
+    frame by a few pixels at exposure 0.5."""
+    from kgs_core.data.formats import load_scene
+    from kgs_core.run import load_run, write_run_json
+
+    run = load_run(run_dir)
+    info, frames = run.info, load_scene(run.scene_path()).train_frames
+    info["config"]["camera_blur"] = "learned"
+    info["camera_motion"] = [{"t": f.time, "w": list(w), "b": list(b)} for f in sorted(frames, key=lambda f: f.time)]
+    write_run_json(run_dir, info)

@@ -364,3 +364,40 @@ def test_the_canvas_draws_in_device_pixels_on_a_hidpi_screen(browser, server):
     img = pixels(page)
     assert img.shape[:2] == (size[1], size[0]) and img.mean() > 5
     ctx.close()
+
+
+def test_as_captured_shows_the_learned_camera_shake(browser, copy_run, tmp_path):
+    """A run that kept its camera shake (`shake_run`): "as captured" blurs the static splats in
+    the shader along the nearest training frame's shake, as the server's CPU render at that
+    exposure does, and visibly more than the sharp view."""
+    from conftest import shake_run
+
+    from kgs_backend.launch import ServerProcess
+    from kgs_core.evaluate import gradient_energy
+
+    shake_run(copy_run)
+    with ServerProcess([copy_run], tmp_path / "ws_shake") as srv:
+        run_id = srv.runs[0]["id"]
+        ctx = browser.new_context(viewport={"width": 900, "height": 600})
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"{srv.base}/#/run/{run_id}")
+        page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+        meta = json.loads(urllib.request.urlopen(f"{srv.base}/api/runs/{run_id}").read())
+        assert len(meta["blur"]["camera_motion"]) == sum(f["split"] == "train" for f in meta["frames"])
+        f = meta["frames"][0]
+        K = [v for row in f["K"] for v in row]
+        page.evaluate("([vm, K, w, h]) => kgs.setCamera(vm, K, w, h)", [sum(f["viewmat"], []), K, f["width"], f["height"]])
+        sharp = pixels(page, 0.5)
+        page.select_option("#exposure", "captured")
+        captured = pixels(page, 0.5)
+        url = f"{srv.base}/api/runs/{run_id}/render?t=0.5&frame=0&exposure={meta['exposure']}"
+        cpu = np.asarray(Image.open(io.BytesIO(urllib.request.urlopen(url).read())), dtype=np.float64)
+        ctx.close()
+    err, moved = np.abs(captured - cpu).mean(), np.abs(captured - sharp).mean()
+    print(f"as captured, browser vs CPU rasteriser: mean abs error {err:.2f} / 255; against the sharp view {moved:.2f}")
+    everywhere = np.ones(sharp.shape[:2], bool)
+    assert not errors, errors
+    assert err < MAX_MEAN_ERROR < moved
+    assert gradient_energy(captured / 255, everywhere) < 0.8 * gradient_energy(sharp / 255, everywhere)

@@ -207,3 +207,45 @@ def test_remote_source_matches_local(tiny_run, tmp_path, egl):
         assert np.abs(imgs[0] - imgs[1]).max() <= 2
         assert remote.set_tau(1.0)["dynamic"] == 0
         remote.close()
+
+
+def test_as_captured_shows_the_learned_camera_shake_as_the_cpu_rasteriser_does(copy_run, egl):
+    """A run that kept its camera shake (`shake_run`): the static splats blurred in the shader
+    (Σ + s sᵀ / 12 with s = A x + b, the mass-keeping opacity) match the CPU rasteriser's render
+    of the server's bake at that exposure; the frame is visibly blurred against the sharp one."""
+    from conftest import shake_run
+
+    from kgs_app.viewer.model import ViewerModel
+    from kgs_app.viewer.source import LocalSource
+    from kgs_core.data.formats import load_scene
+    from kgs_core.evaluate import gradient_energy
+    from kgs_core.export.bake import render_baked
+
+    shake_run(copy_run)
+    m = ViewerModel(LocalSource(copy_run))
+    m.use_frame_camera(0)
+    m.state.t = 0.5
+    sharp = draw(m, egl)
+    m.state.exposure_captured = True
+    assert m.shake() is not None
+    m.sync()
+    captured = render_offscreen_shaken(m, egl)
+    view = m.source.view
+    g, _ = view.baked(0.5, float(m.source.meta["exposure"]))
+    cam = load_scene(view.run.scene_path()).frames[0].camera
+    ref = np.clip(render_baked(g, cam, view.run.model.config.sh_degree).image.numpy(), 0, 1) * 255
+    err = np.abs(captured - np.round(ref)).mean()
+    moved = np.abs(captured - sharp).mean()
+    print(f"as captured, GL vs CPU rasteriser: mean abs error {err:.2f} / 255; against the sharp frame {moved:.2f}")
+    everywhere = np.ones(sharp.shape[:2], bool)
+    assert err < MAX_MEAN_ERROR < moved
+    assert gradient_energy(captured / 255, everywhere) < 0.8 * gradient_energy(sharp / 255, everywhere)
+
+
+def render_offscreen_shaken(model, egl):
+    from kgs_app.viewer.gl_renderer import render_offscreen
+
+    s = model.state
+    return render_offscreen(model.static, model.dynamic, s.viewmat, s.K, model.width, model.height, ctx=egl, shake=model.shake()).astype(
+        np.float64
+    )

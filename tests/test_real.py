@@ -356,7 +356,13 @@ def test_the_viewer_is_told_what_blur_a_run_learned():
         {**base, "config": {**cfg, "camera_blur": "learned"}, "kr_effect": {"changed_share": 0.05, "gain_db": 2 * KR_MIN_GAIN_DB}}
     )
     assert acts["objects"] and acts["camera"] == "learned" and "5.0% of the training pixels" in acts["note"]
-    assert "modelled at the training cameras" in acts["note"] and "not modelled" in weak["note"]
+    assert "did not keep it" in acts["note"] and "not modelled" in weak["note"] and "camera_motion" not in acts
+    # A run that kept its learned shake hands it to the viewer, whatever K.R. did.
+    records = [{"t": 0.0, "w": [0.0, 0.1, 0.0], "b": [0.2, 0.0, 0.0]}]
+    learned = {**base, "config": {**cfg, "camera_blur": "learned"}, "camera_motion": records}
+    kept = learned_blur({**learned, "kr_effect": {"changed_share": 0.02, "gain_db": 0.0}})
+    assert kept["camera_motion"] == records and kept["note"].startswith("exposure 0.50: shows the camera's own shake (learned)")
+    assert learned_blur({**base, "camera_motion": records}).get("camera_motion") is None  # camera_blur off: nothing to show
 
 
 def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):

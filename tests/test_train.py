@@ -453,6 +453,12 @@ def test_learned_camera_motion_is_fitted_checkpointed_and_resumed(scene, tmp_pat
         cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur=mode, **{"model.tau": 1e-9})
         train(scene, tmp_path / mode, cfg, progress=False)
         finals[mode] = load_torch(tmp_path / mode / "checkpoints" / "ckpt_000080.pt")["camera_motion"]["motion"]
+        # run.json keeps the final motion per training frame, in time order, for the viewers.
+        kept = json.loads((tmp_path / mode / "run.json").read_text())["camera_motion"]
+        rows = CameraMotion(scene.train_frames, learned=False).index
+        by_time = sorted((f.time, rows[f.id]) for f in scene.train_frames if f.id in rows)
+        assert [r["t"] for r in kept] == [t for t, _ in by_time]
+        assert torch.allclose(torch.tensor([r["w"] + r["b"] for r in kept]), finals[mode][[i for _, i in by_time]])
     assert torch.equal(finals["poses"], start)
     assert (finals["learned"] - start).abs().max() > 1e-3
     cfg = tiny_config(iterations=80, checkpoint_every=40, camera_blur="learned", **{"model.tau": 1e-9})

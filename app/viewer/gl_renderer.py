@@ -21,6 +21,9 @@ uniform vec2 u_size;
 uniform int u_show;
 uniform int u_overlay;
 uniform int u_stride;
+uniform int u_shake;      // 1: blur the static splats along the camera's shake, sweep A x + b
+uniform mat3 u_shake_A;   // over the exposure (the dynamic set arrives blurred)
+uniform vec3 u_shake_b;
 in vec2 a_corner;
 in vec3 i_pos;
 in vec3 i_cov_a;          // xx, xy, xz
@@ -38,17 +41,23 @@ void main() {
   if (((u_show & 1) == 0 && !dyn) || ((u_show & 2) == 0 && dyn)) return;
   vec4 c = u_view * vec4(i_pos, 1.0);
   mat3 S = mat3(i_cov_a.x, i_cov_a.y, i_cov_a.z, i_cov_a.y, i_cov_b.x, i_cov_b.y, i_cov_a.z, i_cov_b.y, i_cov_b.z);
+  float opacity = i_rgba.a;
+  if (u_shake == 1 && !dyn) {
+    vec3 sweep = u_shake_A * i_pos + u_shake_b;
+    S += outerProduct(sweep, sweep) / 12.0;
+    opacity *= sweep_opacity(c, S, mat3(u_view), u_intr, sweep);
+  }
   bool solid = u_overlay == 2 && dyn && (int(i_index) % max(u_stride, 1)) == 0;
   vec2 center, major;
   float r;
   vec3 conic;
-  if (!splat_footprint(c, S, mat3(u_view), u_intr, i_rgba.a, solid, center, r, conic, major)) return;
+  if (!splat_footprint(c, S, mat3(u_view), u_intr, opacity, solid, center, r, conic, major)) return;
   vec2 off = a_corner * r;
   gl_Position = clip_position(center + off, u_size);
   v_offset = off;
   v_conic = conic;
   v_solid = solid ? 1 : 0;
-  v_color = vec4(overlay_colour(i_rgba.rgb, dyn, solid, u_overlay, major), i_rgba.a);
+  v_color = vec4(overlay_colour(i_rgba.rgb, dyn, solid, u_overlay, major), opacity);
 }
 """
 
@@ -161,7 +170,10 @@ class GLSplatRenderer:
         overlay: int = 0,
         stride: int = 4,
         arrows: bool = False,
+        shake: np.ndarray | None = None,
     ) -> None:
+        """`shake`: None, or the static splats' sweep over the exposure under the camera's shake,
+        `(4, 3)` rows A then b, a still point x sweeping `A x + b` (`ViewerModel.shake`)."""
         ctx = self.ctx
         ctx.viewport = (0, 0, width, height)
         ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
@@ -178,6 +190,10 @@ class GLSplatRenderer:
             p["u_show"].value = show
             p["u_overlay"].value = overlay
             p["u_stride"].value = stride
+            p["u_shake"].value = int(shake is not None)
+            if shake is not None:
+                p["u_shake_A"].write(np.ascontiguousarray(shake[:3].T, dtype="f4").tobytes())  # column-major
+                p["u_shake_b"].value = tuple(float(v) for v in shake[3])
             self.vao.render(moderngl.TRIANGLE_FAN, vertices=4, instances=self.count)
         if arrows and self.lines is not None:
             ctx.disable(moderngl.BLEND)

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from kgs_core.render.camera import look_at
+from kgs_core.train.camera_motion import nearest_camera_motion
 
 from .state import ViewerState
 
@@ -91,6 +92,17 @@ class ViewerModel:
         if not self.frames:
             return None
         return min(self.frames, key=lambda f: abs(f["time"] - self.state.t))
+
+    def shake(self) -> np.ndarray | None:
+        """ "As captured": the camera's shake learned at the training frame nearest in time, as the
+        static splats' sweep `A x + b` over the exposure (`(4, 3)`: A's rows, then b); None when
+        sharp or when the run kept none (the dynamic set arrives blurred)."""
+        s = self.state
+        motion = nearest_camera_motion(self.source.meta.get("camera_motion"), s.t) if s.exposure_captured else None
+        if motion is None:
+            return None
+        k = float(self.source.meta["dt"]) * float(self.source.meta["exposure"])
+        return np.vstack([motion[0].numpy(), motion[1].numpy()[None]]) * k
 
     # ------------------------------------------------------------ data
 

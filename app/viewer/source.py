@@ -41,6 +41,7 @@ class LocalSource:
     """A run directory, evaluated in this process (the server's RunView, without the server)."""
 
     def __init__(self, run_dir: str | Path):
+        from kgs_core.run import learned_blur
         from kgs_core.run_view import RunView
 
         self.view = RunView(Path(run_dir))
@@ -55,6 +56,7 @@ class LocalSource:
             "histogram": self.view.histogram(),
             "decomposition": self.view.decomposition(),
             "sh_degree": run.model.config.sh_degree,
+            "camera_motion": learned_blur(run.info).get("camera_motion"),
         }
 
     def static(self, lod: int | None) -> SplatSet:
@@ -92,6 +94,7 @@ class RemoteSource:
             "histogram": meta["histogram"],
             "decomposition": meta["decomposition"],
             "sh_degree": meta["sh_degree"],
+            "camera_motion": (meta.get("blur") or {}).get("camera_motion"),
         }
         from websockets.sync.client import connect
 

@@ -58,7 +58,7 @@ def run_window(
         ctx.screen.use()
         ctx.clear(0.0, 0.0, 0.0, 0.0)
         s = model.state
-        r.draw(s.viewmat, s.K, w, h, show=s.show_mask, overlay=s.overlay, stride=s.stride, arrows=s.arrows)
+        r.draw(s.viewmat, s.K, w, h, show=s.show_mask, overlay=s.overlay, stride=s.stride, arrows=s.arrows, shake=model.shake())
         shot = s.screenshot or (screenshot if max_frames and gl["frames"] + 1 == max_frames else None)
         if shot:
             rgb = np.frombuffer(ctx.screen.read(viewport=(0, 0, w, h), components=3), dtype=np.uint8)

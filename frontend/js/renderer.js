@@ -37,6 +37,9 @@ uniform usampler2D u_sh;    // view-dependent colour (see packSH)
 uniform int u_sh_bases;     // SH coefficients after the DC term: 0 (DC only), 3, 8 or 15
 uniform int u_sh_texels;
 uniform vec3 u_eye;         // the camera centre in world coordinates
+uniform int u_shake;        // 1: blur the static splats along the camera's shake, sweep A x + b
+uniform mat3 u_shake_A;     // over the exposure (dynamic splats arrive blurred by the server)
+uniform vec3 u_shake_b;
 in vec2 a_corner;
 in uint a_index;
 out vec4 v_color;
@@ -87,6 +90,11 @@ void main() {
   float yy = uintBitsToFloat(t1.w), yz = uintBitsToFloat(t2.x), zz = uintBitsToFloat(t2.y);
   mat3 S = mat3(xx, xy, xz, xy, yy, yz, xz, yz, zz);
   vec4 rgba = vec4(float(t0.w & 255u), float((t0.w >> 8) & 255u), float((t0.w >> 16) & 255u), float(t0.w >> 24)) / 255.0;
+  if (u_shake == 1 && !dyn) {
+    vec3 sweep = u_shake_A * uintBitsToFloat(t0.xyz) + u_shake_b;
+    S += outerProduct(sweep, sweep) / 12.0;
+    rgba.a *= sweep_opacity(c, S, mat3(u_view), u_intr, sweep);
+  }
   if (u_sh_bases > 0) {
     vec3 world = uintBitsToFloat(t0.xyz);
     rgba.rgb = clamp(rgba.rgb + sh_view_colour(int(t2.w), normalize(world - u_eye)), 0.0, 1.0);
@@ -221,7 +229,7 @@ export class SplatRenderer {
     this.lineCount = 0;
     this.uniforms = {};
     for (const name of ["u_splats", "u_view", "u_intr", "u_size", "u_show", "u_overlay", "u_stride", "u_sh", "u_sh_bases",
-                        "u_sh_texels", "u_eye"]) {
+                        "u_sh_texels", "u_eye", "u_shake", "u_shake_A", "u_shake_b"]) {
       this.uniforms[name] = gl.getUniformLocation(this.prog, name);
     }
     this.lineUniforms = {};
@@ -273,8 +281,10 @@ export class SplatRenderer {
     this.lineCount = lines.length / 4;
   }
 
-  // `sh`: add the view-dependent colour (when uploaded); `background`: RGB in [0, 1].
-  draw({ viewmat, K, show = 3, overlay = 0, stride = 1, arrows = false, sh = true, background = [0, 0, 0] }) {
+  // `sh`: add the view-dependent colour (when uploaded); `background`: RGB in [0, 1]; `shake`:
+  // null, or the camera's sweep over the exposure for the static splats, {A: 9 numbers row-major,
+  // b: 3}, a still point x sweeping A x + b (shakeSweep).
+  draw({ viewmat, K, show = 3, overlay = 0, stride = 1, arrows = false, sh = true, background = [0, 0, 0], shake = null }) {
     const gl = this.gl;
     const w = this.canvas.width, h = this.canvas.height;
     gl.viewport(0, 0, w, h);
@@ -297,6 +307,11 @@ export class SplatRenderer {
       gl.uniform1i(u.u_show, show);
       gl.uniform1i(u.u_overlay, overlay);
       gl.uniform1i(u.u_stride, stride);
+      gl.uniform1i(u.u_shake, shake ? 1 : 0);
+      if (shake) {
+        gl.uniformMatrix3fv(u.u_shake_A, true, new Float32Array(shake.A));  // (row-major, transposed in)
+        gl.uniform3fv(u.u_shake_b, new Float32Array(shake.b));
+      }
       const bases = sh ? this.shBases : 0;
       gl.uniform1i(u.u_sh_bases, bases);
       if (bases) {
@@ -330,4 +345,19 @@ export class SplatRenderer {
       gl.bindVertexArray(null);
     }
   }
+}
+
+// The static splats' sweep over an exposure of `exposure` frame intervals `dt` (normalised time)
+// under the camera's shake {w, b} (a still point x moves like w × x + b per unit of time,
+// kgs_core/train/camera_motion.py): {A, b} for draw's `shake`.
+export function shakeSweep(shake, dt, exposure) {
+  const k = dt * exposure, [wx, wy, wz] = shake.w;
+  return { A: [0, -wz * k, wy * k, wz * k, 0, -wx * k, -wy * k, wx * k, 0], b: shake.b.map((v) => v * k) };
+}
+
+// The record of `records` (time-ordered {t, ...}) nearest in time to `t`, null without any.
+export function nearestInTime(records, t) {
+  let best = null;
+  for (const r of records || []) if (best === null || Math.abs(r.t - t) < Math.abs(best.t - t)) best = r;
+  return best;
 }

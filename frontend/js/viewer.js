@@ -6,7 +6,7 @@
 import { api, openStream, withToken } from "./api.js";
 import { parseBuffer } from "./buffers.js";
 import { FLAG_DYNAMIC, packSet, textureRows, TEX_WIDTH, SPLATS_PER_ROW } from "./pack.js";
-import { SplatRenderer } from "./renderer.js";
+import { SplatRenderer, nearestInTime, shakeSweep } from "./renderer.js";
 import { OrbitCamera, cameraCenter, focusDepth, intrinsics, orbitAtDepth } from "./camera.js";
 import { drawHistogram } from "./chart.js";
 import { $, esc } from "./dom.js";
@@ -204,6 +204,7 @@ export class Viewer {
       }
       this.dynamic = set;
       this.lastDynamicT = set.header.t;
+      this.lastDynamicExposure = set.header.exposure;
     }
     this.loadingProgress();
     this.rebuild();
@@ -277,7 +278,7 @@ export class Viewer {
       const viewmat = this.currentViewmat();
       this.renderer.draw({ viewmat, K: this.intrinsics(), show: this.show, overlay: this.overlay,
                            stride: this.stride, arrows: this.arrows, sh: this.viewDependent,
-                           background: this.background });
+                           background: this.background, shake: this.shake() });
       this.saveViewState();
       this.dirty = false;
       this.frameCount += 1;
@@ -285,6 +286,14 @@ export class Viewer {
       this.updateInputFrame();
     }
     requestAnimationFrame((n) => this.loop(n));
+  }
+
+  // "As captured": the camera's shake the run learned at the training frame nearest in time,
+  // for the static splats (the server blurs the dynamic set it sends); null when sharp.
+  shake() {
+    const records = this.meta?.blur?.camera_motion;
+    if (!(this.exposure > 0) || !records) return null;
+    return shakeSweep(nearestInTime(records, this.t), this.meta.dt, this.exposure);
   }
 
   resolveWaiters() {
@@ -298,10 +307,10 @@ export class Viewer {
   // Resolves once a frame has been drawn with the current time's dynamic set.
   drawn() {
     return new Promise((resolve) => {
-      const t = this.t;
+      const t = this.t, exposure = this.exposure;
       this.waiters.push({ kind: "frame", resolve,
         ready: () => this.static && this.sortPending === null
-          && (this.local || (this.dynamic && Math.abs(this.lastDynamicT - t) < 1e-9)) });
+          && (this.local || (this.dynamic && Math.abs(this.lastDynamicT - t) < 1e-9 && this.lastDynamicExposure === exposure)) });
       this.dirty = true;
     });
   }
@@ -342,7 +351,7 @@ export class Viewer {
     // Say which exposure "as captured" renders with and what blur the run learned; with no
     // exposure it would change nothing.
     const captured = document.querySelector('#exposure option[value="captured"]');
-    const learned = m.blur ? (m.blur.objects ? "" : ", no learned blur") : "";
+    const learned = m.blur ? (m.blur.objects || m.blur.camera_motion ? "" : ", no learned blur") : "";
     captured.textContent = `as captured (exposure ${Number(m.exposure || 0).toFixed(2)}${learned})`;
     captured.disabled = !(m.exposure > 0);
     $("exposure-note").textContent = m.blur ? m.blur.note : "";

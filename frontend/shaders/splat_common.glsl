@@ -27,6 +27,24 @@ bool splat_footprint(vec4 c, mat3 S, mat3 W, vec4 intr, float o, bool solid,
   return true;
 }
 
+// The opacity factor that keeps a splat blurred along its sweep s (world units over the
+// exposure; S already holds the blur, Σ + s sᵀ / 12) to the footprint of the sharp splat it
+// averages: sqrt(1 - s2ᵀ C2⁻¹ s2 / 12) of the screen-space sweep s2 and covariance C2, as
+// kgs_core/render/blur.py.
+float sweep_opacity(vec4 c, mat3 S, mat3 W, vec4 intr, vec3 s) {
+  if (c.z < 0.01) return 1.0;
+  float iz = 1.0 / c.z;
+  mat3 J = mat3(intr.x * iz, 0.0, 0.0, 0.0, intr.y * iz, 0.0, -intr.x * c.x * iz * iz, -intr.y * c.y * iz * iz, 0.0);
+  mat3 T = J * W;
+  mat3 C2 = T * S * transpose(T);
+  float a = C2[0][0] + 0.3, b = C2[0][1], d = C2[1][1] + 0.3;
+  float det = a * d - b * b;
+  if (det <= 0.0) return 1.0;
+  vec2 s2 = (T * s).xy;
+  float q = (d * s2.x * s2.x - 2.0 * b * s2.x * s2.y + a * s2.y * s2.y) / det;
+  return sqrt(max(0.0, 1.0 - q / 12.0));
+}
+
 // Overlay colours: 1 tints static blue and dynamic orange; 2 draws the chosen dynamic splats as
 // solid ellipses coloured by their screen-space major axis and dims everything else.
 vec3 overlay_colour(vec3 rgb, bool dyn, bool solid, int overlay, vec2 major) {

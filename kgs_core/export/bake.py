@@ -22,7 +22,8 @@ from ..model.gaussians import GaussiansAt
 from ..render.blur import blurred_opacities
 from ..render.covariance import pack_covariance, quat_to_rotmat
 from ..render.sh import C0
-from ..run import LoadedRun, load_run
+from ..run import LoadedRun, learned_blur, load_run
+from ..train.camera_motion import nearest_camera_motion
 
 if TYPE_CHECKING:
     from .web_frame import Similarity
@@ -90,9 +91,11 @@ def open_source(run: str | Path | LoadedRun, lod: int | None = None, edits: Edit
 @torch.no_grad()
 def bake(source: ExportSource, t: float, exposure: float = 0.0) -> Baked:
     """The kept Gaussians at time `t`; `exposure` > 0 bakes the kinematic elongation of that
-    shutter (as captured), 0 the sharp state."""
+    shutter (as captured: with the camera's shake of the nearest training frame where the run
+    kept one, `learned_blur`), 0 the sharp state."""
     m = source.model
-    g = m.at_static() if source.static_only else m.at(float(t), exposure=exposure, dt=source.dt)
+    shake = nearest_camera_motion(learned_blur(source.run.info).get("camera_motion"), float(t)) if exposure > 0 else None
+    g = m.at_static() if source.static_only else m.at(float(t), exposure=exposure, dt=source.dt, camera_motion=shake)
     baked = baked_from(g, source.keep)
     return source.frame.apply(baked) if source.frame is not None else baked
 

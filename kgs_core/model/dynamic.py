@@ -283,16 +283,18 @@ class KinematicsGS(NeighbourGraph, Decomposition, nn.Module):
             extras=extras,
         )
 
-    def at_dynamic(self, t: float, exposure: float = 0.0, dt: float = 1.0, velocity: bool = True) -> tuple[Tensor, GaussiansAt]:
+    def at_dynamic(
+        self, t: float, exposure: float = 0.0, dt: float = 1.0, velocity: bool = True, camera_motion: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, GaussiansAt]:
         """Only the dynamic Gaussians at time `t` (what changes when a viewer scrubs time):
         `(idx (D,), GaussiansAt of D)`; the static ones are `at_static()` restricted to the rest.
-        `velocity` as in `at`."""
+        `velocity` and `camera_motion` as in `at`."""
         p = self.params
         idx = torch.arange(len(p)) if not self.decomposed else torch.nonzero(self.dynamic).squeeze(1)
         scales = self.scales()[idx]
         cov6 = packed_covariance(p.quats[idx], scales)
         if len(idx):
-            d = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, velocity=velocity)
+            d = self._deform(idx, t, exposure, dt, 0.0, scales, cov6, camera_motion if exposure > 0 else None, velocity=velocity)
         else:
             d = Deformed(p.means[idx], cov6, torch.zeros(0, 3), torch.zeros(0, 3), None)
         opacities = self.present(p.opacities, t)[idx] * self.opacity_factor(idx, t)

@@ -74,3 +74,26 @@ def camera_motion_from_poses(prev_viewmat, viewmat, next_viewmat, t_prev: float,
     dW = dW / max(t_next - t_prev, 1e-12)
     R = W[:3, :3]
     return (R.T @ dW[:3, :3]).float(), (R.T @ dW[:3, 3]).float()
+
+
+def camera_motion_records(motion: CameraMotion, frames: list[Frame]) -> list[dict]:
+    """What run.json keeps of a run's camera motion (`info["camera_motion"]`), in time order:
+    per training frame `{"t", "w" (3,), "b" (3,)}`, so that a viewer's "as captured" render can
+    show the shake the run learned (`nearest_camera_motion`)."""
+    rows = []
+    for f in frames:
+        i = motion.index.get(f.id)
+        if i is not None:
+            row = motion.motion[i].detach().tolist()
+            rows.append({"t": float(f.time), "w": row[:3], "b": row[3:]})
+    return sorted(rows, key=lambda r: r["t"])
+
+
+def nearest_camera_motion(records: list[dict] | None, t: float) -> tuple[Tensor, Tensor] | None:
+    """`(A (3, 3), b (3,))` of the training frame nearest in time to `t` among
+    `camera_motion_records`, None without any: the shake of the exposure a viewer at time `t`
+    shows "as captured"."""
+    if not records:
+        return None
+    near = min(records, key=lambda r: abs(float(r["t"]) - t))
+    return skew(torch.tensor(near["w"], dtype=torch.float32)), torch.tensor(near["b"], dtype=torch.float32)

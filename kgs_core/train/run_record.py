@@ -18,6 +18,7 @@ from ..model.decomposition import decomposition_counts
 from ..model.dynamic import KinematicsGS
 from ..model.render import render_model
 from ..run import load_torch, save_decomposition, save_torch, write_run_json
+from .camera_motion import camera_motion_records
 from .config import TrainConfig
 
 
@@ -227,6 +228,8 @@ class RunRecord:
                     print(f"note: {note}")
         if self.pose_correction is not None:
             info["pose_refine"] = self.pose_correction.summary()
+        if self.camera_motion is not None:
+            info["camera_motion"] = camera_motion_records(self.camera_motion, self.scene.train_frames)
         if self.fitted_exposure is not None:
             info["exposure"] = self.exposure
             info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
