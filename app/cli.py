@@ -212,7 +212,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     """Metrics of a run against its scene's sharp ground truth (metrics.json and .md)."""
     from kgs_core.evaluate import evaluate_run
 
-    evaluate_run(args.run, args.scene)
+    evaluate_run(args.run, args.scene, device=args.device)
     print((Path(args.run) / "metrics.md").read_text())
     return 0
 
@@ -326,7 +326,7 @@ def cmd_build_ext(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = ("raster", "step", "quality", "real", "ingest", "stability", "serve", "threads", "open")  # modules of kgs_app.bench
+BENCHMARKS = ("raster", "step", "quality", "real", "ingest", "stability", "serve", "threads", "open", "gpu")  # modules of kgs_app.bench
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -415,6 +415,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="evaluate a run: PSNR/SSIM (+ in the dynamic mask), decomposition IoU, FPS per LoD")
     p.add_argument("run")
     p.add_argument("--scene", help="scene folder (default: the one the run was trained on)")
+    p.add_argument(
+        "--device",
+        default="auto",
+        help="where to render: auto (CUDA when torch sees a GPU, with gsplat: pip install 'kinematics-gs[cuda]'), cpu, cuda",
+    )
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("export", help="export a run: per-frame .ply/.splat, .splatv, mp4 video, .glb ellipsoids")
@@ -472,7 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
         "stability: float32 vs float64 and training on extreme sequences; quality: each "
         "ablation and baseline on the same time budget, tau sweep; real: the shared real clips "
         "against the baselines; threads: training alone, two at once and beside a busy "
-        "process under each OpenMP setting",
+        "process under each OpenMP setting; gpu: gsplat on CUDA against the CPU rasteriser (difference, FPS)",
     )
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options of the benchmark (--help for them)")
     p.set_defaults(func=cmd_bench)

@@ -7,6 +7,7 @@ import json
 import math
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ import torch
 
 from .data.formats import load_scene
 from .data.scene import Frame, Scene
+from .device import computing_on, resolve_device
 from .io import atomic_write_text
 from .losses import psnr, ssim
 from .model.decomposition import decomposition_counts
@@ -47,8 +49,11 @@ def render_at(
     colors: torch.Tensor | None = None,
     static: bool = False,
 ):
-    """The rendered image only (its Gaussians' velocities are not computed where not needed)."""
-    return render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static, velocity=False)
+    """The rendered image only (its Gaussians' velocities are not computed where not needed);
+    image, alpha and depth on the CPU, where the metrics are computed, whatever the model's
+    device (on the CPU the same tensors)."""
+    out, g = render_model(model, frame.camera, frame.time, exposure, dt, background, colors, static=static, velocity=False)
+    return replace(out, image=out.image.cpu(), alpha=out.alpha.cpu(), depth=out.depth.cpu()), g
 
 
 # One 8-bit level: a render difference below it does not show in a frame the model was trained on.
@@ -83,7 +88,7 @@ def kr_effect(
         gt = torch.from_numpy(f.image())
         sharp = render_at(model, f, 0.0, dt)[0].image.clamp(0, 1)
         motion = None if camera_motion is None else camera_motion(f)
-        blurred = render_model(model, f.camera, f.time, exposure, dt, camera_motion=motion, velocity=False)[0].image.clamp(0, 1)
+        blurred = render_model(model, f.camera, f.time, exposure, dt, camera_motion=motion, velocity=False)[0].image.clamp(0, 1).cpu()
         diff = (blurred - sharp).abs().amax(-1)
         changed += int((diff > KR_VISIBLE).sum())
         pixels += diff.numel()
@@ -340,15 +345,31 @@ def evaluate_model(model: KinematicsGS, scene: Scene, lpips_model=None, static: 
 
 @torch.no_grad()
 def render_fps(model: KinematicsGS, frame: Frame, dt: float, repeats: int = 5) -> float:
-    render_at(model, frame, 0.0, dt)
+    """Renders a second of `frame`'s view, left where it was drawn (on a GPU, waited for: its
+    work runs ahead of the clock)."""
+    wait = torch.cuda.synchronize if model.params.means.is_cuda else (lambda: None)
+
+    def draw():
+        render_model(model, frame.camera, frame.time, 0.0, dt, velocity=False)
+
+    draw()
+    wait()
     t0 = time.perf_counter()
     for _ in range(repeats):
-        render_at(model, frame, 0.0, dt)
+        draw()
+    wait()
     return repeats / (time.perf_counter() - t0)
 
 
-def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> dict:
-    run: LoadedRun = load_run(run_dir)
+def evaluate_run(run_dir: str | Path, scene_dir: str | Path | None = None, device: str = "cpu") -> dict:
+    """`kgs-app eval`: the metrics of a run, written to its metrics.json; `device` as `--device`
+    (kgs_core/device.py)."""
+    dev = resolve_device(device)
+    with computing_on(dev):
+        return _evaluate_run(load_run(run_dir, dev), run_dir, scene_dir)
+
+
+def _evaluate_run(run: LoadedRun, run_dir: str | Path, scene_dir: str | Path | None) -> dict:
     scene = load_scene(scene_dir or run.scene_path())
     lp_model, lp_note = lpips_status()
     metrics = evaluate_model(run.model, scene, lp_model, static=run.static_only)

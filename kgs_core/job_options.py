@@ -231,6 +231,17 @@ class TrainOptionsBase(JobOptions):
             parse_setting(text)  # a ValueError naming the key
         return value
 
+    @model_validator(mode="after")
+    def device_here(self) -> "TrainOptionsBase":
+        """A device this machine lacks is refused with the options, before a scene is read or
+        a job queued."""
+        from .device import resolve_device
+
+        device = self.overrides().get("device")
+        if device is not None:
+            resolve_device(device, "device")
+        return self
+
     def overrides(self) -> dict:
         """`make_config` overrides: the named settings given, then `settings` over them."""
         from .train.settings import NAMED, named_overrides, parse_setting

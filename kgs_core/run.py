@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .device import tensors_to
 from .io import atomic_write_bytes, atomic_write_text
 from .migrations import RUN_FORMAT_VERSION, migrate_run_json, migrate_saved_model
 from .model.dynamic import KinematicsGS
@@ -183,7 +184,9 @@ def level_view(model: KinematicsGS, snap: dict) -> KinematicsGS:
     return view
 
 
-def load_run(run_dir: str | Path) -> LoadedRun:
+def load_run(run_dir: str | Path, device: torch.device | None = None) -> LoadedRun:
+    """The run's final model (and its LoD snapshots) on `device` (the CPU when None); build it
+    inside `device.computing_on` for a GPU, so that its own tensors land there too."""
     run_dir = Path(run_dir)
     info = read_run_json(run_dir)
     path = run_dir / "model.pt"
@@ -196,6 +199,8 @@ def load_run(run_dir: str | Path) -> LoadedRun:
     if not isinstance(state, dict):
         raise RunError(f"{path}: malformed model file (not a dict)")
     state = migrate_saved_model(state)
+    if device is not None:
+        state = tensors_to(state, device)
     try:
         model = KinematicsGS.from_state(state["model"])
     except (KeyError, TypeError, ValueError, RuntimeError) as exc:
@@ -219,5 +224,5 @@ def read_log(run_dir: Path) -> list[dict]:
 
 def save_decomposition(run_dir: Path, K: torch.Tensor) -> None:
     buf = io.BytesIO()
-    np.save(buf, K.numpy().astype(np.float32))
+    np.save(buf, K.detach().cpu().numpy().astype(np.float32))
     atomic_write_bytes(run_dir / "decomposition.npy", buf.getvalue())

@@ -394,6 +394,9 @@ def test_training_job_progress_cancel_restart_and_export(client, ws_dir):
     assert client.post("/api/runs", json={"scene_id": scene_id, "ablate": ["everything"]}).status_code == 422
     bad_blur = client.post("/api/runs", json={"scene_id": scene_id, "camera_blur": "yes"})
     assert bad_blur.status_code == 422 and "camera_blur" in bad_blur.text
+    if not torch.cuda.is_available():  # a GPU this machine lacks is refused before a job is queued
+        no_gpu = client.post("/api/runs", json={"scene_id": scene_id, "device": "cuda"})
+        assert no_gpu.status_code == 422 and "device cuda" in no_gpu.text, no_gpu.text
     for settings, needle in (
         (["lambda_regg=0.1"], "lambda_regg"),
         (["model.knn=1.5"], "model.knn takes a whole number"),

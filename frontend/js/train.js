@@ -72,7 +72,7 @@ export async function showRuns() {
   document.querySelectorAll("[data-train]").forEach((b) => (b.onclick = async () => {
     const run = await api("/api/runs", { method: "POST", body: { scene_id: b.dataset.train, preset: $("train-preset").value,
       iterations: parseInt($("train-iterations").value, 10) || null,
-      time_budget: parseFloat($("train-budget").value) * 60 || null } });
+      time_budget: parseFloat($("train-budget").value) * 60 || null, device: $("train-device").value } });
     await showRuns();
     watch(run.id);
   }));

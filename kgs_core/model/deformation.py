@@ -51,7 +51,7 @@ class KPlanes(nn.Module):
         n, m = len(x), len(times)
         xn = (x / self.bound).clamp(-1, 1)
         tn = (torch.cat(times) * 2 - 1).clamp(-1, 1)
-        if n and x.dtype == torch.float32 and resolve_backend(backend) == "cpu":
+        if n and x.dtype == torch.float32 and resolve_backend(backend, x) == "cpu":
             return kplanes_features(xn, tn, list(self.grids))
         # The three spatial planes do not depend on t: sampled once for all M times (the
         # physical velocity needs three times per step).

@@ -36,6 +36,9 @@ class GaussianParams:
     def detach_clone(self) -> "GaussianParams":
         return GaussianParams(*(getattr(self, k).detach().clone() for k in PARAM_NAMES))
 
+    def to(self, device) -> "GaussianParams":
+        return GaussianParams(*(getattr(self, k).to(device) for k in PARAM_NAMES))
+
     def requires_grad_(self, flag: bool = True) -> "GaussianParams":
         for _, v in self.items():
             v.requires_grad_(flag)

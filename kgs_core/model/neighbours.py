@@ -54,15 +54,15 @@ class NeighbourGraph:
 
     def _nearest_graph(self, dynamic: Tensor) -> Tensor:
         """`(D, k)`: the nearest members of `dynamic` to each, by canonical mean now."""
-        pts = self.params.means.detach()[dynamic].numpy()
+        pts = self.params.means.detach()[dynamic].cpu().numpy()
         k = min(self.config.knn, len(pts))
         if k <= 1:
-            return torch.arange(len(pts))[:, None]
+            return torch.arange(len(pts), device=dynamic.device)[:, None]
         dist, idx = cKDTree(pts).query(pts, k=k)
         if self.config.knn_radius > 0:
             far = dist > self.config.knn_radius * np.median(dist[:, -1])
             idx = np.where(far, np.arange(len(pts))[:, None], idx)  # itself in their place
-        return torch.as_tensor(idx, dtype=torch.long).reshape(len(pts), k)
+        return torch.as_tensor(idx, dtype=torch.long, device=dynamic.device).reshape(len(pts), k)
 
     def _graph_after_redecompose(self, dynamic: Tensor) -> Tensor | None:
         if self._knn is None:

@@ -47,7 +47,7 @@ def blur_opacity_scale(
     gradient reaches `means`: the factor hardly depends on them, since the projected sweep and
     covariance scale together with depth.
     """
-    impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
+    impl = cpu_backend if resolve_backend(backend, means) == "cpu" else torch_backend
     return impl.blur_opacity_scale(means, covars6, sweep, viewmat, K, width, height, eps2d, near, far)
 
 

@@ -8,20 +8,28 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from . import _ext, cpu_backend, torch_backend
+from . import _ext, cpu_backend, gsplat_backend, torch_backend
 from .covariance import pack_covariance
 from .sh import eval_sh
 from .types import EPS2D, Rendered
 
-Backend = Literal["auto", "cpu", "torch"]
+Backend = Literal["auto", "cpu", "torch", "gsplat"]
 _warned_fallback = False
 
 
-def resolve_backend(backend: str) -> str:
-    """`auto` -> `cpu` when the C++ extension builds, else `torch` with a one-line warning."""
+def resolve_backend(backend: str, like: Tensor | None = None) -> str:
+    """`auto` -> `cpu` when the C++ extension builds, else `torch` with a one-line warning.
+    With `like` a tensor off the CPU (CUDA), the C++ kernels do not apply: `torch` (the
+    rasteriser itself takes gsplat there, `rasterize`)."""
     global _warned_fallback
-    if backend not in ("auto", "cpu", "torch"):
-        raise ValueError(f"backend must be 'auto', 'cpu' or 'torch', got {backend!r}")
+    if backend not in ("auto", "cpu", "torch", "gsplat"):
+        raise ValueError(f"backend must be 'auto', 'cpu', 'torch' or 'gsplat', got {backend!r}")
+    if like is not None and like.device.type != "cpu":
+        if backend == "cpu":
+            raise ValueError(f"backend 'cpu' (the C++ kernels) takes CPU tensors, got {like.device}")
+        return "torch"
+    if backend == "gsplat":
+        raise ValueError("backend 'gsplat' (CUDA) takes CUDA tensors; these are on the CPU")
     if backend != "auto":
         return backend
     try:
@@ -38,7 +46,7 @@ def packed_covariance(quats: Tensor, scales: Tensor, backend: Backend = "auto") 
     """`(N, 6)` packed `R S S^T R^T` (xx, xy, xz, yy, yz, zz) from `(N, 4)` wxyz quaternions
     (normalised here) and `(N, 3)` linear scales, differentiable; C++ on the `cpu` backend
     (~10x faster than the PyTorch expression on 15k Gaussians)."""
-    impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
+    impl = cpu_backend if resolve_backend(backend, quats) == "cpu" else torch_backend
     return impl.packed_covariance(quats, scales)
 
 
@@ -88,7 +96,8 @@ def rasterize(
         absgrad: after backward, also leave `info["means2d_absgrad"]` `(N, 2)`: per Gaussian
             the sum over pixels of |dL/dmean2d| (AbsGS densification). `cpu` backend only;
             it costs the backward about a fifth more, so it is off unless asked for.
-        backend: `"cpu"` (C++), `"torch"` (reference) or `"auto"`.
+        backend: `"cpu"` (C++), `"torch"` (reference), `"gsplat"` (CUDA, `gsplat_backend`)
+            or `"auto"`: gsplat for CUDA tensors, else the C++ rasteriser when it builds.
 
     Returns:
         `Rendered` with `image (H, W, C)`, `alpha (H, W, 1)`, `depth (H, W, 1)`,
@@ -109,9 +118,13 @@ def rasterize(
     if not 0 < near < far:
         raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
     opacities = opacities.reshape(n)
-    impl = cpu_backend if resolve_backend(backend) == "cpu" else torch_backend
-    if absgrad and impl is not cpu_backend:
-        raise ValueError("absgrad needs the cpu backend")
+    on_gpu = means.device.type == "cuda"
+    if on_gpu and backend in ("auto", "gsplat"):
+        impl = gsplat_backend
+    else:
+        impl = cpu_backend if resolve_backend(backend, means) == "cpu" else torch_backend
+    if absgrad and impl is torch_backend:
+        raise ValueError("absgrad needs the cpu or gsplat backend")
     if covars is None:
         if quats.shape != (n, 4) or scales.shape != (n, 3):
             raise ValueError(f"quats must be (N, 4) and scales (N, 3), got {tuple(quats.shape)}, {tuple(scales.shape)}")
@@ -126,15 +139,19 @@ def rasterize(
         if sh_degree is None:
             raise ValueError("sh_coeffs needs sh_degree")
         cam_center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        colors = eval_sh(sh_coeffs, means, cam_center.to(means.dtype), sh_degree)
+        colors = eval_sh(sh_coeffs, means, cam_center.to(means), sh_degree)
     elif colors.ndim != 2 or colors.shape[0] != n:
         raise ValueError(f"colors must be (N, C), got {tuple(colors.shape)}")
     C = colors.shape[1]
     if background is None:
-        background = torch.zeros(C, dtype=means.dtype)
+        background = torch.zeros(C, dtype=means.dtype, device=means.device)
     elif background.shape != (C,):
         raise ValueError(f"background must be ({C},), got {tuple(background.shape)}")
 
+    if impl is gsplat_backend:
+        return gsplat_backend.rasterize(
+            means, cov6, opacities, colors, background, viewmat, K, width, height, near, far, eps2d, antialiased, absgrad
+        )
     proj = impl.project(means, cov6, opacities, viewmat, K, width, height, near, far, eps2d, antialiased)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()

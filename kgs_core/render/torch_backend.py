@@ -65,8 +65,8 @@ def project(
     antialiased: bool,
 ) -> Projection:
     dtype = means.dtype
-    viewmat = viewmat.to(dtype)
-    K = K.to(dtype)
+    viewmat = viewmat.to(means)
+    K = K.to(means)
     R = viewmat[:3, :3]
     p, in_depth, J = camera_jacobian(means, viewmat, K, width, height, near, far)
     x, y, z = p.unbind(-1)
@@ -115,7 +115,7 @@ def project(
 def blur_opacity_scale(means, covars6, sweep, viewmat, K, width, height, eps2d, near, far) -> Tensor:
     """Motion-blur footprint factor (arguments as `render/blur.py`'s), as a plain autograd expression."""
     with torch.no_grad():
-        viewmat, K = viewmat.to(means.dtype), K.to(means.dtype)
+        viewmat, K = viewmat.to(means), K.to(means)
         _, _, J = camera_jacobian(means, viewmat, K, width, height, near, far)
         M = J @ viewmat[:3, :3]  # world -> screen, (B, 2, 3), held constant
     cov2d = M @ unpack_covariance(covars6) @ M.transpose(1, 2)
@@ -145,7 +145,8 @@ def rasterize_to_pixels(
     for y0 in range(0, height, TILE):
         y1 = min(y0 + TILE, height)
         sel = (box[:, 1] < y1) & (box[:, 3] > y0)  # bounding box touches this band
-        ys, xs = torch.meshgrid(torch.arange(y0, y1, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij")
+        rows_at = torch.arange(y0, y1, dtype=dtype, device=m2d.device) + 0.5
+        ys, xs = torch.meshgrid(rows_at, torch.arange(width, dtype=dtype, device=m2d.device) + 0.5, indexing="ij")
         pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)  # (P, 2)
         d = pix[:, None, :] - m2d[sel][None]  # (P, G, 2)
         a, b, c = con[sel].unbind(-1)

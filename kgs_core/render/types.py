@@ -39,6 +39,16 @@ class Rendered:
     conics: Tensor  # (N, 3)
     info: dict = field(default_factory=dict)  # backend extras, e.g. "means2d_absgrad" after backward
 
+    def screen_grad(self, absgrad: bool = False) -> Tensor | None:
+        """`(N, 2)` after backward: the loss's gradient at the screen-space means that
+        densification reads (with `absgrad`, the sum of its per-pixel parts' absolute values);
+        None before. gsplat's lives on its own `(1, N, 2)` tensor (`gsplat_backend`)."""
+        source = self.info.get("gsplat_means2d")
+        if source is not None:
+            g = getattr(source, "absgrad", None) if absgrad else source.grad
+            return None if g is None else g.reshape(-1, 2)
+        return self.info.get("means2d_absgrad") if absgrad else self.means2d.grad
+
     @property
     def visible(self) -> Tensor:
         """(N,) bool: the Gaussian touched at least one tile of the image."""

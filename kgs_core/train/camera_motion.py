@@ -19,7 +19,7 @@ from ..data.scene import Frame
 
 def skew(w: Tensor) -> Tensor:
     """`(3, 3)` matrix of the cross product with `w (3,)`: `skew(w) x = w × x`."""
-    zero = torch.zeros((), dtype=w.dtype)
+    zero = torch.zeros((), dtype=w.dtype, device=w.device)
     return torch.stack([torch.stack([zero, -w[2], w[1]]), torch.stack([w[2], zero, -w[0]]), torch.stack([-w[1], w[0], zero])])
 
 

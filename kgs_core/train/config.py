@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Literal
 
+from ..device import Device
 from ..model.config import ModelConfig
 from ..schema import check_choices, from_fields, json_object
 from .densify import DensifyStrategy
@@ -139,6 +140,9 @@ class TrainConfig:
     checkpoint_every: int = 1000
     # guards: what a NaN/Inf in the loss or a gradient does
     on_nonfinite: OnNonfinite = "error"  # "error": stop, naming the tensor; "restore": last good checkpoint
+    # Where training computes (kgs_core/device.py): "auto" takes CUDA when torch sees a GPU
+    # (the rasteriser is then gsplat's, the `cuda` extra), else the CPU.
+    device: Device = "auto"
     nonfinite_lr_factor: float = 0.5  # "restore" multiplies every learning rate by this
     nonfinite_max_restores: int = 3
     model: ModelConfig = field(default_factory=ModelConfig)

@@ -60,12 +60,12 @@ class DensifyStrategy:
         return self.absgrad and it < self.stop
 
     def accumulate(self, out: Rendered, width: int, height: int) -> None:
-        g = out.info.get("means2d_absgrad") if self.absgrad else out.means2d.grad
+        g = out.screen_grad(self.absgrad)
         if g is None:
             return
         self._ensure(len(g))
         # Pixel gradients -> NDC units, so thresholds match the 3DGS literature.
-        g = g * torch.tensor([width / 2.0, height / 2.0])
+        g = g * g.new_tensor([width / 2.0, height / 2.0])
         vis = out.radii > 0
         self.state["grad_sum"][vis] += g[vis].norm(dim=-1)
         self.state["count"][vis] += 1

@@ -26,6 +26,10 @@ class FittedExposure:
         self.start = float(start)
         self.logit = torch.nn.Parameter(torch.tensor(math.log(e / (1 - e))))
 
+    def to(self, device) -> "FittedExposure":
+        self.logit = torch.nn.Parameter(self.logit.detach().to(device))
+        return self
+
     def value(self) -> torch.Tensor:
         """The exposure as a 0-d tensor with its gradient path to `logit`."""
         return torch.sigmoid(self.logit)

@@ -96,7 +96,7 @@ def flow_moving(
         moving = independent_motion(
             out.depth, viewmat, K, *camera_tensors(frames[j].camera), flow, threshold=FLOW_VOTE_PX, relative=FLOW_VOTE_RELATIVE
         )
-        moving = torch.from_numpy(large_regions(moving & (out.image[..., 0] < COVERED).numpy()))
+        moving = torch.as_tensor(large_regions(moving & (out.image[..., 0] < COVERED).cpu().numpy()), device=out.image.device)
         H, W = moving.shape
         uv, z = project(g.means, viewmat, K)
         u, v = uv[:, 0].round().long(), uv[:, 1].round().long()

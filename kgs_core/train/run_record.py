@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ..data.scene import Frame, Scene
+from ..device import tensors_to
 from ..losses import psnr
 from ..migrations import migrate_saved_model
 from ..model.decomposition import decomposition_counts
@@ -23,9 +24,10 @@ from .config import TrainConfig
 
 
 class ImageCache:
-    """Decoded frames as tensors, loaded once."""
+    """Decoded frames as tensors on `device`, loaded once."""
 
-    def __init__(self):
+    def __init__(self, device: torch.device | str = "cpu"):
+        self.device = torch.device(device)
         self._imgs: dict[tuple[str, str], torch.Tensor] = {}
 
     def get(self, frame: Frame, kind: str = "image") -> torch.Tensor | None:
@@ -34,7 +36,7 @@ class ImageCache:
         key = (frame.id, kind)
         if key not in self._imgs:
             arr = {"image": frame.image, "sharp": frame.sharp, "mask": frame.mask}[kind]()
-            self._imgs[key] = None if arr is None else torch.from_numpy(arr)
+            self._imgs[key] = None if arr is None else torch.from_numpy(arr).to(self.device)
         return self._imgs[key]
 
 
@@ -160,7 +162,7 @@ class RunRecord:
         return path
 
     def restore(self, path: Path) -> None:
-        state = migrate_saved_model(load_torch(path))
+        state = tensors_to(migrate_saved_model(load_torch(path)), self.device)
         self.model = KinematicsGS.from_state(state["model"])
         if self.camera_motion is not None and state.get("camera_motion") is not None:
             self.camera_motion.load_state_dict(state["camera_motion"])

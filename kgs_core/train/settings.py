@@ -203,6 +203,11 @@ NAMED: dict[str, NamedSetting] = {
         "fit a rigid correction of each training camera's pose, for footage "
         "whose structure-from-motion poses are poor (default off; docs/real-footage.md)",
     ),
+    "device": NamedSetting(
+        "device",
+        "where to train: auto takes CUDA when torch sees a GPU (the rasteriser is then gsplat's: "
+        "pip install 'kinematics-gs[cuda]'), else the CPU",
+    ),
     "on_nonfinite": NamedSetting(
         "on_nonfinite",
         "NaN/Inf in training: stop with an error naming the tensor (default), "

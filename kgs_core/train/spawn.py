@@ -109,13 +109,13 @@ def independent_motion(
         nxt = uv_next.reshape(H, W, 2)
         inside = (nxt[..., 0] >= BORDER_PX) & (nxt[..., 0] < W - BORDER_PX) & (nxt[..., 1] >= BORDER_PX) & (nxt[..., 1] < H - BORDER_PX)
         moving &= inside & (diff > relative * still.norm(dim=-1))
-    return moving.numpy()
+    return moving.cpu().numpy()
 
 
 def unexplained_pixels(image: Tensor, target: Tensor) -> np.ndarray:
     """`(H, W)` bool: where the render is off by more than ERROR_THRESHOLD, opened by 3x3 so that
     thin edges (a textured edge a pixel off) are not counted, in regions of MIN_REGION_PX or more."""
-    err = (image.detach() - target).abs().mean(-1).numpy()
+    err = (image.detach() - target).abs().mean(-1).cpu().numpy()
     return large_regions(err > ERROR_THRESHOLD)
 
 
@@ -197,7 +197,7 @@ def spawn_unexplained(
         # Each pixel's flow is that of the nearest pixel moving on its own (the unexplained
         # pixels of a blurred object often fail the flow's forward-backward check themselves).
         _, (iy, ix) = ndimage.distance_transform_edt(~moving, return_indices=True)
-        f = nxt.flow[torch.from_numpy(iy[ys, xs]), torch.from_numpy(ix[ys, xs])]  # (M, 2)
+        f = nxt.flow[torch.as_tensor(iy[ys, xs], device=nxt.flow.device), torch.as_tensor(ix[ys, xs], device=nxt.flow.device)]  # (M, 2)
         own = project(nxt.means[dyn], nxt.viewmat, nxt.K)[0] - uv  # (D, 2): each candidate's motion
         still = project(means[dyn], nxt.viewmat, nxt.K)[0] - uv  # the same, had it stood still
         matches = (own[None] - f[:, None]).norm(dim=-1) < PARENT_MATCH * (still[None] - f[:, None]).norm(dim=-1)
@@ -208,16 +208,16 @@ def spawn_unexplained(
         keep = ~orphan | (depth[ys, xs, 0] > 0) if model.config.spawned_motion == "own" else ~orphan
         if not keep.any():
             return Spawned()
-        keep_np = keep.numpy()
+        keep_np = keep.cpu().numpy()
         pixels, d2, ys, xs, f, orphan = pixels[keep], d2[keep], ys[keep_np], xs[keep_np], f[keep], orphan[keep]
     nearest = d2.argmin(1)
     parents = dyn[nearest]
     # Depth: the region's parents' (the object the new Gaussians join), or the render's for an
     # orphan; never behind the rendered background.
-    bg = depth[ys, xs, 0].numpy()
+    bg = depth[ys, xs, 0].cpu().numpy()
     z_new = float(torch.median(z[nearest[~orphan]])) if (~orphan).any() else 0.0
     z_pix = np.where(bg > 0, np.minimum(z_new, IN_FRONT * bg), z_new)
-    z_pix = np.where(orphan.numpy(), IN_FRONT * bg, z_pix)
+    z_pix = np.where(orphan.cpu().numpy(), IN_FRONT * bg, z_pix)
     z_pix = torch.tensor(z_pix, dtype=torch.float32)
     world = unproject(pixels, z_pix, viewmat, K)
     p = model.params

@@ -16,6 +16,7 @@ import torch
 from tqdm import tqdm
 
 from ..data.scene import Frame, Scene
+from ..device import computing_on, resolve_device
 from ..io import atomic_write_text
 from ..model.decomposition import decomposition_counts
 from ..model.deformation import TimeNoise
@@ -71,6 +72,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         on_step: Callable[[int, float], None] | None = None,
         threads=None,
     ):
+        # First, so that a device this machine lacks fails before anything is read or written.
+        self.device = resolve_device(cfg.device, "device")
         self.scene, self.cfg = scene, cfg
         self.threads = threads  # a kgs_core.threads.ThreadTuner, or None (the count stays as it is)
         self.run_dir = Path(run_dir)
@@ -80,8 +83,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.on_phase: Callable[[str], None] | None = None
         self.restores = 0
         self.events: list[dict] = []
-        self.background = torch.zeros(3)
-        self.cache = ImageCache()
+        self.background = torch.zeros(3, device=self.device)
+        self.cache = ImageCache(self.device)
         self.eval_set = evaluation_frames(scene, cfg.eval_frames)
         self.iteration = 0
         self.train_seconds = 0.0
@@ -119,10 +122,14 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             if (cfg.lambda_flow > 0 or cfg.spawn_frames > 0) and not self.static_only
             else {}
         )
+        self.flows = {fid: (j, flow.to(self.device)) for fid, (j, flow) in self.flows.items()}
+        for module in (self.camera_motion, self.pose_correction, self.fitted_exposure):
+            if module is not None:
+                module.to(self.device)
         self.views = LevelViews(self.cache, self.flows)
         self.divisor_override: int | None = None  # every step at this image divisor (the budget's pilot)
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
-        self.frame_loss = torch.full((len(scene.train_frames),), float("nan"))
+        self.frame_loss = torch.full((len(scene.train_frames),), float("nan"), device=self.device)
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
         # What the decompositions' reading of the flow added to the dynamic set (`split`); None until the
@@ -145,7 +152,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         pts, cols = scene.points, scene.point_colors
         if len(pts) < 4:
             pts, cols = random_points(cfg.init_points, 1.0, cfg.seed)
-        params = init_from_points(pts, cols, cfg.model.sh_degree, cfg.model.feature_dim, cfg.init_points, cfg.seed)
+        params = init_from_points(pts, cols, cfg.model.sh_degree, cfg.model.feature_dim, cfg.init_points, cfg.seed).to(self.device)
         self.model = KinematicsGS(params.requires_grad_(True), cfg.model)
         self.model.min_scale = self.level_min_scale(0)
         self.make_optimizers()
@@ -156,7 +163,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         it is."""
         from ..run import load_run
 
-        model = load_run(parent).model
+        model = load_run(parent, self.device).model
         # Decomposed at this config's τ: from the stored K, or (a parent stopped before its decomposition)
         # from K computed now.
         model.decompose(self.cfg.model.tau, recompute=not model.decomposed, in_place=self.cfg.decompose_in_place)
@@ -411,10 +418,11 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         cfg = self.cfg
         self.run_dir.mkdir(parents=True, exist_ok=True)
         ckpts = sorted((self.run_dir / "checkpoints").glob("ckpt_*.pt"))
-        if resume and ckpts:
-            self.restore(ckpts[-1])
-        else:
-            self.init_model()
+        with computing_on(self.device):  # (tensors made without a device land on the run's)
+            if resume and ckpts:
+                self.restore(ckpts[-1])
+            else:
+                self.init_model()
         scene_root = Path(self.scene.root).resolve()
         # The scene both as an absolute path (for people) and relative to the run (what a
         # copied or moved workspace, or data folder, still finds): `LoadedRun.scene_path`.
@@ -439,10 +447,11 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         (self.run_dir / "error.txt").unlink(missing_ok=True)
         # Set once: restoring a checkpoint after a non-finite step (`recover`) keeps the clock.
         self.wall_start = time.time() - self.resumed_wall_seconds
-        if cfg.on_nonfinite == "restore" and not ckpts:
-            self.checkpoint()  # a good state to fall back to before the first scheduled checkpoint
-        if not self.log_rows:
-            self.log(0, float("nan"))
+        with computing_on(self.device):
+            if cfg.on_nonfinite == "restore" and not ckpts:
+                self.checkpoint()  # a good state to fall back to before the first scheduled checkpoint
+            if not self.log_rows:
+                self.log(0, float("nan"))
         bar = tqdm(total=cfg.iterations, initial=self.iteration, disable=not self.progress, desc="train", unit="it", dynamic_ncols=True)
         loss = float("nan")
         try:
@@ -450,35 +459,36 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
                 if self.should_stop and self.should_stop():
                     info["status"] = "cancelled"
                     break
-                t0 = time.perf_counter()
-                try:
-                    loss = self.train_step(self.iteration)
-                except NonFiniteError as exc:
-                    if cfg.on_nonfinite != "restore":
-                        raise
-                    self.recover(exc)
-                    continue
-                if self.threads is not None:
-                    self.threads.observe(time.perf_counter() - t0)
-                self.iteration += 1
-                self.train_seconds += time.perf_counter() - t0
-                # Logged before the events scheduled at this count (densification, an opacity
-                # reset, a decomposition, a FLoD level change), so that the row scores what the
-                # iterations trained: after them, the paper preset's opacity reset at 3,000
-                # (every opacity capped at 0.01) logged a near-empty render. The
-                # last row comes after them: it scores the model that is saved.
-                last = self.iteration == cfg.iterations
-                if self.iteration % cfg.eval_every == 0 and not last:
-                    self.log_progress(bar, loss)
-                t0 = time.perf_counter()
-                self.after_step(self.iteration - 1)
-                self.train_seconds += time.perf_counter() - t0
-                if last:
-                    self.log_progress(bar, loss)
-                if self.iteration % cfg.checkpoint_every == 0:
-                    self.checkpoint()
-                if self.on_step:
-                    self.on_step(self.iteration, loss)
+                with computing_on(self.device):
+                    t0 = time.perf_counter()
+                    try:
+                        loss = self.train_step(self.iteration)
+                    except NonFiniteError as exc:
+                        if cfg.on_nonfinite != "restore":
+                            raise
+                        self.recover(exc)
+                        continue
+                    if self.threads is not None:
+                        self.threads.observe(time.perf_counter() - t0)
+                    self.iteration += 1
+                    self.train_seconds += time.perf_counter() - t0
+                    # Logged before the events scheduled at this count (densification, an opacity
+                    # reset, a decomposition, a FLoD level change), so that the row scores what the
+                    # iterations trained: after them, the paper preset's opacity reset at 3,000
+                    # (every opacity capped at 0.01) logged a near-empty render. The
+                    # last row comes after them: it scores the model that is saved.
+                    last = self.iteration == cfg.iterations
+                    if self.iteration % cfg.eval_every == 0 and not last:
+                        self.log_progress(bar, loss)
+                    t0 = time.perf_counter()
+                    self.after_step(self.iteration - 1)
+                    self.train_seconds += time.perf_counter() - t0
+                    if last:
+                        self.log_progress(bar, loss)
+                    if self.iteration % cfg.checkpoint_every == 0:
+                        self.checkpoint()
+                    if self.on_step:
+                        self.on_step(self.iteration, loss)
                 bar.update(1)
                 yield self.iteration
         except Exception as exc:
@@ -488,8 +498,9 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             raise
         finally:
             bar.close()
-        self.checkpoint()
-        self.save_final(info)
+        with computing_on(self.device):
+            self.checkpoint()
+            self.save_final(info)
         self.info = info
 
 
