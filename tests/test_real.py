@@ -400,3 +400,16 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     assert make_config("fast", scene=walk, **{"model.kr_form": "paper"}).camera_blur == "off"
     assert make_config("fast", scene=walk, ablate=("decompose",)).camera_blur == "off"
     assert make_config("fast", scene=still).camera_blur == "off"
+
+
+def test_a_detail_share_not_computed_reads_n_a_in_the_table():
+    """The input's detail in the mask is not computed where the two cameras' frames differ in
+    size (walk): the table says so instead of printing nan."""
+    import math
+
+    from kgs_app.bench.real import table_row
+
+    r = dict(psnr=23.0, ssim=0.83, psnr_mask=17.2, ssim_mask=0.67, detail=0.56, detail_input=0.49, detail_mask=0.33)
+    r.update(detail_input_mask=math.nan, psnr_mask_best_offset=19.1, best_offset_frames=1, dynamic_share=0.5)
+    row = table_row("full", "1", {**r, "gaussians": 1000, "iterations": 3000, "seconds": 214})
+    assert "| 0.33 (n/a) |" in row and "nan" not in row and "| 0.56 (0.49) |" in row

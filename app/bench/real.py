@@ -214,11 +214,17 @@ def plot_curves(curves: dict, title: str, path: Path) -> None:
     plt.close(fig)
 
 
+def share(value: float) -> str:
+    """A detail share, or n/a where it was not computed (the input's in the mask, when the two
+    cameras' frames differ in size)."""
+    return "n/a" if math.isnan(value) else f"{value:.2f}"
+
+
 def table_row(label: str, seed: str, r: dict) -> str:
     dyn = "static" if r["dynamic_share"] is None else f"{r['dynamic_share']:.0%}"
     return (
         f"| {label} | {seed} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} | "
-        f"{r['detail']:.2f} ({r['detail_input']:.2f}) | {r['detail_mask']:.2f} ({r['detail_input_mask']:.2f}) | "
+        f"{share(r['detail'])} ({share(r['detail_input'])}) | {share(r['detail_mask'])} ({share(r['detail_input_mask'])}) | "
         f"{r['psnr_mask_best_offset']:.2f} ({r['best_offset_frames']:+.2g}) | "
         f"{dyn} | {r['gaussians']:,.0f} | {r['iterations']:.0f} | {r['seconds']:.0f} |"
     )
