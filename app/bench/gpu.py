@@ -42,7 +42,8 @@ def gaussians_to_compare(args) -> dict:
         from kgs_core.run import load_run
 
         run = load_run(args.run)
-        frames = load_scene(run.scene_path()).test_frames or load_scene(run.scene_path()).train_frames
+        scene = load_scene(run.scene_path())
+        frames = scene.test_frames or scene.train_frames
         frame = frames[len(frames) // 2]
         viewmat, K = camera_tensors(frame.camera)
         with torch.no_grad():

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import random
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ import torch
 
 from ..data.scene import Frame, Scene
 from ..device import tensors_to
+from ..io import atomic_write_text
 from ..losses import psnr
 from ..migrations import migrate_saved_model
 from ..model.decomposition import decomposition_counts
@@ -133,7 +135,40 @@ def plot_psnr_vs_time(rows: list[dict], path: Path, title: str = "", label: str 
 
 
 class RunRecord:
-    """Checkpoints, `restore` and the final save of `Trainer`."""
+    """The held-out log, checkpoints, `restore` and the final save of `Trainer`."""
+
+    def wall_seconds(self) -> float:
+        """Wall time spent on this run, the time before a resume included."""
+        return time.time() - self.wall_start
+
+    def log(self, it: int, loss: float) -> dict:
+        p, p_dyn = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
+        counts = decomposition_counts(self.model, self.static_only)
+        row = {
+            "iteration": it,
+            "train_seconds": round(self.train_seconds, 3),
+            "wall_seconds": round(self.wall_seconds(), 3),
+            "loss": loss,
+            "psnr_heldout": p,
+            "psnr_heldout_dynamic": p_dyn,
+            "gaussians": counts["gaussians"],
+            "dynamic_share": counts["dynamic_share"],
+            "exposure": round(self.exposure, 5),
+        }
+        self.log_rows.append(row)
+        head = list(row)
+        # (.get: rows read back from a log written before a column existed, on resume)
+        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r.get(k, float('nan'))}" for k in head) for r in self.log_rows) + "\n"
+        atomic_write_text(self.run_dir / "log.csv", text)
+        if self.on_log:
+            self.on_log(row)
+        return row
+
+    def log_progress(self, bar, loss: float) -> None:
+        row = self.log(self.iteration, loss)
+        bar.set_postfix(
+            loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"], dynamic=f"{row['dynamic_share']:.0%}"
+        )
 
     def checkpoint(self) -> Path:
         path = self.run_dir / "checkpoints" / f"ckpt_{self.iteration:06d}.pt"

@@ -18,7 +18,6 @@ from tqdm import tqdm
 from ..data.scene import Frame, Scene
 from ..device import computing_on, resolve_device
 from ..io import atomic_write_text
-from ..model.decomposition import decomposition_counts
 from ..model.deformation import TimeNoise
 from ..model.dynamic import KinematicsGS
 from ..model.gaussians import init_from_points, make_optimizer, random_points
@@ -32,7 +31,7 @@ from .flow import frame_flows
 from .image_levels import LevelViews, image_divisor
 from .objective import Objective
 from .pose_refine import PoseCorrection
-from .run_record import ImageCache, RunRecord, evaluation_frames, heldout_psnr, kr_note
+from .run_record import ImageCache, RunRecord, evaluation_frames, kr_note
 
 
 class NonFiniteError(FloatingPointError):
@@ -59,7 +58,8 @@ WINDOW_FULL_AT = 0.75
 class Trainer(Objective, ScheduleEvents, RunRecord):
     """One training run of a scene: `run()` (or `iterate()`, a step at a time). The loss is
     `Objective`'s (train/objective.py), the schedule's events `ScheduleEvents`'
-    (train/events.py), checkpoints and the final save `RunRecord`'s (train/run_record.py)."""
+    (train/events.py), the held-out log, checkpoints and the final save `RunRecord`'s
+    (train/run_record.py)."""
 
     def __init__(
         self,
@@ -334,40 +334,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             self.check_kr(nxt)
         self.strategy.reset_opacities(model, self.opt, nxt)
 
-    # ------------------------------------------------------------ logging and checkpoints
-
-    def wall_seconds(self) -> float:
-        """Wall time spent on this run, the time before a resume included."""
-        return time.time() - self.wall_start
-
-    def log(self, it: int, loss: float) -> dict:
-        p, p_dyn = heldout_psnr(self.model, self.scene, self.eval_set, self.cache, self.background, static=self.static_only)
-        counts = decomposition_counts(self.model, self.static_only)
-        row = {
-            "iteration": it,
-            "train_seconds": round(self.train_seconds, 3),
-            "wall_seconds": round(self.wall_seconds(), 3),
-            "loss": loss,
-            "psnr_heldout": p,
-            "psnr_heldout_dynamic": p_dyn,
-            "gaussians": counts["gaussians"],
-            "dynamic_share": counts["dynamic_share"],
-            "exposure": round(self.exposure, 5),
-        }
-        self.log_rows.append(row)
-        head = list(row)
-        # (.get: rows read back from a log written before a column existed, on resume)
-        text = ",".join(head) + "\n" + "\n".join(",".join(f"{r.get(k, float('nan'))}" for k in head) for r in self.log_rows) + "\n"
-        atomic_write_text(self.run_dir / "log.csv", text)
-        if self.on_log:
-            self.on_log(row)
-        return row
-
-    def log_progress(self, bar, loss: float) -> None:
-        row = self.log(self.iteration, loss)
-        bar.set_postfix(
-            loss=f"{loss:.4f}", psnr=f"{row['psnr_heldout']:.2f}", gaussians=row["gaussians"], dynamic=f"{row['dynamic_share']:.0%}"
-        )
+    # ------------------------------------------------------------ guards
 
     def check_gradients(self, it: int) -> None:
         """NaN/Inf in any gradient: an error naming the parameter (a Gaussian attribute, a
