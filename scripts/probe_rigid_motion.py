@@ -1,4 +1,4 @@
-"""Probe: how far a synthetic scene's rigid moving object (`die`, `spin`) gets when its Gaussians
+"""Probe: how far a synthetic scene's rigid moving object (`die`, `spin`, `top`, `swing`) gets when its Gaussians
 move rigidly, by the ground truth or by a learned per-frame rigid motion, everything else being
 the full method (fast preset). It answers "is the motion what loses the object, and can a rigid
 representation learn it from the photometric loss" (docs/method.md, "The motion probe").
@@ -45,7 +45,7 @@ OBJECT_MARGIN = 1.05  # a Gaussian belongs to the object when inside its box gro
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene_name", choices=["die", "spin"])
+    ap.add_argument("scene_name", choices=["die", "spin", "top", "swing"])
     ap.add_argument("scene_dir")
     ap.add_argument("run_dir")
     ap.add_argument("--motion", choices=["oracle", "rigid"], default="oracle")
@@ -68,9 +68,11 @@ def main() -> None:
     scale, centre = float(scene.normalization.scale), np.asarray(scene.normalization.center, float)
     world = build_world(args.scene_name, args.seed)
     obj = next(o for o in world.objects if o.dynamic)
-    half = np.asarray(obj.shape.half)
+    # A box's half sizes, or an ellipsoid's radii (a rigid one: top, swing).
+    round_object = not hasattr(obj.shape, "half")
+    half = np.asarray(obj.shape.radii(0.0) if round_object else obj.shape.half, float)
     # What the object rests on (the floor, or spin's table): Gaussians on it are not the object's.
-    floor_z = 0.0 if args.scene_name == "die" else 2 * next(o for o in world.objects if o.name == "table").shape.half[2]
+    floor_z = 2 * next(o for o in world.objects if o.name == "table").shape.half[2] if args.scene_name == "spin" else 0.0
 
     def pose(t: float) -> tuple[np.ndarray, np.ndarray]:
         """Object to normalised world at `t`: x = R p + b."""
@@ -86,7 +88,8 @@ def main() -> None:
     def inside(means: np.ndarray, R, b, grow: float) -> np.ndarray:
         p = (means - b) @ R / scale
         above = (means / scale + centre)[:, 2] > floor_z + 0.01
-        return (np.abs(p) <= half * grow).all(1) & (above | (p[:, 2] > -0.9 * half[2]))
+        within = ((p / half) ** 2).sum(1) <= grow**2 if round_object else (np.abs(p) <= half * grow).all(1)
+        return within & (above | (p[:, 2] > -0.9 * half[2]))
 
     def is_object(means: torch.Tensor) -> torch.Tensor:
         return torch.from_numpy(inside(means.detach().double().numpy(), R0, b0, OBJECT_MARGIN))

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from pathlib import Path
 
 import pytest
 
 from kgs_core.data.formats import load_scene
 from kgs_core.train import budget
-from kgs_core.train.budget import HEADROOM, MIN_ITERATIONS, StepCost, parse_duration
-from kgs_core.train.config import make_config
+from kgs_core.train.budget import BUDGET_CHECK_STEPS, HEADROOM, MIN_ITERATIONS, StepCost, parse_duration
+from kgs_core.train.config import TrainConfig, make_config
+from kgs_core.train.trainer import Trainer
 
 FIXTURE = Path(__file__).parent / "fixtures" / "walk96"
 
@@ -117,3 +120,87 @@ def test_the_command_line_and_the_rest_body_take_a_budget():
     assert TrainRequest(scene_id="x", time_budget="10m").time_budget == 600  # the same reading as the command line
     with pytest.raises(ValueError):
         TrainRequest(scene_id="x", time_budget=10**9)
+
+
+def test_the_rest_of_a_run_costs_its_steps_from_where_it_is():
+    """`since`: only the steps from there count, the count growing from where it is then to the
+    budget by densification's stop."""
+    cfg = make_config("fast", iterations=1000, **{"densify.max_gaussians": 5000})
+    d, cost = cfg.densify, StepCost(fixed=0.01, per_gaussian=1e-6)
+    since, now = (d.start + d.stop) // 2, 2000
+    expected = (d.stop - since) * cost.at((now + 5000) / 2) + (1000 - d.stop) * cost.at(5000)
+    assert cost.run_seconds(cfg, now, since=since) == pytest.approx(expected)
+    assert cost.run_seconds(cfg, 5000, since=d.stop) == pytest.approx((1000 - d.stop) * cost.at(5000))
+    assert StepCost.from_dict(cost.to_dict()) == cost
+
+
+def _planned(cfg, most: int, cost: StepCost, budget_s: float):
+    return dataclasses.replace(cfg, time_budget=budget_s, budget_pilot={"cost": cost.to_dict(), "most_gaussians": most})
+
+
+def test_the_run_s_own_steps_revise_the_gaussian_budget():
+    """Steps cheaper than the pilot's (the static Gaussians skip the field after the
+    decomposition) shift its cost down and raise the budget to the most whose remainder fits
+    the time left, up to the preset's; dearer ones lower it, never below the count already
+    there."""
+    cfg = make_config("fast", iterations=1000, **{"densify.max_gaussians": 4000})
+    pilot = StepCost(fixed=0.01, per_gaussian=2e-6)
+    it, n = 300, 3000
+    plan = _planned(cfg, 20_000, pilot, 600.0)
+    left = pilot.run_seconds(cfg, n, since=it)  # what the plan left for the rest, at the pilot's cost
+    cheaper, cost = budget.refit_gaussian_budget(plan, it, n, step_seconds=pilot.at(n) - 0.004, divisor=1, seconds_left=left)
+    assert cost.per_gaussian == pilot.per_gaussian and cost.fixed == pytest.approx(pilot.fixed - 0.004)  # shifted
+    assert 4000 < cheaper <= 20_000
+    grown = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, max_gaussians=cheaper))
+    assert cost.run_seconds(grown, n, since=it) <= left
+    one_more = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, max_gaussians=cheaper + 1))
+    assert cheaper == 20_000 or cost.run_seconds(one_more, n, since=it) > left
+    dearer, _ = budget.refit_gaussian_budget(plan, it, n, step_seconds=pilot.at(n) + 0.004, divisor=1, seconds_left=left)
+    assert n <= dearer < 4000
+    none_left, _ = budget.refit_gaussian_budget(plan, it, n, step_seconds=0.02, divisor=1, seconds_left=-1.0)
+    assert none_left == n
+    # A median far off the pilot's (a step caught beside another process) counts as RATIO_BOUND
+    # times the pilot's step at most.
+    _, wild = budget.refit_gaussian_budget(plan, it, n, step_seconds=100 * pilot.at(n), divisor=1, seconds_left=left)
+    assert wild.at(n) == pytest.approx(budget.RATIO_BOUND * pilot.at(n))
+
+
+def test_a_plan_records_its_pilot_unless_the_gaussian_budget_was_given(walk, known_cost):
+    preset = make_config("fast", scene=walk)
+    planned = make_config("fast", scene=walk, time_budget=3600.0)
+    assert planned.budget_pilot == {"cost": known_cost.to_dict(), "most_gaussians": preset.densify.max_gaussians}
+    given = make_config("fast", scene=walk, time_budget=3600.0, **{"densify.max_gaussians": 2000})
+    assert given.budget_pilot == {} and given.densify.max_gaussians == 2000
+    assert TrainConfig.from_dict(planned.to_dict()).budget_pilot == planned.budget_pilot
+
+
+@pytest.mark.parametrize("time_left", ["plenty", "none"])
+def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(walk, tmp_path, time_left):
+    """A real training planned with a known pilot: after the steps that follow the first
+    decomposition the densification budget becomes the revised one (the preset's when the
+    pilot's cost leaves time to spare; the count then when no time is left), recorded in
+    run.json and in the checkpoints, from which a resumed run keeps it."""
+    base = make_config(
+        "fast",
+        scene=walk,
+        iterations=90,
+        plan_budget=False,
+        decompose_at=20,
+        checkpoint_every=45,
+        eval_every=45,
+        **{"densify.max_gaussians": 2000, "densify.start": 10, "densify.every": 20, "densify.stop": 80},
+    )
+    # A pilot of 1 s a step, nothing per Gaussian: the measured steps are far cheaper (read as
+    # RATIO_BOUND times cheaper, 0.5 s).
+    cfg = _planned(base, 9000, StepCost(fixed=1.0, per_gaussian=0.0), 1e4 if time_left == "plenty" else 1e-3)
+    tr = Trainer(walk, tmp_path / "run", cfg, progress=False)
+    tr.run()
+    checks = json.loads((tmp_path / "run" / "run.json").read_text())["budget_checks"]
+    assert [c["iteration"] for c in checks] == [20 + BUDGET_CHECK_STEPS]
+    check = checks[0]
+    assert check["max_gaussians_before"] == 2000 and check["step_ms"] > 0 and check["pilot_step_ms"] == 1000.0
+    assert check["max_gaussians"] == (9000 if time_left == "plenty" else check["gaussians"])
+    assert tr.strategy.max_gaussians == check["max_gaussians"]
+    resumed = Trainer(walk, tmp_path / "run", cfg, progress=False)
+    resumed.restore(sorted((tmp_path / "run" / "checkpoints").glob("ckpt_*.pt"))[-1])
+    assert resumed.strategy.max_gaussians == check["max_gaussians"] and resumed.budget_checks == checks

@@ -7,6 +7,13 @@ the budget between its start and stop) gives the run's time for an iteration cou
 iterations (and, when they would fall below half the preset's, the Gaussian budget) are the
 largest that fit; never more than the preset's own, which is what it was tuned to need. The
 choice and its reason go into `TrainConfig.fitted`, so run.json says what was picked and why.
+
+The pilot's steps are the warm-up's, in which every Gaussian deforms; after the first
+decomposition the static ones skip the field and a step costs less. So the plan is revised
+from the run's own steps after that decomposition and after each change of image size
+(`refit_gaussian_budget`): the Gaussian budget grows into the time the pilot overestimated (up
+to the preset's), or shrinks when the run is slower than planned. The pilot's cost travels in
+`TrainConfig.budget_pilot`.
 """
 
 from __future__ import annotations
@@ -29,6 +36,14 @@ PILOT_FRAMES = 4
 MIN_ITERATIONS = 200
 # Below this share of the preset's iterations a budget also lowers the Gaussian budget.
 MIN_ITERATION_SHARE = 0.5
+# Steps after the first decomposition whose median revises the Gaussian budget (`refit_gaussian_budget`).
+BUDGET_CHECK_STEPS = 30
+# What a revision keeps back of the budget: less than the pilot's plan, since it measures the
+# run's steps and events.
+REVISED_HEADROOM = 0.95
+# How far from the pilot's a revision may take a step's cost (either way): a median caught
+# beside another process, or in the thread tuner's trial, must not throw the plan.
+RATIO_BOUND = 2.0
 # The pilot's steps are the warm-up's (every Gaussian deforms), dearer than the ones after the
 # split; the plan is kept this far under the budget for what the pilot does not see (events,
 # evaluation, the thread tuner settling).
@@ -63,15 +78,27 @@ class StepCost:
     fixed_at: tuple[tuple[int, float], ...] = ()
 
     def at(self, n: float, divisor: int = 1) -> float:
-        return dict(self.fixed_at).get(divisor, self.fixed) + self.per_gaussian * n
+        return self.fixed_part(divisor) + self.per_gaussian * n
 
-    def run_seconds(self, cfg, start: int) -> float:
-        """The run's training time for `cfg` starting from `start` Gaussians: the count held
-        until densification starts, grown linearly to the budget by its stop (densification
-        usually reaches it sooner: an overestimate), then held; each stretch at its image size."""
+    def fixed_part(self, divisor: int = 1) -> float:
+        return dict(self.fixed_at).get(divisor, self.fixed)
+
+    def to_dict(self) -> dict:
+        return {"fixed": self.fixed, "per_gaussian": self.per_gaussian, "fixed_at": [list(p) for p in self.fixed_at]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "StepCost":
+        return cls(float(d["fixed"]), float(d["per_gaussian"]), tuple((int(k), float(v)) for k, v in d.get("fixed_at", ())))
+
+    def run_seconds(self, cfg, start: int, since: int = 0) -> float:
+        """The training time of `cfg`'s steps from iteration `since` (0: the whole run), with
+        `start` Gaussians then: the count held until densification starts, grown linearly to
+        the budget by its stop (densification usually reaches it sooner: an overestimate),
+        then held; each stretch at its image size."""
         n_it, d = cfg.iterations, cfg.densify
         top = max(start, d.max_gaussians)
-        grow_from, grow_to = min(d.start, n_it), min(max(d.stop, d.start), n_it)
+        grow_from = min(max(d.start, since), n_it)
+        grow_to = min(max(d.stop, grow_from), n_it)
 
         def count(x: float) -> float:
             if x <= grow_from:
@@ -82,7 +109,8 @@ class StepCost:
 
         # Between these steps the count is linear and the image size fixed, and the cost is
         # linear in the count: each stretch costs its length at its middle's count.
-        cuts = sorted({0, n_it, grow_from, grow_to, *divisor_changes(n_it, cfg.downscales, cfg.downscale_until)})
+        changes = divisor_changes(n_it, cfg.downscales, cfg.downscale_until)
+        cuts = sorted({since, n_it, grow_from, grow_to, *(c for c in changes if since < c < n_it)})
         total = 0.0
         for a, b in zip(cuts, cuts[1:]):
             k = image_divisor(a, n_it, cfg.downscales, cfg.downscale_until)
@@ -158,9 +186,13 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
     pilot = f"a pilot of {1000 * cost.at(start):.0f} ms a step at {start:,} Gaussians and {1000 * cost.at(top):.0f} ms at {top:,}"
     # (A budget fitted to the scene has its reason there already: the plan follows it.)
     why = f"{cfg.fitted['time_budget']}; " if "time_budget" in cfg.fitted else f"{budget:.0f} s: "
+    # What the run's own steps revise after the first decomposition; a Gaussian budget given by
+    # hand is kept as given.
+    pilot_record = {} if "densify.max_gaussians" in explicit else {"cost": cost.to_dict(), "most_gaussians": preset_g}
     if full <= target:
         fits_all = f"the preset's {preset_it} iterations up to {preset_g:,} Gaussians fit"
         cfg.fitted["time_budget"] = f"{why}{fits_all} ({full:.0f} s planned from {pilot})"
+        cfg.budget_pilot = pilot_record
         return cfg
     fits = lambda n, g: cost.run_seconds(remake(n, g), start) <= target  # noqa: E731
     g = preset_g
@@ -179,6 +211,7 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
         )
     out = remake(n, g)
     out.time_budget = budget
+    out.budget_pilot = pilot_record
     planned = cost.run_seconds(out, start)
     fewer = f", a Gaussian budget of {g:,} of its {preset_g:,}" if g != preset_g else ""
     out.fitted["time_budget"] = (
@@ -186,6 +219,30 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
         f"planned, the preset's would take {full:.0f} s; from {pilot})"
     )
     return out
+
+
+def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor: int, seconds_left: float) -> tuple[int, StepCost]:
+    """The Gaussian budget for the rest of a planned run (`cfg.budget_pilot`), from its own
+    steps: the pilot's cost shifted by what `step_seconds` (a median step at `count` Gaussians
+    and image `divisor`, just before iteration `it`) differs from the pilot's own for that
+    step, the step held within a factor RATIO_BOUND of the pilot's; the budget is the largest
+    in [count, the preset's] whose remaining steps fit `seconds_left`, and `count` (no more
+    densification) when none does. Also returns the revised cost.
+
+    A shift, not a scale: what the decomposition saves grows with the count more slowly than a
+    step's cost, so the pilot's cost per added Gaussian, which every Gaussian deforming set,
+    errs on the budget's side."""
+    pilot = StepCost.from_dict(cfg.budget_pilot["cost"])
+    expected = pilot.at(count, divisor)
+    shift = min(max(step_seconds, expected / RATIO_BOUND), expected * RATIO_BOUND) - expected
+    cost = StepCost(max(pilot.fixed + shift, 0.0), pilot.per_gaussian, tuple((k, max(v + shift, 0.0)) for k, v in pilot.fixed_at))
+    most = max(count, int(cfg.budget_pilot["most_gaussians"]))
+
+    def fits(g: int) -> bool:
+        planned = replace(cfg, densify=replace(cfg.densify, max_gaussians=g))
+        return cost.run_seconds(planned, count, since=it) <= seconds_left
+
+    return _largest(fits, count, most), cost
 
 
 def _largest(fits, low: int, high: int) -> int:

@@ -188,6 +188,10 @@ class TrainConfig:
     # What `fit_to_scene` chose from the scene and why ({setting: reason}); empty when the
     # preset's constants were kept (no scene given, or every setting given explicitly).
     fitted: dict = field(default_factory=dict)
+    # A time budget's pilot ({"cost": StepCost, "most_gaussians": the preset's budget}), from
+    # which the Gaussian budget is revised after the first decomposition (train/budget.py);
+    # empty without a budget, or with a Gaussian budget given by hand.
+    budget_pilot: dict = field(default_factory=dict)
 
     def __post_init__(self):
         check_choices(self)

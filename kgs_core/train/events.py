@@ -4,6 +4,7 @@ K.R.'s mid-run check, and the end of a FLoD level (importance prune, snapshot, n
 
 from __future__ import annotations
 
+import statistics
 import time
 
 import numpy as np
@@ -16,6 +17,7 @@ from ..model.gaussians import set_param
 from ..model.render import camera_tensors, render_model
 from .flow import frame_flows
 from .flow_vote import flow_moving, read_frames
+from .image_levels import divisor_changes
 from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
 
 
@@ -56,6 +58,56 @@ class ScheduleEvents:
             self.kr_check["note"] = f"K.R. turned off at iteration {it} of {self.cfg.iterations}: {note}"
             if self.progress:
                 tqdm.write(f"note: {self.kr_check['note']}")
+
+    def watch_budget(self, nxt: int) -> None:
+        """Revises the Gaussian budget of a run planned to a time budget from its own steps
+        (`budget.refit_gaussian_budget`): the median of the `BUDGET_CHECK_STEPS` steps after
+        the first decomposition, and again after each change of image size, while densification
+        still runs (events excluded, as from the pilot's). Each revision is recorded in
+        `budget_checks` (run.json)."""
+        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, StepCost, refit_gaussian_budget
+
+        c = self.cfg
+        starts = {c.decompose_at, *divisor_changes(c.iterations, c.downscales, c.downscale_until)}
+        start = next((s for s in starts if c.decompose_at <= s < c.densify.stop and 1 <= nxt - s <= BUDGET_CHECK_STEPS), None)
+        if start is None:
+            return
+        if nxt - start == 1:
+            self.budget_steps = []
+        self.budget_steps.append(self.last_step_seconds)
+        if nxt - start < BUDGET_CHECK_STEPS or len(self.budget_steps) < BUDGET_CHECK_STEPS:
+            return  # (a run resumed inside the window skips this revision)
+        n, divisor = len(self.model), self.image_divisor(nxt - 1)
+        step = statistics.median(self.budget_steps)
+        before = self.strategy.max_gaussians
+        pilot_ms = 1000 * StepCost.from_dict(c.budget_pilot["cost"]).at(n, divisor)
+        # The events (densification, spawning, decompositions, evaluation) take their share
+        # so far of what is left: the steps get the rest.
+        events = self.train_seconds / max(self.step_seconds, 1e-9)
+        left = REVISED_HEADROOM * c.time_budget - self.train_seconds
+        after, _ = refit_gaussian_budget(c, nxt, n, step, divisor, left / events)
+        self.strategy.max_gaussians = after
+        size = "full size" if divisor == 1 else f"1/{divisor} size"
+        note = (
+            f"Gaussian budget {before:,} -> {after:,} at iteration {nxt}: its steps took {1000 * step:.0f} ms "
+            f"at {n:,} Gaussians and {size}, the pilot's {pilot_ms:.0f} ms; {max(left, 0):.0f} s of the budget left, "
+            f"events {events - 1:.0%} on top of the steps"
+        )
+        self.budget_checks.append(
+            {
+                "iteration": nxt,
+                "gaussians": n,
+                "divisor": divisor,
+                "step_ms": round(1000 * step, 1),
+                "pilot_step_ms": round(pilot_ms, 1),
+                "events_share": round(events - 1, 3),
+                "max_gaussians_before": before,
+                "max_gaussians": after,
+                "note": note,
+            }
+        )
+        if self.progress:
+            tqdm.write(f"note: {note}")
 
     def spawn(self, it: int) -> None:
         """New dynamic Gaussians where the worst-fitted training frames stay unexplained and

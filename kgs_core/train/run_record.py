@@ -177,6 +177,7 @@ class RunRecord:
             {
                 "iteration": self.iteration,
                 "train_seconds": self.train_seconds,
+                "step_seconds": self.step_seconds,
                 "wall_seconds": self.wall_seconds(),
                 "model": self.model.state(),
                 "opt": self.opt.state_dict(),
@@ -190,6 +191,8 @@ class RunRecord:
                 "frame_loss": self.frame_loss.clone(),
                 "fitted_exposure": None if self.fitted_exposure is None else self.fitted_exposure.state_dict(),
                 "kr_check": self.kr_check,
+                "budget_checks": self.budget_checks,
+                "max_gaussians": self.strategy.max_gaussians,
                 "flow_vote": self.flow_vote,
                 "spawn_record": self.spawn_record,
             },
@@ -213,6 +216,7 @@ class RunRecord:
         self.strategy.state.update(grad_sum=state["strategy"]["grad_sum"], count=state["strategy"]["count"])
         self.iteration = state["iteration"]
         self.train_seconds = state["train_seconds"]
+        self.step_seconds = state.get("step_seconds", self.train_seconds)  # (absent from older checkpoints)
         self.levels = state["levels"]
         self.log_rows = state["log"]
         # The wall time a resume continues from: the checkpoint's own (checkpoints of older
@@ -221,6 +225,9 @@ class RunRecord:
         if state.get("frame_loss") is not None and len(state["frame_loss"]) == len(self.frame_loss):
             self.frame_loss = state["frame_loss"].clone()  # (absent from checkpoints of older runs)
         self.kr_check = state.get("kr_check")
+        # (Absent from older checkpoints.) A revised budget is the strategy's from then on.
+        self.budget_checks = state.get("budget_checks") or []
+        self.strategy.max_gaussians = state.get("max_gaussians", self.strategy.max_gaussians)
         self.flow_vote = state.get("flow_vote")  # (absent from older checkpoints)
         self.spawn_record = {
             "attempts": 0,
@@ -272,6 +279,8 @@ class RunRecord:
             info["exposure_choice"] = f"fitted to the footage from {self.fitted_exposure.start:g}"
         if self.events:
             info["guard_events"] = self.events
+        if self.budget_checks:
+            info["budget_checks"] = self.budget_checks
         if self.cfg.spawn_frames > 0 and not self.static_only:
             info["spawn"] = self.spawn_summary()
         if self.flow_vote is not None:

@@ -25,7 +25,7 @@ from .config import NESTED, TrainConfig
 # Fields that are not settings: the ablations have their own option, `fitted` is an output,
 # and `init_from` is a path, which a request names by run id (POST /api/runs's `init_from_run`,
 # `kgs-app train --init-from`): no setting reaches a file on the server.
-NOT_SETTINGS = ("ablate", "fitted", "init_from")
+NOT_SETTINGS = ("ablate", "fitted", "init_from", "budget_pilot")
 
 
 @dataclass(frozen=True)

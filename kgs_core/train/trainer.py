@@ -132,6 +132,12 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"), device=self.device)
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
+        # A time budget's revisions from the run's own steps (`watch_budget`), and the step
+        # times the next one reads.
+        self.budget_checks: list[dict] = []
+        self.budget_steps: list[float] = []
+        self.last_step_seconds = 0.0
+        self.step_seconds = 0.0  # the steps' share of `train_seconds` (the rest: events)
         # What the decompositions' reading of the flow added to the dynamic set (`split`); None until the
         # first decomposition. `_vote_flows`: the flows it reads where the run has none of its own.
         self.flow_vote: dict | None = None
@@ -332,6 +338,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
                 self.decompose()
         if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
             self.check_kr(nxt)
+        if c.budget_pilot and c.time_budget > 0 and model.decomposed:
+            self.watch_budget(nxt)
         self.strategy.reset_opacities(model, self.opt, nxt)
 
     # ------------------------------------------------------------ guards
@@ -435,10 +443,12 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
                             raise
                         self.recover(exc)
                         continue
+                    self.last_step_seconds = time.perf_counter() - t0
                     if self.threads is not None:
-                        self.threads.observe(time.perf_counter() - t0)
+                        self.threads.observe(self.last_step_seconds)
                     self.iteration += 1
-                    self.train_seconds += time.perf_counter() - t0
+                    self.train_seconds += self.last_step_seconds
+                    self.step_seconds += self.last_step_seconds
                     # Logged before the events scheduled at this count (densification, an opacity
                     # reset, a decomposition, a FLoD level change), so that the row scores what the
                     # iterations trained: after them, the paper preset's opacity reset at 3,000
