@@ -36,7 +36,8 @@ PILOT_FRAMES = 4
 MIN_ITERATIONS = 200
 # Below this share of the preset's iterations a budget also lowers the Gaussian budget.
 MIN_ITERATION_SHARE = 0.5
-# Steps after the first decomposition whose median revises the Gaussian budget (`refit_gaussian_budget`).
+# Steps, after the first decomposition and after each change of image size, whose median
+# revises the Gaussian budget (`refit_gaussian_budget`).
 BUDGET_CHECK_STEPS = 30
 # What a revision keeps back of the budget: less than the pilot's plan, since it measures the
 # run's steps and events.
