@@ -204,3 +204,19 @@ def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(w
     resumed = Trainer(walk, tmp_path / "run", cfg, progress=False)
     resumed.restore(sorted((tmp_path / "run" / "checkpoints").glob("ckpt_*.pt"))[-1])
     assert resumed.strategy.max_gaussians == check["max_gaussians"] and resumed.budget_checks == checks
+
+
+def test_a_malformed_pilot_record_is_refused_by_name(walk, known_cost):
+    """A run.json's config read back (a resumed or copied run) with a pilot record that is not
+    what the planner writes fails when the configuration is built, naming the field, not in
+    the middle of training."""
+    good = make_config("fast", scene=walk, time_budget=3600.0).to_dict()
+    for bad in (
+        {"cost": {"fixed": -1.0, "per_gaussian": 0.0}, "most_gaussians": 10},
+        {"cost": {"fixed": 0.1}},
+        {"most_gaussians": 5},
+        {"cost": "x", "most_gaussians": 5},
+    ):
+        with pytest.raises(ValueError, match="budget_pilot"):
+            TrainConfig.from_dict({**good, "budget_pilot": bad})
+    assert TrainConfig.from_dict(good).budget_pilot == good["budget_pilot"]

@@ -328,6 +328,7 @@ def main(argv: list[str]) -> int:
 
         # Every configuration trains the full method's plan: at full size a time budget's
         # (its iterations and Gaussian budget, train/fitting.py), else the fitted iterations.
+        # Given, so that no run revises it (train/budget.py): each configuration gets the same.
         planned = make_config(args.preset, scene=scene)
         iterations = args.iterations or planned.iterations
         plan = {"densify.max_gaussians": planned.densify.max_gaussians} if not args.iterations and planned.time_budget else {}

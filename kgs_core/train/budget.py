@@ -18,6 +18,7 @@ to the preset's), or shrinks when the run is slower than planned. The pilot's co
 
 from __future__ import annotations
 
+import math
 import re
 import statistics
 import tempfile
@@ -79,10 +80,7 @@ class StepCost:
     fixed_at: tuple[tuple[int, float], ...] = ()
 
     def at(self, n: float, divisor: int = 1) -> float:
-        return self.fixed_part(divisor) + self.per_gaussian * n
-
-    def fixed_part(self, divisor: int = 1) -> float:
-        return dict(self.fixed_at).get(divisor, self.fixed)
+        return dict(self.fixed_at).get(divisor, self.fixed) + self.per_gaussian * n
 
     def to_dict(self) -> dict:
         return {"fixed": self.fixed, "per_gaussian": self.per_gaussian, "fixed_at": [list(p) for p in self.fixed_at]}
@@ -222,6 +220,23 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
     return out
 
 
+def read_budget_pilot(record: dict) -> tuple[StepCost, int]:
+    """`TrainConfig.budget_pilot`'s cost and most Gaussians; ValueError naming the field when
+    it is not what `fit_time_budget` writes (finite numbers, none below 0; a whole count)."""
+    try:
+        cost, most = StepCost.from_dict(record["cost"]), record["most_gaussians"]
+        numbers = [cost.fixed, cost.per_gaussian, *(v for _, v in cost.fixed_at)]
+        ok = all(math.isfinite(v) and v >= 0 for v in numbers) and isinstance(most, int) and most >= 1
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(
+            "budget_pilot must be empty or {'cost': {'fixed', 'per_gaussian', 'fixed_at'}, 'most_gaussians'} "
+            f"as a time budget's pilot writes it (numbers >= 0, a whole count >= 1), got {record!r}"
+        )
+    return cost, most
+
+
 def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor: int, seconds_left: float) -> tuple[int, StepCost]:
     """The Gaussian budget for the rest of a planned run (`cfg.budget_pilot`), from its own
     steps: the pilot's cost shifted by what `step_seconds` (a median step at `count` Gaussians
@@ -233,11 +248,11 @@ def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor
     A shift, not a scale: what the decomposition saves grows with the count more slowly than a
     step's cost, so the pilot's cost per added Gaussian, which every Gaussian deforming set,
     errs on the budget's side."""
-    pilot = StepCost.from_dict(cfg.budget_pilot["cost"])
+    pilot, most = read_budget_pilot(cfg.budget_pilot)
     expected = pilot.at(count, divisor)
     shift = min(max(step_seconds, expected / RATIO_BOUND), expected * RATIO_BOUND) - expected
     cost = StepCost(max(pilot.fixed + shift, 0.0), pilot.per_gaussian, tuple((k, max(v + shift, 0.0)) for k, v in pilot.fixed_at))
-    most = max(count, int(cfg.budget_pilot["most_gaussians"]))
+    most = max(count, most)
 
     def fits(g: int) -> bool:
         planned = replace(cfg, densify=replace(cfg.densify, max_gaussians=g))

@@ -195,6 +195,10 @@ class TrainConfig:
 
     def __post_init__(self):
         check_choices(self)
+        if self.budget_pilot:  # (a run.json's config may come from anywhere)
+            from .budget import read_budget_pilot
+
+            read_budget_pilot(self.budget_pilot)
         if not 0 <= self.flow_vote_share <= 1:
             raise ValueError(f"flow_vote_share must be a fraction in [0, 1], got {self.flow_vote_share}")
         if not 0 <= self.kr_check_at <= 1:

@@ -65,7 +65,7 @@ class ScheduleEvents:
         the first decomposition, and again after each change of image size, while densification
         still runs (events excluded, as from the pilot's). Each revision is recorded in
         `budget_checks` (run.json)."""
-        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, StepCost, refit_gaussian_budget
+        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, read_budget_pilot, refit_gaussian_budget
 
         c = self.cfg
         starts = {c.decompose_at, *divisor_changes(c.iterations, c.downscales, c.downscale_until)}
@@ -80,7 +80,7 @@ class ScheduleEvents:
         n, divisor = len(self.model), self.image_divisor(nxt - 1)
         step = statistics.median(self.budget_steps)
         before = self.strategy.max_gaussians
-        pilot_ms = 1000 * StepCost.from_dict(c.budget_pilot["cost"]).at(n, divisor)
+        pilot_ms = 1000 * read_budget_pilot(c.budget_pilot)[0].at(n, divisor)
         # The events (densification, spawning, decompositions, evaluation) take their share
         # so far of what is left: the steps get the rest.
         events = self.train_seconds / max(self.step_seconds, 1e-9)
