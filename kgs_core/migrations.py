@@ -11,7 +11,7 @@ changed. To change a layout: add a step below and bump the version.
 
 from __future__ import annotations
 
-CONFIG_VERSION = 2
+CONFIG_VERSION = 3
 RUN_FORMAT_VERSION = 2
 
 # Where the densification settings were before they became `TrainConfig.densify`.
@@ -73,8 +73,17 @@ def _config_v1_to_v2(d: dict) -> dict:
     return d
 
 
-MODEL_STEPS = [_model_v0_to_v1, _model_v1_to_v2]  # MODEL_STEPS[v] upgrades a version-v model config to v + 1
-CONFIG_STEPS = [_config_v0_to_v1, _config_v1_to_v2]
+def _model_v2_to_v3(d: dict) -> dict:
+    return d  # (version 3 changed the training configuration only)
+
+
+def _config_v2_to_v3(d: dict) -> dict:
+    # Before tau_auto_from, Otsu's split read every Gaussian's K.
+    return {"tau_auto_from": 0.0, **d}
+
+
+MODEL_STEPS = [_model_v0_to_v1, _model_v1_to_v2, _model_v2_to_v3]  # MODEL_STEPS[v] upgrades a version-v model config to v + 1
+CONFIG_STEPS = [_config_v0_to_v1, _config_v1_to_v2, _config_v2_to_v3]
 assert len(MODEL_STEPS) == len(CONFIG_STEPS) == CONFIG_VERSION
 
 

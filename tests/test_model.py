@@ -375,6 +375,27 @@ def test_otsu_tau_cuts_between_the_still_mode_and_the_moving_tail():
     assert otsu_tau(torch.zeros(0), floor=1e-5) == 1e-5
 
 
+def test_otsu_tau_leaves_out_the_gaussians_the_field_leaves_still():
+    """A third mode of Gaussians the field barely moves (far below the floor, as on real
+    footage) took Otsu's cut for itself, and the floor then called nearly every Gaussian
+    dynamic; `from_share` keeps them out of the split and the cut is again between the
+    residual-motion mode and the moving tail."""
+    from kgs_core.model.decomposition import otsu_tau
+
+    g = torch.Generator().manual_seed(1)
+    still = 10 ** (-10.0 + 1.5 * torch.randn(2000, generator=g))  # untouched by the field
+    jitter = 10 ** (-5.3 + 0.4 * torch.randn(7000, generator=g))  # residual pose error, above the floor
+    moving = 10 ** (-2.0 + 0.3 * torch.randn(1000, generator=g))
+    K, floor = torch.cat([still, jitter, moving]), 2.6e-6
+    assert otsu_tau(K, floor) == floor  # every Gaussian read: the cut falls under the floor
+    assert float((K > floor).float().mean()) > 0.6
+    tau = otsu_tau(K, floor, from_share=0.01)
+    assert 10**-4.5 < tau < 10**-2.8
+    assert abs(float((K > tau).float().mean()) - 0.1) < 0.01
+    assert otsu_tau(jitter, floor, from_share=0.01) == otsu_tau(jitter, floor)  # nothing left out
+    assert otsu_tau(still, floor, from_share=0.01) == floor  # none the field moves: the floor
+
+
 def test_static_field_offsets_are_the_fields_own_under_a_sample_of_static_gaussians():
     """L_reg's static term: the field's offsets under static Gaussians (which render without
     it), at most `count` of them, with gradients into the field only."""

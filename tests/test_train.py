@@ -818,6 +818,9 @@ def test_saved_configurations_of_every_version_load_through_one_migration():
     got = TrainConfig.from_dict(old)
     assert (got.densify.start, got.densify.max_gaussians, got.camera_blur, got.tau_auto) == (123, 777, "poses", False)
     assert (got.model.kr_form, got.model.knn_radius, got.model.spawned_motion) == ("paper", 0.0, "field")
+    v2 = {k: v for k, v in d.items() if k != "tau_auto_from"} | {"config_version": 2}
+    assert TrainConfig.from_dict(v2).tau_auto_from == 0.0  # decomposed with Otsu over every K
+    assert cfg.tau_auto_from > 0
     with pytest.raises(ValueError, match="config.config_version must be a whole number"):
         migrate_config({**d, "config_version": CONFIG_VERSION + 1})
 

@@ -130,13 +130,19 @@ class Decomposition:
         return self.deform.at_times(x, [torch.full((len(x),), float(t))])[0].dx
 
 
-def otsu_tau(K: Tensor, floor: float, bins: int = 128) -> float:
+def otsu_tau(K: Tensor, floor: float, from_share: float = 0.0, bins: int = 128) -> float:
     """A decomposition threshold picked from the distribution of K: Otsu's threshold on log10 K (the
     cut that best separates the still mode from the moving tail), never below `floor` (the
     fixed τ, which says what "still" means for a clean scene). On real footage the field also
     absorbs residual pose error and noise, so almost every Gaussian's K sits above a fixed τ;
     the moving objects are the tail above that mode (docs/method.md, "Settings
-    that follow the scene")."""
+    that follow the scene").
+
+    Only the Gaussians whose K is above `from_share` x `floor` take part: those the field leaves
+    (almost) still form a third mode, far below the other two on real footage, and splitting
+    that off put the cut under the floor, so that nearly every Gaussian deformed."""
+    if from_share > 0:
+        K = K[K > from_share * floor]
     lk = torch.log10(K.double().clamp_min(1e-12))
     if len(lk) < 2 or float(lk.max() - lk.min()) < 1e-9:
         return floor

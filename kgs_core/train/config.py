@@ -71,6 +71,10 @@ class TrainConfig:
     # True: each decomposition in training picks τ from the distribution of K (`otsu_tau`), never below
     # model.tau; False: model.tau as it is (given with --tau, the decomposition uses it).
     tau_auto: bool = True
+    # Otsu's split (tau_auto) reads only the Gaussians whose K is above this share of model.tau:
+    # those the field leaves (almost) still form a third mode that the split otherwise cut off
+    # (docs/method.md, "Settings that follow the scene"). 0: every Gaussian, as before.
+    tau_auto_from: float = 0.01
     # losses
     lambda_dssim: float = 0.2
     lambda_reg: float = 1e-3

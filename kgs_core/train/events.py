@@ -200,7 +200,7 @@ class ScheduleEvents:
         motion (train/flow_vote.py; `flow_vote_share` 0 turns that off)."""
         model = self.model
         model.K = model.compute_K()
-        tau = otsu_tau(model.K, self.tau_floor) if self.cfg.tau_auto else self.tau_floor
+        tau = otsu_tau(model.K, self.tau_floor, self.cfg.tau_auto_from) if self.cfg.tau_auto else self.tau_floor
         moving = None
         if self.cfg.flow_vote_share > 0:
             start = time.perf_counter()

@@ -112,6 +112,7 @@ BOUNDS: dict[str, Bound] = {
             "lod_prune_importance",
             "kr_check_at",
             "flow_vote_share",
+            "tau_auto_from",
             "densify.prune_opacity",
             "densify.percent_dense",
         )
