@@ -368,8 +368,9 @@ def test_the_viewer_is_told_what_blur_a_run_learned():
 def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     """`camera_blur_px`: cameras that slide sideways by D a frame at depth z draw streaks of
     f D / z px a frame interval, times the exposure (median over points); a still camera none.
-    A video ingest whose streak reaches CAMERA_BLUR_MIN_PX trains with the camera's blur learned,
-    unless it is set by hand or the K.R. form cannot carry it."""
+    A scene whose streak reaches CAMERA_BLUR_MIN_PX trains with the camera's blur learned, a
+    video ingest or not (a synthetic scene's shaky camera), unless it is set by hand or the K.R.
+    form cannot carry it; a shorter streak leaves it off."""
     import dataclasses
 
     from kgs_core.train.fitting import CAMERA_BLUR_MIN_PX
@@ -400,6 +401,11 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     assert make_config("fast", scene=walk, **{"model.kr_form": "paper"}).camera_blur == "off"
     assert make_config("fast", scene=walk, ablate=("decompose",)).camera_blur == "off"
     assert make_config("fast", scene=still).camera_blur == "off"
+    not_video = dataclasses.replace(sliding, extras={k: v for k, v in walk.extras.items() if k != "ingest"})
+    assert "ingest" in walk.extras and make_config("fast", scene=not_video).camera_blur == "learned"
+    short = camera_blur_px(sliding, exposure=1.0) / CAMERA_BLUR_MIN_PX  # exposures either side of the threshold
+    assert make_config("fast", scene=not_video, exposure=0.9 / short).camera_blur == "off"
+    assert make_config("fast", scene=not_video, exposure=1.1 / short).camera_blur == "learned"
 
 
 def test_a_detail_share_not_computed_reads_n_a_in_the_table():

@@ -176,11 +176,6 @@ def refine_covariance(
     return (1 - w) * sigma + w * sigma_kin
 
 
-# Rows and columns of the packed covariance entries xx, xy, xz, yy, yz, zz.
-_PACK_I = torch.tensor([0, 0, 0, 1, 1, 2])
-_PACK_J = torch.tensor([0, 1, 2, 1, 2, 2])
-
-
 def motion_blur_covariance(cov6: Tensor, sweep: Tensor) -> Tensor:
     """Packed `(N, 6)` covariance of a Gaussian `cov6 (N, 6)` that moves by `sweep = v
     exposure_time (N, 3)` during the exposure, averaged over it: the Gaussian convolved with a
@@ -193,7 +188,10 @@ def motion_blur_covariance(cov6: Tensor, sweep: Tensor) -> Tensor:
     form needs no basis: it is smooth at `v = 0` and has no reference-axis switch. Packed,
     because every covariance the renderer takes is (unpacking the static Gaussians under camera
     blur, most of N, to `(N, 3, 3)` and back cost milliseconds a step)."""
-    return cov6 + sweep[:, _PACK_I] * sweep[:, _PACK_J] / 12.0
+    # Products of columns, not `sweep[:, rows] * sweep[:, cols]`: advanced indexing's backward is
+    # an accumulating index_put, serial on CPU, and this runs on every Gaussian under camera blur.
+    x, y, z = (sweep / 12.0**0.5).unbind(1)
+    return cov6 + torch.stack([x * x, x * y, x * z, y * y, y * z, z * z], 1)
 
 
 def velocity_from_offsets(offs: list, h: float, dt: float) -> Tensor:

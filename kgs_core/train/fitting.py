@@ -45,10 +45,10 @@ VIDEO_FLOW_WEIGHT = 0.003
 # the few worst frames took every turn and the clip's last frames, almost as badly fitted, never
 # got one (docs/real-footage.md, "Spawned Gaussians", "Six frames a densification").
 VIDEO_SPAWN_FRAMES = 6
-# The camera's own blur (`camera_blur_px`) from which a video ingest models it (`camera_blur` =
-# "learned"): below it the streak is too short for the blur to change what the model learns
-# (docs/real-footage.md, "The camera's own blur").
-CAMERA_BLUR_MIN_PX = 2.0
+# The camera's own blur (`camera_blur_px`) from which a scene models it (`camera_blur` =
+# "learned"): below it the streak is within a pixel's own footprint and modelling it changed
+# nothing but the time (docs/method.md, "The camera's own blur").
+CAMERA_BLUR_MIN_PX = 0.5
 
 
 def fitted_iterations(scene, iterations: int = FAST_ITERATIONS) -> tuple[int, str | None]:
@@ -85,8 +85,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
       the field still loses (docs/real-footage.md, "Spawned Gaussians");
     * redecompose_to_dynamic: False on a video ingest (docs/method.md, "Decompositions in place");
-    * camera_blur: "learned" on a video ingest whose camera's own streak during the exposure
-      (`camera_blur_px`) reaches CAMERA_BLUR_MIN_PX: the render is blurred along the camera's
+    * camera_blur: "learned" where the training camera's own streak during the exposure
+      (`camera_blur_px`, any scene with an exposure: a video ingest's, a synthetic scene's
+      shaky camera) reaches CAMERA_BLUR_MIN_PX: the render is blurred along the camera's
       motion as the footage is, and the model stays sharp;
     * model.time_opacity: on for a video ingest, where the field leaves ghosts of what it
       could not follow (docs/real-footage.md, "Opacity that varies in time")."""
@@ -177,11 +178,11 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
         )
     # (Only the convolve form of K.R. carries the camera's blur, and only after a decomposition.)
     blurs = m.kr_form == "convolve" and not {"decompose", "deform"} & set(cfg.ablate)
-    streak = camera_blur_px(scene, cfg.exposure) if video and blurs and "camera_blur" not in explicit else None
+    streak = camera_blur_px(scene, cfg.exposure) if blurs and "camera_blur" not in explicit else None
     if cfg.camera_blur == "off" and streak is not None and streak >= CAMERA_BLUR_MIN_PX:
         cfg.camera_blur = "learned"
         fitted["camera_blur"] = (
-            f"learned: a video ingest whose camera draws a {streak:.1f} px streak during the "
+            f"learned: the training camera draws a {streak:.1f} px streak during the "
             "exposure (median), which the render must blur by to match the footage, so that the "
             "model itself can be sharp (--camera-blur off turns it off)"
         )
