@@ -196,7 +196,7 @@ NAMED: dict[str, NamedSetting] = {
         "camera_blur",
         "also blur every Gaussian along the camera's own motion during the "
         "exposure (hand-held shake): from the poses' differences, or learned per frame from "
-        "there (default: learned for a video ingest whose camera draws a streak of 2 px or "
+        "there (default: learned where the training camera draws a streak of 0.5 px or "
         "more during the exposure, else off; docs/method.md)",
     ),
     "pose_refine": NamedSetting(
