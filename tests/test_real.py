@@ -403,9 +403,9 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     assert make_config("fast", scene=still).camera_blur == "off"
     not_video = dataclasses.replace(sliding, extras={k: v for k, v in walk.extras.items() if k != "ingest"})
     assert "ingest" in walk.extras and make_config("fast", scene=not_video).camera_blur == "learned"
-    short = camera_blur_px(sliding, exposure=1.0) / CAMERA_BLUR_MIN_PX  # exposures either side of the threshold
-    assert make_config("fast", scene=not_video, exposure=0.9 / short).camera_blur == "off"
-    assert make_config("fast", scene=not_video, exposure=1.1 / short).camera_blur == "learned"
+    threshold_exposure = CAMERA_BLUR_MIN_PX / camera_blur_px(sliding, exposure=1.0)  # the streak at the threshold
+    assert make_config("fast", scene=not_video, exposure=0.9 * threshold_exposure).camera_blur == "off"
+    assert make_config("fast", scene=not_video, exposure=1.1 * threshold_exposure).camera_blur == "learned"
 
 
 def test_a_detail_share_not_computed_reads_n_a_in_the_table():

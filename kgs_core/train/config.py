@@ -73,7 +73,7 @@ class TrainConfig:
     tau_auto: bool = True
     # Otsu's split (tau_auto) reads only the Gaussians whose K is above this share of model.tau:
     # those the field leaves (almost) still form a third mode that the split otherwise cut off
-    # (docs/method.md, "Settings that follow the scene"). 0: every Gaussian, as before.
+    # (docs/method.md, "Settings that follow the scene"). 0: every Gaussian.
     tau_auto_from: float = 0.01
     # losses
     lambda_dssim: float = 0.2
