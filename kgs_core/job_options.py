@@ -41,8 +41,8 @@ MAX_SYNTH_FRAME_PIXELS = 1 << 27  # stored (about 16 bytes a pixel on disk): 102
 
 class SynthOptions(JobOptions):
     """A built-in synthetic scene (`kgs_core.data.synth.generate.synthesize`). Bounds: size² x
-    frames at most 2^27 pixels stored (about 2 GB on disk), size² x frames x subframes at most
-    2^31 rendered."""
+    frames at most 2^27 pixels stored (about 2 GB on disk), size² x frames x max(subframes,
+    pixel_grid²) at most 2^31 rendered."""
 
     name: SceneName = Field("sheet", description="the built-in scene")  # type: ignore[valid-type]
     blur: Literal[BLURS] = Field("mild", description="exposure 0, 0.5 or 1 frame interval")  # type: ignore[valid-type]
@@ -50,15 +50,18 @@ class SynthOptions(JobOptions):
     size: int = Field(128, ge=16, le=1024, description="image width and height, in pixels")
     frames: int = Field(60, ge=2, le=2000, description="frames in the clip")
     subframes: int = Field(16, ge=1, le=64, description="sharp renders averaged per blurry frame")
+    pixel_grid: int = Field(3, ge=1, le=7, description="rays per pixel side of a sharp frame (odd; 1: one ray, aliased)")
 
     @model_validator(mode="after")
     def bounded_work(self) -> "SynthOptions":
+        if self.pixel_grid % 2 == 0:
+            raise ValueError(f"pixel_grid must be odd (its centre ray gives the masks), got {self.pixel_grid}")
         stored = self.size * self.size * self.frames
         if stored > MAX_SYNTH_FRAME_PIXELS:
             raise ValueError(f"size² x frames is {stored:,}, above {MAX_SYNTH_FRAME_PIXELS:,} (lower one of them)")
-        renders = stored * self.subframes
+        renders = stored * max(self.subframes, self.pixel_grid**2)
         if renders > MAX_SYNTH_PIXELS:
-            raise ValueError(f"size² x frames x subframes is {renders:,}, above {MAX_SYNTH_PIXELS:,} (lower one of them)")
+            raise ValueError(f"size² x frames x max(subframes, pixel_grid²) is {renders:,}, above {MAX_SYNTH_PIXELS:,} (lower one of them)")
         return self
 
 

@@ -70,6 +70,29 @@ def test_blur_is_the_mean_over_the_exposure(tiny, tmp_path):
         np.testing.assert_array_equal(g.image(), g.sharp())
 
 
+def test_sharp_frames_integrate_over_the_pixel(tmp_path):
+    """A camera's pixel averages the light over its area. The sharp frames hold the detail of that
+    area integral (an 8 x 8 grid of rays a pixel stands in for it), not the false detail of one ray
+    through each centre, which aliases the textures' checker edges into pixel-high steps."""
+    from kgs_core.data.synth.generate import grid_offsets, render
+    from kgs_core.data.synth.scenes import build_world, heldout_camera, intrinsics
+    from kgs_core.evaluate import gradient_energy
+
+    size = 40
+    scene = load_scene(synthesize("panel", tmp_path / "p", blur="none", size=size, frames=2, progress=False))
+    f = scene.test_frames[0]
+    world, K, view = build_world("panel", 0), intrinsics(size, size), heldout_camera()(f.time)
+    area = np.mean([render(world, view, K, size, size, f.time, p).color for p in grid_offsets(8)], axis=0)
+    point = render(world, view, K, size, size, f.time).color
+    everywhere = np.ones((size, size), bool)
+    energy = lambda img: gradient_energy(img, everywhere) / gradient_energy(area, everywhere)
+    assert energy(point) > 1.3  # one ray a pixel: aliased
+    assert abs(energy(f.sharp()) - 1) < 0.12
+    np.testing.assert_allclose(f.sharp(), area, atol=0.08)  # (8-bit PNG, 3 x 3 against 8 x 8 rays)
+    # The masks still come from the centre ray: inside or outside the moving object, nothing between.
+    assert set(np.unique(f.mask())) <= {False, True}
+
+
 def test_generator_is_deterministic(tmp_path):
     a = synthesize("die", tmp_path / "a", blur="mild", size=32, frames=3, subframes=2, seed=3, progress=False)
     b = synthesize("die", tmp_path / "b", blur="mild", size=32, frames=3, subframes=2, seed=3, progress=False)

@@ -500,8 +500,16 @@ def test_the_view_at_the_runs_own_tau_shows_the_split_training_made(copy_run):
     """At the run's τ the viewer shows the trained model: the decomposition training made (here with
     the Gaussians the decompositions' flow reading added, whose K is under τ) and its canonical
     means, not a re-decomposition by K that turns those static and moves their neighbours."""
+    from kgs_core.run import load_torch, save_torch
     from kgs_core.run_view import RunView
 
+    # What the flow reading leaves, made sure of in every level: dynamic Gaussians whose K is under τ.
+    state = load_torch(copy_run / "model.pt")
+    for level in [state["model"], *state.get("levels", [])]:
+        tau = state["model"]["config"]["tau"]
+        dynamic = torch.nonzero(level["dynamic"]).squeeze(1)
+        level["K"][dynamic[::2]] = tau / 2
+    save_torch(copy_run / "model.pt", state)
     view = RunView(copy_run)
     lod, m = view.model(None)
     trained = view.run.level(lod)

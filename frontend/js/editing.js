@@ -44,19 +44,22 @@ export const editing = {
   // `hits`: the raw [index, u, v, depth] of the front splats, nearest first (the object tool).
   pick(inside, hits_ = false) {
     const vm = this.currentViewmat(), K = this.intrinsics();
-    const hits = [];  // [index, u, v, depth]
+    const hits = [], drawn = [];  // [index, u, v, depth]
     for (const set of [this.static, this.dynamic]) {
       if (!set) continue;
       const isDyn = set === this.dynamic;
       if ((isDyn && !(this.show & 2)) || (!isDyn && !(this.show & 1))) continue;
       for (let i = 0; i < set.count; i++) {
         const [u, v, z] = project(vm, K, [set.positions[3 * i], set.positions[3 * i + 1], set.positions[3 * i + 2]]);
-        if (z > 0.01 && inside(u, v)) hits.push([set.index[i], u, v, z]);
+        if (!(z > 0.01)) continue;
+        const h = [set.index[i], u, v, z];
+        drawn.push(h);
+        if (inside(u, v)) hits.push(h);
       }
     }
-    if (hits_) return frontOf(hits).sort((a, b) => a[3] - b[3]);
+    if (hits_) return frontOf(hits, drawn).sort((a, b) => a[3] - b[3]);
     if ($("select-through").checked) return new Set(hits.map((h) => h[0]));
-    return new Set(frontOf(hits).map((h) => h[0]));
+    return new Set(frontOf(hits, drawn).map((h) => h[0]));
   },
 
   // The indices of every splat drawn now (the sets shown, at this LoD).

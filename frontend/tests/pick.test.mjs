@@ -15,3 +15,10 @@ test("frontOf keeps everything when nothing overlaps, and nothing from nothing",
   assert.equal(frontOf(wall).length, wall.length);
   assert.deepEqual(frontOf([]), []);
 });
+
+test("frontOf hides a hit behind a nearer splat that lies outside the hits", () => {
+  // A box that takes only the wall splat at (11, 10): the ball splat beside it is drawn in front.
+  const inBox = [wall[0]];
+  assert.deepEqual(frontOf(inBox, [...ball, ...wall]), []);
+  assert.deepEqual(frontOf(inBox).map((h) => h[0]), [10]);  // judged among the hits alone, it showed
+});

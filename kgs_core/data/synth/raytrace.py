@@ -198,7 +198,15 @@ class Sheet:
             sa, sb = (-self.amp - o[:, 2]) / d[:, 2], (self.amp - o[:, 2]) / d[:, 2]
         lo, hi = np.maximum(np.minimum(sa, sb), 1e-6), np.maximum(sa, sb)
         valid = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
-        lo, hi = np.where(valid, lo, 0.0), np.where(valid, hi, 0.0)
+        # March only the rays whose path through the slab passes over the sheet's rectangle.
+        with np.errstate(invalid="ignore"):
+            ends = [o + np.where(valid, s, 0.0)[:, None] * d for s in (lo, hi)]
+        for axis, half in ((0, self.w / 2), (1, self.h / 2)):
+            valid &= np.maximum(ends[0][:, axis], ends[1][:, axis]) >= -half
+            valid &= np.minimum(ends[0][:, axis], ends[1][:, axis]) <= half
+        rays = np.nonzero(valid)[0]
+        o, d, lo, hi = o[rays], d[rays], lo[rays], hi[rays]
+        valid = np.ones(len(rays), bool)
 
         def f(s):
             p = o + s[:, None] * d
@@ -230,10 +238,11 @@ class Sheet:
         dzdy = (self.height(p[:, 0], p[:, 1] + e, t) - self.height(p[:, 0], p[:, 1] - e, t)) / (2 * e)
         n = np.stack([-dzdx, -dzdy, np.ones_like(dzdx)], -1)
         n /= np.linalg.norm(n, axis=1, keepdims=True)
-        hit.s[ok] = s[ok]
-        hit.local[ok] = np.stack([p[ok, 0], p[ok, 1], np.zeros(ok.sum())], -1)
-        hit.normal[ok] = n[ok]
-        hit.uv[ok] = np.stack([p[ok, 0] / self.w + 0.5, p[ok, 1] / self.h + 0.5], -1)
+        at = rays[ok]
+        hit.s[at] = s[ok]
+        hit.local[at] = np.stack([p[ok, 0], p[ok, 1], np.zeros(ok.sum())], -1)
+        hit.normal[at] = n[ok]
+        hit.uv[at] = np.stack([p[ok, 0] / self.w + 0.5, p[ok, 1] / self.h + 0.5], -1)
         return hit
 
     def deform(self, local, t):
