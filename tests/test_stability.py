@@ -450,3 +450,12 @@ def test_camera_blur_elongates_still_gaussians_along_the_camera_motion():
     u = p.means.detach() @ A.T + b
     expected = sharp.covars + (0.1**2 / 12) * u[:, :, None] * u[:, None, :]
     assert torch.allclose(blurred.covars, expected, rtol=1e-5, atol=1e-9)
+
+
+def test_the_stability_bench_trains_with_the_tau_it_is_given(tmp_path):
+    """`bench stability --tau` runs the kinematic path on (nearly) every Gaussian: the given τ is
+    the threshold itself, not a floor under Otsu's automatic split, which would still cut K in two."""
+    from app.bench.stability import train_case
+
+    row = train_case("5 fps (10 frames)", tmp_path, iterations=60, size=24, tau=1e-12)
+    assert row["finite"] and row["dynamic_share"] > 0.95

@@ -172,7 +172,8 @@ def train_case(name: str, root: Path, iterations: int, size: int, tau: float | N
             "densify.opacity_reset_at": (),
             "densify.max_gaussians": 8000,
         },
-        **({"model.tau": tau} if tau else {}),
+        # A given τ is the threshold itself: Otsu's automatic split would otherwise place the cut.
+        **({"model.tau": tau, "tau_auto": False} if tau else {}),
     )
     t0 = time.perf_counter()
     try:
@@ -212,7 +213,8 @@ def compare_bases(root: Path, iterations: int, size: int) -> list[dict]:
     scene = load_scene(folder)
     rows = []
     for basis in ("paper", "duff", "principal"):
-        cfg = make_config("fast", iterations=iterations, **{"model.basis": basis})
+        # Only the paper's form of K.R. reads the basis, and K.R. must stay on for the basis to count.
+        cfg = make_config("fast", iterations=iterations, kr_check_at=0.0, **{"model.basis": basis, "model.kr_form": "paper"})
         t0 = time.perf_counter()
         train(scene, root / f"basis-{basis}", cfg, progress=False)
         m = evaluate_model(load_run(root / f"basis-{basis}").model, scene)
