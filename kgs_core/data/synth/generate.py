@@ -181,7 +181,7 @@ def synthesize(
                 mask_path=paths["mask"],
                 motion_path=paths["motion"],
             )
-            centre.color = sharp
+            centre.color = sharp  # the stand-in SfM points take the frame's colours, not the one ray's
             points = None
             if cam_id == 0 and i in point_frames:
                 points = surface_points(world, centre, cam_at(t), K, t, dynamic, keep_dynamic=True)
