@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from kgs_core.data.formats import load_scene
 from kgs_core.train import budget
@@ -105,6 +107,21 @@ def test_the_pilot_times_real_steps_at_two_counts(walk):
     assert planned.to_dict()["time_budget"] == 3600.0 and planned.to_dict()["fitted"]["time_budget"]
 
 
+def test_the_pilot_grows_the_count_as_splits_do_covering_the_same_area(walk, tmp_path):
+    """The pilot's larger count is copies of the initial Gaussians, all shrunk so that together
+    they cover the screen area the first ones did (sum of squared scales kept): full-size
+    copies would time per-pixel work that a trained run's Gaussians, split smaller, do not have."""
+    tr = Trainer(walk, tmp_path, make_config("fast", scene=walk), progress=False)
+    tr.init_model()
+    n = len(tr.model)
+    before = tr.model.params.log_scales.detach().clone()
+    budget._grow(tr, 4 * n)
+    after = tr.model.params.log_scales.detach()
+    assert len(tr.model) == 4 * n
+    assert (2 * after).exp().sum(0) == pytest.approx((2 * before).exp().sum(0), rel=1e-4)
+    assert torch.allclose(after[:n], before - 0.5 * math.log(4))  # each copy as small as its parent
+
+
 def test_the_command_line_and_the_rest_body_take_a_budget():
     from kgs_app.cli import build_parser
     from kgs_app.cli_args import options_from
@@ -140,22 +157,22 @@ def _planned(cfg, most: int, cost: StepCost, budget_s: float):
 
 def test_the_run_s_own_steps_revise_the_gaussian_budget():
     """Steps cheaper than the pilot's (the static Gaussians skip the field after the
-    decomposition) shift its cost down and raise the budget to the most whose remainder fits
-    the time left, up to the preset's; dearer ones lower it, never below the count already
-    there."""
+    decomposition) scale both parts of its cost down and raise the budget to the most whose
+    remainder fits the time left, up to the preset's; dearer ones lower it, never below the
+    count already there."""
     cfg = make_config("fast", iterations=1000, **{"densify.max_gaussians": 4000})
     pilot = StepCost(fixed=0.01, per_gaussian=2e-6)
     it, n = 300, 3000
     plan = _planned(cfg, 20_000, pilot, 600.0)
     left = pilot.run_seconds(cfg, n, since=it)  # what the plan left for the rest, at the pilot's cost
-    cheaper, cost = budget.refit_gaussian_budget(plan, it, n, step_seconds=pilot.at(n) - 0.004, divisor=1, seconds_left=left)
-    assert cost.per_gaussian == pilot.per_gaussian and cost.fixed == pytest.approx(pilot.fixed - 0.004)  # shifted
+    cheaper, cost = budget.refit_gaussian_budget(plan, it, n, step_seconds=0.75 * pilot.at(n), divisor=1, seconds_left=left)
+    assert cost.per_gaussian == pytest.approx(0.75 * pilot.per_gaussian) and cost.fixed == pytest.approx(0.75 * pilot.fixed)
     assert 4000 < cheaper <= 20_000
     grown = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, max_gaussians=cheaper))
     assert cost.run_seconds(grown, n, since=it) <= left
     one_more = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, max_gaussians=cheaper + 1))
     assert cheaper == 20_000 or cost.run_seconds(one_more, n, since=it) > left
-    dearer, _ = budget.refit_gaussian_budget(plan, it, n, step_seconds=pilot.at(n) + 0.004, divisor=1, seconds_left=left)
+    dearer, _ = budget.refit_gaussian_budget(plan, it, n, step_seconds=1.25 * pilot.at(n), divisor=1, seconds_left=left)
     assert n <= dearer < 4000
     none_left, _ = budget.refit_gaussian_budget(plan, it, n, step_seconds=0.02, divisor=1, seconds_left=-1.0)
     assert none_left == n
@@ -163,6 +180,11 @@ def test_the_run_s_own_steps_revise_the_gaussian_budget():
     # times the pilot's step at most.
     _, wild = budget.refit_gaussian_budget(plan, it, n, step_seconds=100 * pilot.at(n), divisor=1, seconds_left=left)
     assert wild.at(n) == pytest.approx(budget.RATIO_BOUND * pilot.at(n))
+    # What the steps at half size measured carries to full size: the whole step scales.
+    coarse = StepCost(fixed=0.01, per_gaussian=2e-6, fixed_at=((2, 0.004),))
+    plan = _planned(cfg, 20_000, coarse, 600.0)
+    _, scaled = budget.refit_gaussian_budget(plan, it, n, step_seconds=0.5 * coarse.at(n, 2), divisor=2, seconds_left=left)
+    assert scaled.at(n, 2) == pytest.approx(0.5 * coarse.at(n, 2)) and scaled.at(n) == pytest.approx(0.5 * coarse.at(n))
 
 
 def test_a_plan_records_its_pilot_unless_the_gaussian_budget_was_given(walk, known_cost):

@@ -156,7 +156,10 @@ def _median_step(trainer, divisor: int) -> float:
 
 
 def _grow(trainer, target: int) -> None:
-    """Appends copies of the Gaussians (each its own parent's) until there are `target`."""
+    """Appends copies of the Gaussians (each its own parent's) until there are `target`, all
+    of them shrunk so that together they cover the screen area the first ones did: as
+    densification grows the count, it splits large Gaussians into smaller ones, and a copy
+    at full size would time per-pixel work that a trained run's Gaussians do not have."""
     from ..model.gaussians import GaussianParams
 
     model = trainer.model
@@ -167,6 +170,8 @@ def _grow(trainer, target: int) -> None:
     with torch.no_grad():
         new = GaussianParams(**{k: v.detach()[parents].clone() for k, v in vars(model.params).items()})
     model.add_gaussians(new, parents, trainer.opt, trainer.strategy.state)
+    with torch.no_grad():
+        model.params.log_scales.add_(0.5 * math.log(n / target))
 
 
 def fit_time_budget(cfg, scene, remake, explicit: set[str]):
@@ -239,19 +244,21 @@ def read_budget_pilot(record: dict) -> tuple[StepCost, int]:
 
 def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor: int, seconds_left: float) -> tuple[int, StepCost]:
     """The Gaussian budget for the rest of a planned run (`cfg.budget_pilot`), from its own
-    steps: the pilot's cost shifted by what `step_seconds` (a median step at `count` Gaussians
-    and image `divisor`, just before iteration `it`) differs from the pilot's own for that
-    step, the step held within a factor RATIO_BOUND of the pilot's; the budget is the largest
-    in [count, the preset's] whose remaining steps fit `seconds_left`, and `count` (no more
-    densification) when none does. Also returns the revised cost.
+    steps: the pilot's cost scaled by `step_seconds` (a median step at `count` Gaussians and
+    image `divisor`, just before iteration `it`) over the pilot's own for that step, the ratio
+    held within a factor RATIO_BOUND; the budget is the largest in [count, the preset's] whose
+    remaining steps fit `seconds_left`, and `count` (no more densification) when none does.
+    Also returns the revised cost.
 
-    A shift, not a scale: what the decomposition saves grows with the count more slowly than a
-    step's cost, so the pilot's cost per added Gaussian, which every Gaussian deforming set,
-    errs on the budget's side."""
+    A scale, not a shift: the steps after the decomposition are cheaper in both parts, the
+    per-Gaussian one (static Gaussians skip the field) and the per-pixel one (trained
+    Gaussians are smaller than the pilot's), and a shift would carry a step measured at a
+    smaller image size to full size as an absolute saving. Each image size's first steps
+    revise the plan again."""
     pilot, most = read_budget_pilot(cfg.budget_pilot)
     expected = pilot.at(count, divisor)
-    shift = min(max(step_seconds, expected / RATIO_BOUND), expected * RATIO_BOUND) - expected
-    cost = StepCost(max(pilot.fixed + shift, 0.0), pilot.per_gaussian, tuple((k, max(v + shift, 0.0)) for k, v in pilot.fixed_at))
+    ratio = min(max(step_seconds / max(expected, 1e-12), 1 / RATIO_BOUND), RATIO_BOUND)
+    cost = StepCost(pilot.fixed * ratio, pilot.per_gaussian * ratio, tuple((k, v * ratio) for k, v in pilot.fixed_at))
     most = max(count, most)
 
     def fits(g: int) -> bool:
