@@ -89,6 +89,15 @@ def photometric_loss(img: Tensor, ref: Tensor, lambda_dssim: float = 0.2) -> Ten
     return (1 - lambda_dssim) * l1(img, ref) + lambda_dssim * (1 - ssim(img, ref))
 
 
+def gradient_l1(img: Tensor, ref: Tensor) -> Tensor:
+    """L1 between the horizontal and vertical finite differences of `(H, W, C)` images. Blur
+    damps a sharp detail's share of the plain L1, so fitting blurry frames through a blur model
+    learns it slowly; differences weigh a residual by its frequency, giving the detail its share back."""
+    dx = (img[:, 1:] - img[:, :-1]) - (ref[:, 1:] - ref[:, :-1])
+    dy = (img[1:] - img[:-1]) - (ref[1:] - ref[:-1])
+    return 0.5 * (dx.abs().mean() + dy.abs().mean())
+
+
 def coarse_l1(img: Tensor, ref: Tensor, factor: int) -> Tensor:
     """L1 between `(H, W, C)` images average-pooled by `factor`: a rendered object displaced from
     its image by up to about `factor` pixels still overlaps it there, so the loss keeps a

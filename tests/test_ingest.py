@@ -480,3 +480,67 @@ def test_a_keyframe_model_with_a_strong_radial_term_gets_a_second_opinion_and_th
     assert sfm.reprojection_px(result.rec) == pytest.approx(second["reprojection_px"], abs=1e-3)
     # An explicit mapper is what runs.
     assert [a["mapper"] for a in sfm_of_frames(folder, meta, tmp_path / "work3", "keyframes", 4).attempts] == ["keyframes"]
+
+
+def rig_reconstruction(jitter_deg: float, focal: float = 500.0, times: int = 20, seed: int = 0):
+    """A pycolmap model of two synchronised cameras (`fNNNNN_a.png`, `fNNNNN_b.png`) on a rig: b
+    is a fixed turn and offset from a, each time turned once more by `jitter_deg` about a random axis."""
+    import pycolmap
+
+    rng = np.random.default_rng(seed)
+    rec = pycolmap.Reconstruction()
+    for cam_id in (1, 2):
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(model="SIMPLE_RADIAL", width=640, height=360, params=[focal, 320, 180, 0.0], camera_id=cam_id)
+        )
+    rig = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0.02, -0.3, 0.01])), np.array([0.05, 0.0, 0.0]))
+    for i in range(times):
+        a = pycolmap.Rigid3d(pycolmap.Rotation3d(rng.normal(0, 0.3, 3)), rng.normal(0, 1, 3))
+        axis = rng.normal(size=3)
+        jitter = pycolmap.Rigid3d(pycolmap.Rotation3d(axis / np.linalg.norm(axis) * np.radians(jitter_deg)), np.zeros(3))
+        for cam_id, pose in ((1, a), (2, jitter * rig * a)):
+            name = f"f{i:05d}_{'ab'[cam_id - 1]}.png"
+            rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=cam_id, image_id=2 * i + cam_id), pose)
+    return rec
+
+
+def test_the_rig_spread_is_the_second_camera_s_turn_against_the_first_in_pixels():
+    """Two cameras fixed together: the spread of b's pose relative to a's over the clip, as
+    pixels at a's focal length (angle × focal), whatever the rig's own turn and offset."""
+    from kgs_core.data import sfm
+
+    assert sfm.rig_spread_px(rig_reconstruction(0.0)) == pytest.approx(0.0, abs=1e-3)
+    for jitter, focal in ((0.5, 500.0), (0.5, 1500.0), (1.0, 500.0)):
+        expected = np.radians(jitter) * focal
+        # The median angle from the mean turn: the jitter itself, less what the mean absorbed.
+        assert sfm.rig_spread_px(rig_reconstruction(jitter, focal)) == pytest.approx(expected, rel=0.15), (jitter, focal)
+    one_camera = rig_reconstruction(1.0)
+    for im in list(one_camera.images.values()):
+        if im.name.endswith("_b.png"):
+            one_camera.deregister_frame(im.frame_id)
+    assert sfm.rig_spread_px(one_camera) is None
+
+
+def test_a_keyframe_model_with_a_loose_rig_gets_a_second_opinion_and_the_tighter_rig_is_kept(tmp_path, monkeypatch):
+    """A second camera that turns against the first by more than LOOSE_RIG_PX over the clip is a
+    model that misplaces one of them: auto maps the frames with the incremental mapper too and
+    keeps the tighter rig, even where the loose one reprojects better; both spreads are recorded.
+    A tight rig maps once."""
+    from kgs_core.data import sfm
+
+    loose_deg = 2 * np.degrees(sfm.LOOSE_RIG_PX / 500.0)
+    made = {"keyframes": rig_reconstruction(loose_deg), "incremental": rig_reconstruction(0.2, seed=1)}
+    monkeypatch.setattr(sfm, "map_keyframes", lambda *args, **kw: made["keyframes"])
+    monkeypatch.setattr(sfm, "map_incremental", lambda *args: made["incremental"])
+    fits = {id(made["keyframes"]): 0.5, id(made["incremental"]): 1.5}  # the loose rig reprojects better
+    monkeypatch.setattr(sfm, "reprojection_px", lambda rec: fits[id(rec)])
+    names_a = [f"f{i:05d}_a.png" for i in range(20)]
+    names_b = [n.replace("_a.", "_b.") for n in names_a]
+    result = sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work", names_a, names_b, {}, "auto", progress=False)
+    first, second = result.attempts
+    assert (first["mapper"], second["mapper"]) == ("keyframes", "incremental") and result.mapper == "incremental"
+    assert first["rig_spread_px"] > sfm.LOOSE_RIG_PX > second["rig_spread_px"]
+    made["keyframes"] = rig_reconstruction(0.2, seed=2)
+    fits[id(made["keyframes"])] = 0.5
+    again = sfm.run_sfm(tmp_path / "database.db", tmp_path, tmp_path / "work2", names_a, names_b, {}, "auto", progress=False)
+    assert [a["mapper"] for a in again.attempts] == ["keyframes"]

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from kgs_core.losses import coarse_l1, l1, photometric_loss, ssim, ssim_reference
+from kgs_core.losses import coarse_l1, gradient_l1, l1, photometric_loss, ssim, ssim_reference
 from kgs_core.render import _ext
 
 pytestmark = pytest.mark.skipif(not _ext.compiler_available(), reason="no C++ compiler")
@@ -64,3 +65,24 @@ def test_coarse_l1_still_sees_how_far_a_displaced_object_is():
     near, far = square(14), square(20)
     assert l1(near, frame) == pytest.approx(float(l1(far, frame)))
     assert coarse_l1(near, frame, 8) < coarse_l1(far, frame, 8)
+
+
+def test_gradient_l1_is_the_mean_difference_of_neighbouring_pixels_and_weighs_a_residual_by_its_frequency():
+    """gradient_l1 = (mean |Δx(img − ref)| + mean |Δy(img − ref)|) / 2 with Δ the difference of
+    neighbouring pixels: blind to a constant offset, and of a sinusoidal residual of period P it
+    takes a share of about 2 sin(π/P) / 2 (against l1's 1): the finer the residual, the larger its weight."""
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(9, 7, 3, generator=g)
+    img = torch.rand(9, 7, 3, generator=g)
+    r = (img - ref).numpy()
+    expected = 0.5 * (abs(r[:, 1:] - r[:, :-1]).mean() + abs(r[1:] - r[:-1]).mean())
+    assert gradient_l1(img, ref).item() == pytest.approx(float(expected), rel=1e-6)
+    assert gradient_l1(ref + 0.3, ref).item() == pytest.approx(0.0, abs=1e-7)
+    x = torch.arange(256, dtype=torch.float64)
+    ratios = []
+    for period in (8.0, 16.0, 64.0):
+        residual = (0.1 * torch.sin(2 * torch.pi * x / period))[None, :, None].expand(64, 256, 1)
+        ratios.append((gradient_l1(residual, torch.zeros_like(residual)) / l1(residual, torch.zeros_like(residual))).item())
+    assert ratios[0] > ratios[1] > ratios[2]
+    # Along x mean |Δ sin| / mean |sin| = 2 sin(π/P) where the period spans many pixels; along y nothing changes.
+    assert ratios[2] == pytest.approx(0.5 * 2 * np.sin(np.pi / 64), rel=0.02)

@@ -620,8 +620,10 @@ def test_flod_levels_decay_and_a_level_change_keeps_each_gaussians_size(scene, t
 @pytest.mark.parametrize("ablate", ["", "reg", "ani"])
 def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(scene, tmp_path, monkeypatch, ablate):
     """What `loss_for` adds to the photometric loss: lambda_reg times L_reg, the *mean* offset
-    norm over the dynamic set (every Gaussian before the decomposition), and lambda_ani times L_ani, the
-    mean max/min scale ratio; `--ablate reg` and `--ablate ani` leave exactly their term out."""
+    norm over the dynamic set (every Gaussian before the decomposition), lambda_ani times L_ani, the
+    mean max/min scale ratio, and lambda_grad times the L1 of the image differences between the
+    same render and frame (`losses.gradient_l1`); `--ablate reg` and `--ablate ani` leave exactly
+    their term out."""
     import kgs_core.train.objective as objective_module
 
     cfg = tiny_config(iterations=1, lod_levels=1, lod_fractions=(1.0,), noise_init_frames=0.0, ablate=(ablate,) if ablate else ())
@@ -633,7 +635,9 @@ def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(
         model.deform.mlp[-1].weight.normal_(0, 0.3, generator=torch.Generator().manual_seed(0))
     seen = {}
     photometric = objective_module.photometric_loss
-    monkeypatch.setattr(objective_module, "photometric_loss", lambda *a: seen.setdefault("photo", photometric(*a)))
+    monkeypatch.setattr(
+        objective_module, "photometric_loss", lambda *a: seen.setdefault("photo", photometric(*(seen.setdefault("pair", a))))
+    )
     frame = scene.train_frames[3]
     loss, _ = tr.loss_for(frame, 0)
     rest = float(loss.detach() - seen["photo"].detach())
@@ -643,8 +647,12 @@ def test_the_loss_is_the_photometric_term_plus_exactly_the_regularisers_left_on(
         ani = float((s.max(-1).values / (s.min(-1).values + cfg.eps_ani)).mean())
     assert reg > 1e-3 and ani >= 0.99  # (max/min scale ratio: 1 for the isotropic initial scales)
     full = tiny_config()
-    assert full.lambda_reg > 0 and full.lambda_ani > 0
+    assert full.lambda_reg > 0 and full.lambda_ani > 0 and full.lambda_grad > 0
+    from kgs_core.losses import gradient_l1
+
+    image, gt = seen["pair"][:2]
     expected = (0 if ablate == "reg" else full.lambda_reg * reg) + (0 if ablate == "ani" else full.lambda_ani * ani)
+    expected += full.lambda_grad * float(gradient_l1(image.detach(), gt))
     assert rest == pytest.approx(expected, rel=1e-3, abs=1e-7)
 
 

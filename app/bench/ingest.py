@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kgs_core.data.sfm import poses, rig_consistency, rotation_angle_deg
+
 from .machine import machine
 from .real import DEFAULT_CLIPS, DEFAULT_DATA, resolve_clip
 
@@ -41,34 +43,6 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     R = U @ D @ Vt
     s = (S * np.diag(D)).sum() / (xs**2).sum(1).mean()
     return s, R, mu_d - s * R @ mu_s
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
-
-
-def poses(rec) -> dict[str, np.ndarray]:
-    """Image name -> 4x4 world-to-camera matrix, for every posed image."""
-    out = {}
-    for im in rec.images.values():
-        if im.has_pose:
-            cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-            out[im.name] = np.vstack([np.asarray(cfw.matrix()), [0, 0, 0, 1]])
-    return out
-
-
-def rig_consistency(P: dict[str, np.ndarray]) -> tuple[float, float] | None:
-    """(median rotation spread in degrees, baseline length coefficient of variation) of camera b
-    relative to camera a over all times both are posed."""
-    rel = [P[n.replace("_a.", "_b.")] @ np.linalg.inv(M) for n, M in P.items() if n.endswith("_a.png") and n.replace("_a.", "_b.") in P]
-    if len(rel) < 3:
-        return None
-    rel = np.stack(rel)
-    U, _, Vt = np.linalg.svd(rel[:, :3, :3].mean(0))
-    mean_rot = U @ Vt
-    spread = np.median([rotation_angle_deg(mean_rot.T @ r) for r in rel[:, :3, :3]])
-    length = np.linalg.norm(rel[:, :3, 3], axis=1)
-    return float(spread), float(length.std() / max(length.mean(), 1e-12))
 
 
 def pose_error(P: dict[str, np.ndarray], truth: dict[str, np.ndarray], extent: float) -> tuple[float, float]:

@@ -4,7 +4,7 @@ Nerfies-layout scene.
 Two shapes of input:
 - one video (the common case): every `holdout_every`-th frame is held out of training and scored
   as a test view. Those are same-camera interpolations at the training exposure, not novel
-  views, and the scene records so (`extras.ingest.holdout`).
+  views, and the scene records so (`ingest.holdout` in kgs.json).
 - two synchronised videos (the BARD-GS protocol: a sharp camera beside the blurry one): the
   second one is registered into the same model and becomes the held-out test views.
 

@@ -12,8 +12,9 @@ mappers that trade speed for robustness.
   then extended to all of them. The slowest, and the fallback when the others fail.
 
 `auto` tries keyframes (a second seed when they fall short), keyframes twice as dense, then
-incremental, and records every attempt; a keyframe model with a strong radial term also gets the
-incremental mapper's, and the better fit is kept. Frames are named so that the
+incremental, and records every attempt; a keyframe model with a strong radial term or a loose
+rig (a second camera that turns against the first) also gets the incremental mapper's, and the
+tighter rig (else the better fit) is kept. Frames are named so that the
 two synchronised videos interleave in time (`f00012_a`, `f00012_b`); sequential matching orders
 images by name and, with `quadratic_overlap`, pairs each image with the ones 1, 2, 4, 8, ...
 positions later (only those: COLMAP 4's quadratic overlap has no linear part). Keyframes
@@ -47,6 +48,12 @@ KEYFRAME_RETRY_SEED = 2  # auto maps keyframes that fell apart once more with th
 # focal length with strong pincushion and the true one with little distortion reproject almost
 # alike, and the keyframe mapper settles in either (docs/data.md, "A second opinion on the lens").
 STRONG_RADIAL = 0.25
+# With a synchronised second camera: a model in which the second camera turns against the first
+# by more than this over the clip (the rig's rotation spread, in pixels at the first camera's focal
+# length) gets auto the incremental mapper's model too, and the tighter rig is kept. The cameras
+# are fixed together, so a loose rig is a model that misplaces one of them (docs/data.md, "A
+# second opinion on the lens").
+LOOSE_RIG_PX = 6.0
 
 
 @dataclass
@@ -188,6 +195,44 @@ def strong_radial(rec) -> float | None:
     return max(k1) if k1 and max(k1) > STRONG_RADIAL else None
 
 
+def poses(rec) -> dict[str, np.ndarray]:
+    """Image name -> 4x4 world-to-camera matrix, for every posed image of `rec`."""
+    return {im.name: np.vstack([np.asarray(cam_from_world(im).matrix()), [0, 0, 0, 1]]) for im in rec.images.values() if im.has_pose}
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def rig_consistency(P: dict[str, np.ndarray]) -> tuple[float, float] | None:
+    """(median rotation spread in degrees, baseline length coefficient of variation) of camera b
+    (`fNNNNN_b.png`) relative to its same-time camera a over all times both are posed in `P`
+    (`poses`); None below three such times."""
+    rel = [P[n.replace("_a.", "_b.")] @ np.linalg.inv(M) for n, M in P.items() if n.endswith("_a.png") and n.replace("_a.", "_b.") in P]
+    if len(rel) < 3:
+        return None
+    rel = np.stack(rel)
+    U, _, Vt = np.linalg.svd(rel[:, :3, :3].mean(0))
+    mean_rot = U @ Vt
+    spread = np.median([rotation_angle_deg(mean_rot.T @ r) for r in rel[:, :3, :3]])
+    length = np.linalg.norm(rel[:, :3, 3], axis=1)
+    return float(spread), float(length.std() / max(length.mean(), 1e-12))
+
+
+def rig_spread_px(rec) -> float | None:
+    """The rig's rotation spread (`rig_consistency`) as pixels at the training camera's focal
+    length, so that one limit holds at any size; None without three same-time pairs."""
+    rig = rig_consistency(poses(rec))
+    focal = [rec.cameras[im.camera_id].mean_focal_length() for im in rec.images.values() if im.name.endswith("_a.png")]
+    return None if rig is None or not focal else float(np.radians(rig[0]) * np.median(focal))
+
+
+def needs_second_opinion(rec) -> bool:
+    """A keyframe model that auto sets against the incremental mapper's: a strong radial term, or
+    a loose rig."""
+    return strong_radial(rec) is not None or (rig_spread_px(rec) or 0.0) > LOOSE_RIG_PX
+
+
 def reprojection_px(rec) -> float:
     """`rec`'s mean reprojection error in pixels, from its current cameras, poses and points."""
     rec.update_point_3d_errors()
@@ -196,8 +241,12 @@ def reprojection_px(rec) -> float:
 
 def _better(rec, fraction: float, best, min_registered: float) -> bool:
     """Whether `rec` (posing `fraction` of the training frames) beats `best`: more frames posed,
-    or, where both pose enough, a lower mean reprojection error."""
+    or, where both pose enough, the tighter rig where both have one, else a lower mean
+    reprojection error (two lenses can reproject alike; a rig held apart cannot be right)."""
     if fraction >= min_registered and best[1] >= min_registered:
+        rigs = rig_spread_px(rec), rig_spread_px(best[0].rec)
+        if None not in rigs:
+            return rigs[0] < rigs[1]
         return reprojection_px(rec) < reprojection_px(best[0].rec)
     return fraction > best[1]
 
@@ -367,8 +416,9 @@ def run_sfm(
     """Maps the frames of `db` with `mapper`. `auto` tries keyframes (once more with another seed
     when they fall apart or pose too few frames), keyframes twice as dense, then incremental, and keeps
     the first model that poses at least `min_registered` of the training frames (else the one
-    that posed the most); a keyframe model with a strong radial term (`strong_radial`) is set
-    against the incremental mapper's, the lower reprojection error kept. Returns None when no mapper produced a model. With `probe_lens`, a
+    that posed the most); a keyframe model with a strong radial term or a loose rig
+    (`needs_second_opinion`) is set against the incremental mapper's, the tighter rig (else the
+    lower reprojection error) kept. Returns None when no mapper produced a model. With `probe_lens`, a
     keyframe model also gets the lens refit's probe (`SfmResult.lens_probe`)."""
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got {mapper!r}")
@@ -387,7 +437,7 @@ def run_sfm(
         else [(mapper, keyframe_step, 0)]
     )
     attempts, best = [], None
-    second_opinion = False  # a keyframe model with a strong radial term: the incremental mapper's, then stop
+    second_opinion = False  # a keyframe model that needs_second_opinion: the incremental mapper's, then stop
     while order:
         name, step, seed = order.pop(0)
         out = work / (f"sparse_{name}" + (f"_{step}_{seed}" if name == "keyframes" else ""))
@@ -431,10 +481,12 @@ def run_sfm(
         )
         if rec is not None:
             attempts[-1]["reprojection_px"] = round(reprojection_px(rec), 4)
+            if (spread := rig_spread_px(rec)) is not None:
+                attempts[-1]["rig_spread_px"] = round(spread, 3)
         if rec is not None and (best is None or _better(rec, fraction, best, min_registered)):
             best = (SfmResult(rec=rec, mapper=name, lens_probe=probe or None), fraction)
         if second_opinion or rec is not None and fraction >= min_registered:
-            if not second_opinion and mapper == "auto" and name == "keyframes" and strong_radial(rec) is not None:
+            if not second_opinion and mapper == "auto" and name == "keyframes" and needs_second_opinion(rec):
                 order.insert(0, ("incremental", None, 0))
                 second_opinion = True
                 continue

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from ..data.scene import Frame
-from ..losses import coarse_l1, photometric_loss
+from ..losses import coarse_l1, gradient_l1, photometric_loss
 from ..model.render import camera_tensors, render_model
 from ..render.types import Rendered
 from .flow import charbonnier, flow_residual
@@ -44,6 +44,8 @@ class Objective:
         loss = photometric_loss(out.image, gt, c.lambda_dssim)
         if c.lambda_coarse > 0:
             loss = loss + c.lambda_coarse * coarse_l1(out.image, gt, c.coarse_factor)
+        if c.lambda_grad > 0:
+            loss = loss + c.lambda_grad * gradient_l1(out.image, gt)
         if c.lambda_flow > 0 and frame.id in self.flows and g.dynamic.any():
             loss = loss + c.lambda_flow * self.flow_term(frame, out, g, k)
         if not self.static_only:
