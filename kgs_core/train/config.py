@@ -88,8 +88,8 @@ class TrainConfig:
     lambda_coarse: float = 0.0
     coarse_factor: int = 8
     # L1 between the image differences of render and frame (losses.gradient_l1), weighted
-    # `lambda_grad` (0: off, as in the paper; the fast preset's 0.3): gives fine detail the share
-    # of the loss that blur takes from it.
+    # `lambda_grad` (0: off): gives fine detail the share of the loss that blur takes from it.
+    # Off in both presets: at 0.3 one synthetic decomposition collapsed (docs/method.md, "Fine detail").
     lambda_grad: float = 0.0
     # Optical flow between consecutive training frames asks the deforming Gaussians to move in
     # the image as their pixels do (train/flow.py; per pixel of disagreement, 0: off).
@@ -345,7 +345,6 @@ def fast_preset(iterations: int = FAST_ITERATIONS) -> TrainConfig:
         checkpoint_every=max(1, 2 * it // 3),
         lambda_tv=0.0,
         lambda_reg=1e-2,
-        lambda_grad=0.3,  # not in the paper: detail back from the blur (docs/method.md, "Fine detail")
         lod_levels=1,
         lod_fractions=(1.0,),  # five levels cost quality at this budget (docs/method.md)
         lr_deform=5e-3,
