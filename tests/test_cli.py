@@ -102,6 +102,10 @@ def test_bench_quality_configs_take_overrides_of_training_settings():
         with pytest.raises(SystemExit, match=needle):
             select_configs(bad)
     assert config_overrides("full@lambda_reg=0")["lambda_reg"] == 0.0  # an integer stands for a float
+    # What the bench sets for every configuration is refused with its own option, not a TypeError later.
+    for bad, option in (("full@seed=1", "--seed"), ("decompose@iterations=100", "--iterations")):
+        with pytest.raises(SystemExit, match=option):
+            select_configs(bad)
 
 
 def test_every_setting_parses_its_own_default_and_refuses_another_type():

@@ -161,6 +161,7 @@ def test_frames_twice_the_coarse_width_train_coarse_to_fine_by_default(walk):
     of SECONDS_PER_FRAME a frame unless iterations or a budget are given; neither for the paper
     preset, and an explicit value stands. (The budget's plan, which runs a pilot, is left out:
     the fixture's images stay at their size.)"""
+    from kgs_core.train.config import MAX_GAUSSIANS
     from kgs_core.train.fitting import COARSE_MIN_WIDTH, MIN_DEFAULT_BUDGET, SECONDS_PER_FRAME
 
     def at_width(w):
@@ -174,6 +175,10 @@ def test_frames_twice_the_coarse_width_train_coarse_to_fine_by_default(walk):
         assert cfg.downscales == want, (width, cfg.downscales)
         assert ("downscales" in cfg.fitted) == (want > 0)
         assert cfg.time_budget == (budget if want else 0) and ("time_budget" in cfg.fitted) == (want > 0)
+        # The Gaussian budget follows the pixel count at full size only (the plan's bound there).
+        cam = at_width(width).train_frames[0].camera
+        scaled = int(round(MAX_GAUSSIANS * (cam.width * cam.height / 128**2) ** 0.5, -3))
+        assert cfg.densify.max_gaussians == (scaled if want else MAX_GAUSSIANS), (width, cfg.densify.max_gaussians)
         if want:
             assert width // 2**want >= COARSE_MIN_WIDTH > width // 2 ** (want + 1)
     big = at_width(1920)

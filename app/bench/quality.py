@@ -87,14 +87,22 @@ def config_slug(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._@-]+", "_", config_label(name).replace(" @", "@"))
 
 
+# Settings the bench sets for every configuration, each from its own option.
+_BENCH_SET = {"seed": "--seed", "iterations": "--iterations", "eval_every": "--iterations (a tenth of them)"}
+
+
 def _override(text: str, spec: str) -> tuple[str, object]:
-    """`key=value` of a `--configs` entry (`parse_setting`)."""
+    """`key=value` of a `--configs` entry (`parse_setting`); the settings the bench sets itself
+    are refused with the option that sets them."""
     from kgs_core.train.settings import parse_setting
 
     try:
-        return parse_setting(text)
+        key, value = parse_setting(text)
     except ValueError as exc:
         raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {exc}") from None
+    if key in _BENCH_SET:
+        raise SystemExit(f"kgs-app bench quality: --configs: {spec!r}: {key} is set for every configuration by {_BENCH_SET[key]}")
+    return key, value
 
 
 def config_overrides(name: str) -> dict:

@@ -70,7 +70,9 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     before the preset lays out its schedule: `fitted_iterations`.) `additions=False` (the paper
     preset) fits only the Gaussian budget and FLoD's first scale, which the paper leaves open.
 
-    * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count;
+    * densify.max_gaussians: the preset's budget scaled by the square root of the pixel count
+      at full size (frames at least twice COARSE_MIN_WIDTH wide, where the time budget's plan
+      then picks the count under it) and for the paper preset; the preset's own below full size;
     * downscales: coarse-to-fine images for frames at least twice COARSE_MIN_WIDTH wide;
     * time_budget: SECONDS_PER_FRAME a training frame for a video ingest at full size, unless
       iterations or a budget were given (make_config then plans the run to fit it);
@@ -95,10 +97,18 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     cam = scene.train_frames[0].camera
     pixels = cam.width * cam.height
     fitted = dict(cfg.fitted)
-    if "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
+    full_size = cam.width >= 2 * COARSE_MIN_WIDTH  # (frames at the size BARD-GS and users film)
+    # At full size the time budget's plan picks the count below this bound; below full size the
+    # preset's own count held the quality at less time (docs/real-footage.md, "Below full size").
+    if "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS and (full_size or not additions):
         budget = int(round(cfg.densify.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
         cfg.densify = replace(cfg.densify, max_gaussians=budget)
         fitted["densify.max_gaussians"] = f"{budget}: the preset's budget x sqrt({pixels} px / 128^2)"
+    elif "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
+        fitted["densify.max_gaussians"] = (
+            f"{cfg.densify.max_gaussians}: the preset's budget, not scaled to {pixels} px below full size "
+            "(--set densify.max_gaussians=N for more)"
+        )
     m = cfg.model
     ppu = scene_pixels_per_unit(scene)
     if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
@@ -112,7 +122,6 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     if not additions:
         cfg.fitted = fitted
         return cfg
-    full_size = cam.width >= 2 * COARSE_MIN_WIDTH  # (frames at the size BARD-GS and users film)
     if "downscales" not in explicit and cfg.downscales == 0 and full_size:
         cfg.downscales = int(math.log2(cam.width / COARSE_MIN_WIDTH))
         k = 2**cfg.downscales
