@@ -196,6 +196,21 @@ def test_a_plan_records_its_pilot_unless_the_gaussian_budget_was_given(walk, kno
     assert TrainConfig.from_dict(planned.to_dict()).budget_pilot == planned.budget_pilot
 
 
+def test_the_budget_is_revised_again_before_densification_stops():
+    """The revisions come after the first decomposition, after each change of image size, and
+    once more halfway from the last of them to densification's stop, where the steps have
+    settled at the final size and densification can still grow into time left unused; that
+    last one only where its steps and some growth after them fit before the stop."""
+    cfg = dataclasses.replace(make_config("fast", iterations=3000), downscales=1, downscale_until=0.5)
+    assert (cfg.decompose_at, cfg.densify.stop) == (600, 2100)
+    assert budget.budget_check_starts(cfg) == [600, 1500, 1800]
+    assert budget.budget_check_starts(dataclasses.replace(cfg, downscales=0)) == [600, 1350]
+    tight = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, stop=1500 + 2 * BUDGET_CHECK_STEPS))
+    assert budget.budget_check_starts(tight) == [600, 1500]
+    late = dataclasses.replace(cfg, decompose_at=2200)  # decomposed after densification: nothing to revise
+    assert budget.budget_check_starts(late) == []
+
+
 @pytest.mark.parametrize("time_left", ["plenty", "none"])
 def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(walk, tmp_path, time_left):
     """A real training planned with a known pilot: after the steps that follow the first

@@ -10,10 +10,10 @@ choice and its reason go into `TrainConfig.fitted`, so run.json says what was pi
 
 The pilot's steps are the warm-up's, in which every Gaussian deforms; after the first
 decomposition the static ones skip the field and a step costs less. So the plan is revised
-from the run's own steps after that decomposition and after each change of image size
-(`refit_gaussian_budget`): the Gaussian budget grows into the time the pilot overestimated (up
-to the preset's), or shrinks when the run is slower than planned. The pilot's cost travels in
-`TrainConfig.budget_pilot`.
+from the run's own steps after that decomposition, after each change of image size and once
+more before densification stops (`budget_check_starts`, `refit_gaussian_budget`): the
+Gaussian budget grows into the time the pilot overestimated (up to the preset's), or shrinks
+when the run is slower than planned. The pilot's cost travels in `TrainConfig.budget_pilot`.
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ PILOT_FRAMES = 4
 MIN_ITERATIONS = 200
 # Below this share of the preset's iterations a budget also lowers the Gaussian budget.
 MIN_ITERATION_SHARE = 0.5
-# Steps, after the first decomposition and after each change of image size, whose median
-# revises the Gaussian budget (`refit_gaussian_budget`).
+# Steps whose median revises the Gaussian budget (`refit_gaussian_budget`), at each of
+# `budget_check_starts`.
 BUDGET_CHECK_STEPS = 30
 # What a revision keeps back of the budget: less than the pilot's plan, since it measures the
 # run's steps and events.
@@ -266,6 +266,22 @@ def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor
         return cost.run_seconds(planned, count, since=it) <= seconds_left
 
     return _largest(fits, count, most), cost
+
+
+def budget_check_starts(cfg) -> list[int]:
+    """The iterations after which `BUDGET_CHECK_STEPS` steps revise a planned run's Gaussian
+    budget: the first decomposition, each change of image size while densification runs, and
+    once more halfway from the last of them to densification's stop, where there is room for
+    its steps and growth after them: the first steps at a new size can run dearer than the ones
+    that follow, and a plan read from them alone leaves the budget's time unused."""
+    c = cfg
+    changes = divisor_changes(c.iterations, c.downscales, c.downscale_until)
+    starts = sorted(s for s in {c.decompose_at, *changes} if c.decompose_at <= s < c.densify.stop)
+    if starts:
+        late = (starts[-1] + c.densify.stop) // 2
+        if min(late - starts[-1], c.densify.stop - late) > BUDGET_CHECK_STEPS:
+            starts.append(late)
+    return starts
 
 
 def _largest(fits, low: int, high: int) -> int:

@@ -17,7 +17,6 @@ from ..model.gaussians import set_param
 from ..model.render import camera_tensors, render_model
 from .flow import frame_flows
 from .flow_vote import flow_moving, read_frames
-from .image_levels import divisor_changes
 from .spawn import SPAWN_LOSS_RATIO, NextFrame, spawn_unexplained
 
 
@@ -62,14 +61,13 @@ class ScheduleEvents:
     def watch_budget(self, nxt: int) -> None:
         """Revises the Gaussian budget of a run planned to a time budget from its own steps
         (`budget.refit_gaussian_budget`): the median of the `BUDGET_CHECK_STEPS` steps after
-        the first decomposition, and again after each change of image size, while densification
-        still runs (events excluded, as from the pilot's). Each revision is recorded in
-        `budget_checks` (run.json)."""
-        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, read_budget_pilot, refit_gaussian_budget
+        each of `budget.budget_check_starts` (the first decomposition, each change of image size,
+        once more before densification stops; events excluded, as from the pilot's). Each
+        revision is recorded in `budget_checks` (run.json)."""
+        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, budget_check_starts, read_budget_pilot, refit_gaussian_budget
 
         c = self.cfg
-        starts = {c.decompose_at, *divisor_changes(c.iterations, c.downscales, c.downscale_until)}
-        start = next((s for s in starts if c.decompose_at <= s < c.densify.stop and 1 <= nxt - s <= BUDGET_CHECK_STEPS), None)
+        start = next((s for s in budget_check_starts(c) if 1 <= nxt - s <= BUDGET_CHECK_STEPS), None)
         if start is None:
             return
         if nxt - start == 1:
