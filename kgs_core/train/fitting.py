@@ -100,15 +100,16 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
     full_size = cam.width >= 2 * COARSE_MIN_WIDTH  # (frames at the size BARD-GS and users film)
     # At full size the time budget's plan picks the count below this bound; below full size the
     # preset's own count held the quality at less time (docs/real-footage.md, "Below full size").
-    if "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS and (full_size or not additions):
-        budget = int(round(cfg.densify.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
-        cfg.densify = replace(cfg.densify, max_gaussians=budget)
-        fitted["densify.max_gaussians"] = f"{budget}: the preset's budget x sqrt({pixels} px / 128^2)"
-    elif "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
-        fitted["densify.max_gaussians"] = (
-            f"{cfg.densify.max_gaussians}: the preset's budget, not scaled to {pixels} px below full size "
-            "(--set densify.max_gaussians=N for more)"
-        )
+    if "densify.max_gaussians" not in explicit and pixels > REFERENCE_PIXELS:
+        if full_size or not additions:
+            budget = int(round(cfg.densify.max_gaussians * (pixels / REFERENCE_PIXELS) ** 0.5, -3))
+            cfg.densify = replace(cfg.densify, max_gaussians=budget)
+            fitted["densify.max_gaussians"] = f"{budget}: the preset's budget x sqrt({pixels} px / 128^2)"
+        else:
+            fitted["densify.max_gaussians"] = (
+                f"{cfg.densify.max_gaussians}: the preset's budget, not scaled to {pixels} px below full size "
+                "(--set densify.max_gaussians=N for more)"
+            )
     m = cfg.model
     ppu = scene_pixels_per_unit(scene)
     if "lod_lambda" not in explicit and cfg.lod_levels > 1 and ppu is not None:
