@@ -552,42 +552,8 @@ def test_loss_weighted_frames_favour_the_worst_fitted_frame(scene, tmp_path):
     expected = 0.5 / n + 0.5 * 20 / (n - 1 + 20)
     assert abs(share - expected) < 0.05 and share > 3 / n
     # A config that skips make_config (read back from a run.json) is checked as it is built.
-    with pytest.raises(ValueError, match="frame_sampling must be one of uniform, loss, sharpness, got 'often'"):
+    with pytest.raises(ValueError, match="frame_sampling must be one of uniform, loss, got 'often'"):
         TrainConfig.from_dict({**tiny_config().to_dict(), "frame_sampling": "often"})
-
-
-def test_frame_sharpness_reads_the_blur_not_the_view():
-    from types import SimpleNamespace
-
-    from kgs_core.train.scene_measures import frame_sharpness
-
-    rng = np.random.default_rng(0)
-    texture = rng.random((40, 60, 3)).astype(np.float32)
-    box = lambda im: (im + np.roll(im, 1, 1) + np.roll(im, 2, 1) + np.roll(im, 3, 1)) / 4  # noqa: E731
-    # Eight frames of one view, all blurred but the fourth; then a busier view, blurred alike.
-    images = [texture if i == 3 else box(texture) for i in range(8)]
-    frames = [SimpleNamespace(image=lambda im=im: im, camera_id=0, time=i / 10) for i, im in enumerate(images)]
-    busy = np.clip(texture * 3 - 1, 0, 1)
-    frames.append(SimpleNamespace(image=lambda: busy, camera_id=1, time=0.0))
-    r = frame_sharpness(frames)
-    grad = lambda im: np.square(np.diff(im.mean(-1), axis=0)).mean() + np.square(np.diff(im.mean(-1), axis=1)).mean()  # noqa: E731
-    # The sharp frame against the median of its window (three blurred neighbours each side).
-    assert r[3] == pytest.approx(grad(texture) / grad(box(texture)), rel=1e-6) and r[3] > 2
-    assert np.allclose(r[[0, 1, 2, 4, 5, 6, 7]], 1.0)
-    assert r[8] == 1.0  # alone on its camera: nothing to compare against, however busy
-
-
-def test_sharpness_weighted_frames_favour_the_sharp_frame(scene, tmp_path):
-    tr = Trainer(scene, tmp_path / "run", tiny_config(frame_sampling="sharpness"), progress=False)
-    n = len(scene.train_frames)
-    from kgs_core.train.scene_measures import frame_sharpness
-
-    assert torch.allclose(tr.frame_weight, torch.tensor(frame_sharpness(scene.train_frames) ** 2, dtype=torch.float32))
-    tr.frame_weight = torch.ones(n)
-    tr.frame_weight[2] = 9.0  # three times as sharp as its neighbours
-    draws = [tr.pick_frames(1, 0)[0] for _ in range(2000)]
-    expected = 0.5 / n + 0.5 * 9 / (n - 1 + 9)
-    assert abs(draws.count(2) / len(draws) - expected) < 0.05
 
 
 def test_time_noise_follows_the_appendix_schedule(scene, tmp_path):

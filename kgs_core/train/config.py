@@ -12,7 +12,7 @@ from .densify import DensifyStrategy
 from .flow import FlowMethod
 
 CameraBlur = Literal["off", "poses", "learned"]
-FrameSampling = Literal["uniform", "loss", "sharpness"]
+FrameSampling = Literal["uniform", "loss"]
 OnNonfinite = Literal["error", "restore"]
 # The nested parts of the training schema: settings reach their fields as `PART.FIELD`.
 NESTED = {"model": ModelConfig, "densify": DensifyStrategy}
@@ -127,12 +127,10 @@ class TrainConfig:
     # True: each Gaussian draws its own time jitter; False: one shift of the frame's time for
     # all of them in a step (D3DGS's annealed smooth training).
     noise_per_gaussian: bool = True
-    # Which training frame each step sees: "uniform", "loss" (a mix of uniform and each
-    # frame's running photometric loss, so that frames the model fits worst are seen more), or
-    # "sharpness" (a mix of uniform and each frame's sharpness against its neighbours in time,
-    # `scene_measures.frame_sharpness`: a hand-held clip's nearly sharp frames hold the detail).
+    # Which training frame each step sees: "uniform", or "loss" (a mix of uniform and each
+    # frame's running photometric loss, so that frames the model fits worst are seen more).
     frame_sampling: FrameSampling = "uniform"
-    frame_sampling_mix: float = 0.5  # "loss", "sharpness": the share of weighted draws
+    frame_sampling_mix: float = 0.5  # "loss": the share of draws weighted by the loss
     # The warm-up sees a time window that grows from the clip's middle: at iteration 0 the frames
     # within `time_window_start` / 2 of the middle (as a fraction of the clip), the whole clip
     # from three quarters of the warm-up (`decompose_at`) on. 1.0: the whole clip from the start.

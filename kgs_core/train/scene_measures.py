@@ -1,6 +1,5 @@
 """What the fast preset's fitting (`fitting.fit_to_scene`) measures of a scene from its cameras
-and SfM points: pixels per scene unit, and the streak the camera's own motion draws; and each
-training frame's sharpness against its neighbours in time (`frame_sharpness`)."""
+and SfM points: pixels per scene unit, and the streak the camera's own motion draws."""
 
 from __future__ import annotations
 
@@ -47,29 +46,3 @@ def scene_pixels_per_unit(scene) -> float | None:
         if len(z):
             ratios.append(f.camera.K[0, 0] / float(np.median(z)))
     return float(np.median(ratios)) if ratios else None
-
-
-# Neighbours on each side in time against whose median a frame's gradient energy is read.
-SHARPNESS_WINDOW = 3
-
-
-def frame_sharpness(frames) -> np.ndarray:
-    """`(F,)` each frame's sharpness, in the order of `frames`: its mean squared image gradient
-    (grey levels, neighbouring pixels) over the median of its own and its SHARPNESS_WINDOW
-    neighbours' on each side in time on the same camera. The ratio cancels what the view
-    shows, so that it reads the blur: a hand-held clip's nearly sharp frames score above 1,
-    its blurriest below. A frame alone on its camera scores 1."""
-    energy = np.empty(len(frames))
-    for i, f in enumerate(frames):
-        grey = f.image().mean(-1)
-        energy[i] = np.square(np.diff(grey, axis=0)).mean() + np.square(np.diff(grey, axis=1)).mean()
-    ratio = np.ones(len(frames))
-    by_camera: dict[int, list[int]] = {}
-    for i, f in enumerate(frames):
-        by_camera.setdefault(f.camera_id, []).append(i)
-    for seq in by_camera.values():
-        seq.sort(key=lambda i: frames[i].time)
-        for j, i in enumerate(seq):
-            near = energy[seq[max(0, j - SHARPNESS_WINDOW) : j + SHARPNESS_WINDOW + 1]]
-            ratio[i] = energy[i] / max(float(np.median(near)), 1e-12)
-    return ratio

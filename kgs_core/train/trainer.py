@@ -32,7 +32,6 @@ from .image_levels import LevelViews, image_divisor
 from .objective import Objective
 from .pose_refine import PoseCorrection
 from .run_record import ImageCache, RunRecord, evaluation_frames, kr_note
-from .scene_measures import frame_sharpness
 
 
 class NonFiniteError(FloatingPointError):
@@ -131,13 +130,6 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         self.divisor_override: int | None = None  # every step at this image divisor (the budget's pilot)
         # Running photometric loss per training frame (frame_sampling "loss"); NaN: not yet seen.
         self.frame_loss = torch.full((len(scene.train_frames),), float("nan"), device=self.device)
-        # Each training frame's draw weight under frame_sampling "sharpness": its sharpness
-        # squared, so that a frame twice as sharp as its neighbours is drawn four times as often.
-        self.frame_weight = (
-            torch.tensor(frame_sharpness(scene.train_frames) ** 2, dtype=torch.float32)
-            if cfg.frame_sampling == "sharpness"
-            else None
-        )
         # What the mid-run check of K.R. measured and decided (`check_kr`); None until it ran.
         self.kr_check: dict | None = None
         # A time budget's revisions from the run's own steps (`watch_budget`), and the step
@@ -265,7 +257,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
     def pick_frames(self, k: int, it: int = 0) -> list[int]:
         """Indices of the `k` training frames step `it` sees: within the warm-up's time window
         (`time_window_start`) when one is set, else all frames, uniformly or weighted by their
-        running loss or their sharpness (`frame_sampling`)."""
+        running loss (`frame_sampling`)."""
         c = self.cfg
         frames = self.scene.train_frames
         n = len(frames)
@@ -277,10 +269,9 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             inside = [i for i, f in enumerate(frames) if abs(f.time - mid) <= half * span + 1e-9]
             if k <= len(inside) < n:
                 return random.sample(inside, k)
-        weight = self.frame_weight if c.frame_sampling == "sharpness" else self.frame_loss.cpu()
-        if c.frame_sampling == "uniform" or torch.isnan(weight).any():
+        if c.frame_sampling == "uniform" or torch.isnan(self.frame_loss).any():
             return random.sample(range(n), k)
-        p = (1 - c.frame_sampling_mix) / n + c.frame_sampling_mix * weight / weight.sum()
+        p = (1 - c.frame_sampling_mix) / n + c.frame_sampling_mix * self.frame_loss / self.frame_loss.sum()
         return [int(i) for i in torch.multinomial(p, k, replacement=False)]
 
     def image_divisor(self, it: int) -> int:
