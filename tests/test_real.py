@@ -408,6 +408,31 @@ def test_the_camera_s_own_streak_is_measured_and_turns_its_blur_on(walk):
     assert make_config("fast", scene=not_video, exposure=1.1 * threshold_exposure).camera_blur == "learned"
 
 
+def test_a_video_ingest_starts_from_every_sfm_point_up_to_the_gaussian_budget(walk):
+    """fit_to_scene: a video ingest with more SfM points than the preset's random subset starts
+    from all of them (up to the Gaussian budget), with its reason; a synthetic scene keeps the
+    subset, and an explicit value stands."""
+    import dataclasses
+
+    preset = make_config("fast")
+    rng = np.random.default_rng(0)
+
+    def with_points(n):
+        pts = walk.points[rng.integers(0, len(walk.points), n)] + rng.normal(0, 1e-3, (n, 3))
+        return dataclasses.replace(walk, points=pts, point_colors=np.full((n, 3), 0.5))
+
+    assert len(walk.points) < preset.init_points
+    assert make_config("fast", scene=walk).init_points == preset.init_points
+    many = with_points(preset.init_points + 1500)
+    cfg = make_config("fast", scene=many)
+    assert cfg.init_points == len(many.points) and f"every SfM point ({len(many.points)})" in cfg.fitted["init_points"]
+    too_many = with_points(cfg.densify.max_gaussians + 100)
+    assert make_config("fast", scene=too_many).init_points == cfg.densify.max_gaussians
+    assert make_config("fast", scene=many, init_points=5000).init_points == 5000
+    not_video = dataclasses.replace(many, extras={k: v for k, v in walk.extras.items() if k != "ingest"})
+    assert make_config("fast", scene=not_video).init_points == preset.init_points
+
+
 def test_a_detail_share_not_computed_reads_n_a_in_the_table():
     """The input's detail in the mask is not computed where the two cameras' frames differ in
     size (walk): the table says so instead of printing nan."""

@@ -82,6 +82,8 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
       what moves at a second camera (docs/real-footage.md, "Why it loses on kitchen: FLoD");
     * lod_lambda (with more than one FLoD level): the first level's minimum scale as the same
       fraction of the image width as on the demo (LOD_LAMBDA_WIDTH), in this scene's units;
+    * init_points: every SfM point of a video ingest (up to the Gaussian budget), not the
+      preset's random subset (docs/real-footage.md, "Every SfM point");
     * lambda_flow: VIDEO_FLOW_WEIGHT on a video ingest (real footage), where the photometric
       loss alone loses moving objects (docs/real-footage.md, "An optical-flow term");
     * spawn_frames: VIDEO_SPAWN_FRAMES on a video ingest, which brings back the moving objects
@@ -158,6 +160,13 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
             "1: a video ingest; FLoD's coarse levels misplaced a real clip's moving person at the "
             "second camera and the finer levels kept it there (docs/real-footage.md; "
             "--set lod_levels=5 keeps the paper's five)"
+        )
+    if "init_points" not in explicit and video and len(scene.points) > cfg.init_points:
+        cfg.init_points = min(len(scene.points), cfg.densify.max_gaussians)
+        fitted["init_points"] = (
+            f"{cfg.init_points}: a video ingest; every SfM point ({len(scene.points)}) up to the "
+            "Gaussian budget: a random subset left parts of the surfaces for densification to "
+            "find, and the result varied with the seed (docs/real-footage.md, \"Every SfM point\")"
         )
     if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and video:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
