@@ -166,7 +166,7 @@ def fit_to_scene(cfg: TrainConfig, scene, explicit: set[str], additions: bool = 
         fitted["init_points"] = (
             f"{cfg.init_points}: a video ingest; every SfM point ({len(scene.points)}) up to the "
             "Gaussian budget: a random subset left parts of the surfaces for densification to "
-            "find, and the result varied with the seed (docs/real-footage.md, \"Every SfM point\")"
+            'find, and the result varied with the seed (docs/real-footage.md, "Every SfM point")'
         )
     if "lambda_flow" not in explicit and cfg.lambda_flow == 0 and video:
         cfg.lambda_flow = VIDEO_FLOW_WEIGHT
