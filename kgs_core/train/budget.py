@@ -274,12 +274,12 @@ def budget_check_starts(cfg) -> list[int]:
     once more halfway from the last of them to densification's stop, where there is room for
     its steps and growth after them: the first steps at a new size can run dearer than the ones
     that follow, and a plan read from them alone leaves the budget's time unused."""
-    c = cfg
-    changes = divisor_changes(c.iterations, c.downscales, c.downscale_until)
-    starts = sorted(s for s in {c.decompose_at, *changes} if c.decompose_at <= s < c.densify.stop)
+    stop = cfg.densify.stop
+    changes = divisor_changes(cfg.iterations, cfg.downscales, cfg.downscale_until)
+    starts = sorted(s for s in {cfg.decompose_at, *changes} if cfg.decompose_at <= s < stop)
     if starts:
-        late = (starts[-1] + c.densify.stop) // 2
-        if min(late - starts[-1], c.densify.stop - late) > BUDGET_CHECK_STEPS:
+        late = (starts[-1] + stop) // 2
+        if min(late - starts[-1], stop - late) > BUDGET_CHECK_STEPS:
             starts.append(late)
     return starts
 
