@@ -190,7 +190,11 @@ def test_the_run_s_own_steps_revise_the_gaussian_budget():
 def test_a_plan_records_its_pilot_unless_the_gaussian_budget_was_given(walk, known_cost):
     preset = make_config("fast", scene=walk)
     planned = make_config("fast", scene=walk, time_budget=3600.0)
-    assert planned.budget_pilot == {"cost": known_cost.to_dict(), "most_gaussians": preset.densify.max_gaussians}
+    assert planned.budget_pilot == {
+        "cost": known_cost.to_dict(),
+        "most_gaussians": preset.densify.max_gaussians,
+        "most_iterations": preset.iterations,
+    }
     given = make_config("fast", scene=walk, time_budget=3600.0, **{"densify.max_gaussians": 2000})
     assert given.budget_pilot == {} and given.densify.max_gaussians == 2000
     assert TrainConfig.from_dict(planned.to_dict()).budget_pilot == planned.budget_pilot
@@ -212,11 +216,13 @@ def test_the_budget_is_revised_again_before_densification_stops():
 
 
 @pytest.mark.parametrize("time_left", ["plenty", "none"])
-def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(walk, tmp_path, time_left):
+@pytest.mark.parametrize("size", ["full", "half"])
+def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(walk, tmp_path, time_left, size):
     """A real training planned with a known pilot: after the steps that follow the first
     decomposition the densification budget becomes the revised one (the preset's when the
     pilot's cost leaves time to spare; the count then when no time is left), recorded in
-    run.json and in the checkpoints, from which a resumed run keeps it."""
+    run.json and in the checkpoints, from which a resumed run keeps it. Steps at half the image
+    size may lower the budget, never raise it."""
     base = make_config(
         "fast",
         scene=walk,
@@ -225,6 +231,8 @@ def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(w
         decompose_at=20,
         checkpoint_every=45,
         eval_every=45,
+        downscales=0 if size == "full" else 1,
+        downscale_until=0.75,
         **{"densify.max_gaussians": 2000, "densify.start": 10, "densify.every": 20, "densify.stop": 80},
     )
     # A pilot of 1 s a step, nothing per Gaussian: the measured steps are far cheaper (read as
@@ -236,11 +244,70 @@ def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(w
     assert [c["iteration"] for c in checks] == [20 + BUDGET_CHECK_STEPS]
     check = checks[0]
     assert check["max_gaussians_before"] == 2000 and check["step_ms"] > 0 and check["pilot_step_ms"] == 1000.0
-    assert check["max_gaussians"] == (9000 if time_left == "plenty" else check["gaussians"])
+    assert check["divisor"] == (1 if size == "full" else 2)
+    n = check["gaussians"]
+    assert check["max_gaussians"] == (n if time_left == "none" else 9000 if size == "full" else max(2000, n))
     assert tr.strategy.max_gaussians == check["max_gaussians"]
     resumed = Trainer(walk, tmp_path / "run", cfg, progress=False)
     resumed.restore(sorted((tmp_path / "run" / "checkpoints").glob("ckpt_*.pt"))[-1])
     assert resumed.strategy.max_gaussians == check["max_gaussians"] and resumed.budget_checks == checks
+
+
+def test_time_left_after_densification_buys_iterations_up_to_the_preset_s():
+    """Once densification has stopped, the run's own step (events included) over the time left
+    sets the iteration count: never fewer than planned, never more than the preset's; a run
+    planned before the preset's count was recorded keeps its own."""
+    cfg = make_config("fast", iterations=3000)
+    plan = dataclasses.replace(_planned(cfg, 20_000, StepCost(fixed=0.1, per_gaussian=0.0), 600.0))
+    plan.budget_pilot["most_iterations"] = 6000
+    assert budget.tail_check_start(plan) == plan.densify.stop
+    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=300.0) == 2130 + 1200
+    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=1e6) == 6000
+    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=10.0) == 3000
+    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=-5.0) == 3000
+    older = _planned(cfg, 20_000, StepCost(fixed=0.1, per_gaussian=0.0), 600.0)
+    assert budget.tail_iterations(older, 2130, step_seconds=0.25, seconds_left=1e6) == 3000
+    # No check where the run ends within two windows of densification's stop.
+    assert budget.tail_check_start(dataclasses.replace(plan, iterations=plan.densify.stop + 2 * BUDGET_CHECK_STEPS)) is None
+
+
+def test_a_planned_run_with_time_left_after_densification_runs_longer_on_stretched_schedules(walk, tmp_path):
+    """A real training planned with a known pilot whose time is far from spent when
+    densification stops: the run goes on to the preset's iteration count, which run.json's
+    config and log record, with its learning rates continuous at the change and ending at
+    their final values; a checkpoint after the change resumes to the same count and schedules."""
+    base = make_config(
+        "fast",
+        scene=walk,
+        iterations=120,
+        plan_budget=False,
+        decompose_at=20,
+        checkpoint_every=60,
+        eval_every=60,
+        **{"densify.max_gaussians": 2000, "densify.start": 10, "densify.every": 10, "densify.stop": 40},
+    )
+    cfg = _planned(base, 2000, StepCost(fixed=1.0, per_gaussian=0.0), 1e4)
+    cfg.budget_pilot["most_iterations"] = 150
+    tr = Trainer(walk, tmp_path / "run", cfg, progress=False)
+    seen = {}
+    for it in tr.iterate():
+        seen[it] = next(g["lr"] for g in tr.net_opt.param_groups if g["name"] == "grid")
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    change = [c for c in info["budget_checks"] if "iterations" in c]
+    assert [(c["iteration"], c["iterations_before"], c["iterations"]) for c in change] == [(40 + BUDGET_CHECK_STEPS, 120, 150)]
+    assert tr.iteration == 150 and info["iteration"] == 150 and info["config"]["iterations"] == 150
+    assert tr.log_rows[-1]["iteration"] == 150
+    at = 40 + BUDGET_CHECK_STEPS
+    # (The learning rate logged after step `it` is the one step `it - 1` used.)
+    lr = lambda k: tr.cfg.lr_grid * (tr.cfg.lr_grid_final / tr.cfg.lr_grid) ** (k / 120)  # noqa: E731
+    assert seen[at] == pytest.approx(lr(at - 1))
+    assert seen[at + 2] == pytest.approx(lr(at + (at + 1 - at) * (120 - at) / (150 - at)))
+    assert seen[150] == pytest.approx(lr(at + (149 - at) * (120 - at) / (150 - at)))
+    assert all(seen[k + 1] <= seen[k] for k in range(1, 150))
+    resumed = Trainer(walk, tmp_path / "run", make_config("fast", scene=walk, iterations=120, plan_budget=False), progress=False)
+    resumed.restore(tmp_path / "run" / "checkpoints" / "ckpt_000120.pt")
+    assert resumed.cfg.iterations == 150 and resumed.tail == (at, 120)
+    assert resumed.schedule_iteration(135) == tr.schedule_iteration(135)
 
 
 def test_a_malformed_pilot_record_is_refused_by_name(walk, known_cost):

@@ -192,7 +192,9 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
     why = f"{cfg.fitted['time_budget']}; " if "time_budget" in cfg.fitted else f"{budget:.0f} s: "
     # What the run's own steps revise after the first decomposition; a Gaussian budget given by
     # hand is kept as given.
-    pilot_record = {} if "densify.max_gaussians" in explicit else {"cost": cost.to_dict(), "most_gaussians": preset_g}
+    pilot_record = (
+        {} if "densify.max_gaussians" in explicit else {"cost": cost.to_dict(), "most_gaussians": preset_g, "most_iterations": preset_it}
+    )
     if full <= target:
         fits_all = f"the preset's {preset_it} iterations up to {preset_g:,} Gaussians fit"
         cfg.fitted["time_budget"] = f"{why}{fits_all} ({full:.0f} s planned from {pilot})"
@@ -227,19 +229,35 @@ def fit_time_budget(cfg, scene, remake, explicit: set[str]):
 
 def read_budget_pilot(record: dict) -> tuple[StepCost, int]:
     """`TrainConfig.budget_pilot`'s cost and most Gaussians; ValueError naming the field when
-    it is not what `fit_time_budget` writes (finite numbers, none below 0; a whole count)."""
+    it is not what `fit_time_budget` writes (finite numbers, none below 0; whole counts;
+    `most_iterations` is absent from runs planned before it)."""
     try:
         cost, most = StepCost.from_dict(record["cost"]), record["most_gaussians"]
         numbers = [cost.fixed, cost.per_gaussian, *(v for _, v in cost.fixed_at)]
-        ok = all(math.isfinite(v) and v >= 0 for v in numbers) and isinstance(most, int) and most >= 1
+        counts = [most, record.get("most_iterations", 1)]
+        ok = all(math.isfinite(v) and v >= 0 for v in numbers) and all(isinstance(k, int) and k >= 1 for k in counts)
     except (KeyError, TypeError, ValueError):
         ok = False
     if not ok:
         raise ValueError(
-            "budget_pilot must be empty or {'cost': {'fixed', 'per_gaussian', 'fixed_at'}, 'most_gaussians'} "
-            f"as a time budget's pilot writes it (numbers >= 0, a whole count >= 1), got {record!r}"
+            "budget_pilot must be empty or {'cost': {'fixed', 'per_gaussian', 'fixed_at'}, 'most_gaussians', 'most_iterations'} "
+            f"as a time budget's pilot writes it (numbers >= 0, whole counts >= 1), got {record!r}"
         )
     return cost, most
+
+
+def tail_iterations(cfg, it: int, step_seconds: float, seconds_left: float) -> int:
+    """The iteration count for a planned run whose densification has stopped (its Gaussian
+    count is final), from its own steps: `it` plus as many steps of `step_seconds` as fit
+    `seconds_left`, never fewer than planned nor more than the preset's (`most_iterations` of
+    `cfg.budget_pilot`; the planned count for a run planned before it was recorded).
+
+    Densification adds what its gradient threshold selects, not what the budget allows, so a
+    plan that left room for more Gaussians than densification made ends early; the time it
+    leaves buys iterations, which is what deblurring needs (docs/method.md, "A time budget")."""
+    most = cfg.budget_pilot.get("most_iterations", cfg.iterations)
+    affordable = it + int(seconds_left / max(step_seconds, 1e-9))
+    return max(cfg.iterations, min(affordable, most))
 
 
 def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor: int, seconds_left: float) -> tuple[int, StepCost]:
@@ -282,6 +300,14 @@ def budget_check_starts(cfg) -> list[int]:
         if min(late - starts[-1], stop - late) > BUDGET_CHECK_STEPS:
             starts.append(late)
     return starts
+
+
+def tail_check_start(cfg) -> int | None:
+    """The iteration after which `BUDGET_CHECK_STEPS` steps set a planned run's iteration count
+    (`tail_iterations`): densification's stop, where the Gaussian count is final; None when
+    the run ends too soon after it (or densification never stops within it)."""
+    stop = cfg.densify.stop
+    return stop if stop + 2 * BUDGET_CHECK_STEPS < cfg.iterations else None
 
 
 def _largest(fits, low: int, high: int) -> int:

@@ -84,6 +84,11 @@ class ScheduleEvents:
         events = self.train_seconds / max(self.step_seconds, 1e-9)
         left = REVISED_HEADROOM * c.time_budget - self.train_seconds
         after, _ = refit_gaussian_budget(c, nxt, n, step, divisor, left / events)
+        if divisor > 1:
+            # Steps at a smaller image size say little of a full-size step's per-pixel part (on walk
+            # a ratio of 0.6 there was 0.9 at full size): they may lower the budget, not raise it.
+            # The full-size revisions may; time they leave unused buys iterations (`watch_tail`).
+            after = min(after, max(before, n))
         self.strategy.max_gaussians = after
         size = "full size" if divisor == 1 else f"1/{divisor} size"
         note = (
@@ -104,6 +109,48 @@ class ScheduleEvents:
                 "note": note,
             }
         )
+        if self.progress:
+            tqdm.write(f"note: {note}")
+
+    def watch_tail(self, nxt: int) -> None:
+        """Sets a run planned to a time budget to the iterations its time left affords once its
+        densification has stopped (`budget.tail_iterations`), from the median of the
+        `BUDGET_CHECK_STEPS` steps after the stop; the schedules' remaining stretch is spread
+        over them (`Trainer.schedule_iteration`). Recorded in `budget_checks` (run.json)."""
+        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, tail_check_start, tail_iterations
+
+        c = self.cfg
+        start = tail_check_start(c)
+        if start is None or self.tail is not None or not 1 <= nxt - start <= BUDGET_CHECK_STEPS:
+            return
+        if nxt - start == 1:
+            self.tail_steps = []
+        self.tail_steps.append(self.last_step_seconds)
+        if nxt - start < BUDGET_CHECK_STEPS or len(self.tail_steps) < BUDGET_CHECK_STEPS:
+            return
+        step = statistics.median(self.tail_steps)
+        events = self.train_seconds / max(self.step_seconds, 1e-9)
+        left = REVISED_HEADROOM * c.time_budget - self.train_seconds
+        total = tail_iterations(c, nxt, step * events, left)
+        if total == c.iterations:
+            return
+        note = (
+            f"iterations {c.iterations:,} -> {total:,} at iteration {nxt}: densification has stopped at {len(self.model):,} "
+            f"Gaussians, whose steps took {1000 * step:.0f} ms; {max(left, 0):.0f} s of the budget left, "
+            f"events {events - 1:.0%} on top of the steps"
+        )
+        self.budget_checks.append(
+            {
+                "iteration": nxt,
+                "gaussians": len(self.model),
+                "step_ms": round(1000 * step, 1),
+                "iterations_before": c.iterations,
+                "iterations": total,
+                "note": note,
+            }
+        )
+        self.tail = (nxt, c.iterations)
+        c.iterations = total
         if self.progress:
             tqdm.write(f"note: {note}")
 

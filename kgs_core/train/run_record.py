@@ -193,6 +193,8 @@ class RunRecord:
                 "kr_check": self.kr_check,
                 "budget_checks": self.budget_checks,
                 "max_gaussians": self.strategy.max_gaussians,
+                "iterations": self.cfg.iterations,
+                "tail": self.tail,
                 "flow_vote": self.flow_vote,
                 "spawn_record": self.spawn_record,
             },
@@ -228,6 +230,9 @@ class RunRecord:
         # (Absent from older checkpoints.) A revised budget is the strategy's from then on.
         self.budget_checks = state.get("budget_checks") or []
         self.strategy.max_gaussians = state.get("max_gaussians", self.strategy.max_gaussians)
+        # A run that its time budget lengthened goes on to its new count, on the same schedules.
+        self.tail = tuple(state["tail"]) if state.get("tail") else None
+        self.cfg.iterations = int(state.get("iterations", self.cfg.iterations))
         self.flow_vote = state.get("flow_vote")  # (absent from older checkpoints)
         self.spawn_record = {
             "attempts": 0,
@@ -250,6 +255,7 @@ class RunRecord:
         plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)
         if info["status"] == "training":
             info["status"] = "done"
+        info["config"]["iterations"] = self.cfg.iterations  # (a time budget may have raised it: `watch_tail`)
         info.update(
             iteration=self.iteration,
             train_seconds=round(self.train_seconds, 2),

@@ -136,6 +136,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         # times the next one reads.
         self.budget_checks: list[dict] = []
         self.budget_steps: list[float] = []
+        self.tail_steps: list[float] = []
+        self.tail: tuple[int, int] | None = None  # (iteration, planned total) once `watch_tail` lengthened the run
         self.last_step_seconds = 0.0
         self.step_seconds = 0.0  # the steps' share of `train_seconds` (the rest: events)
         # What the decompositions' reading of the flow added to the dynamic set (`split`); None until the
@@ -237,7 +239,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         for g in [*self.opt.param_groups, *self.net_opt.param_groups]:
             g.setdefault("base_lr", g["lr"])
             if g["name"] in schedules:
-                lr = lr_exp(it, c.iterations, *schedules[g["name"]])
+                lr = lr_exp(*self.schedule_iteration(it), *schedules[g["name"]])
             else:
                 lr = g["base_lr"]
             g["lr"] = lr * self.lr_scale
@@ -274,12 +276,25 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         p = (1 - c.frame_sampling_mix) / n + c.frame_sampling_mix * self.frame_loss / self.frame_loss.sum()
         return [int(i) for i in torch.multinomial(p, k, replacement=False)]
 
+    def schedule_iteration(self, it: int) -> tuple[float, int]:
+        """`(iteration, total)` as the schedules read them: the step itself, or after a time
+        budget lengthened the run (`watch_tail`: `tail` = (the iteration it did so, the total
+        before)), the stretch that was left spread evenly over the longer run, so that every
+        schedule goes on from where it was and ends where it would have."""
+        if self.tail is None:
+            return it, self.cfg.iterations
+        at, before = self.tail
+        if it <= at:
+            return it, before
+        return at + (it - at) * (before - at) / max(self.cfg.iterations - at, 1), before
+
     def image_divisor(self, it: int) -> int:
         """The training images' size divisor at step `it` (`downscales`, train/image_levels.py)."""
         if self.divisor_override is not None:
             return self.divisor_override
         c = self.cfg
-        return image_divisor(it, c.iterations, c.downscales, c.downscale_until)
+        at, total = self.schedule_iteration(it)
+        return image_divisor(int(at), total, c.downscales, c.downscale_until)
 
     def train_step(self, it: int) -> float:
         c = self.cfg
@@ -329,17 +344,20 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
         changed = self.strategy.step(model, self.opt, nxt)
-        if changed and c.spawn_frames > 0 and model.decomposed and not self.static_only and nxt >= c.spawn_from * c.iterations:
+        total = self.schedule_iteration(nxt)[1]  # (the planned count, also after a time budget lengthened the run)
+        if changed and c.spawn_frames > 0 and model.decomposed and not self.static_only and nxt >= c.spawn_from * total:
             self.spawn(nxt)
         if not self.static_only and not self.no_decompose:
             if nxt == c.decompose_at or (
                 model.decomposed and c.decompose_every and nxt > c.decompose_at and (nxt - c.decompose_at) % c.decompose_every == 0
             ):
                 self.decompose()
-        if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * c.iterations)):
+        if 0 < c.kr_check_at < 1 and nxt == max(1, round(c.kr_check_at * total)):
             self.check_kr(nxt)
         if c.budget_pilot and c.time_budget > 0 and model.decomposed:
             self.watch_budget(nxt)
+        if c.budget_pilot and c.time_budget > 0:
+            self.watch_tail(nxt)
         self.strategy.reset_opacities(model, self.opt, nxt)
 
     # ------------------------------------------------------------ guards
@@ -466,6 +484,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
                         self.checkpoint()
                     if self.on_step:
                         self.on_step(self.iteration, loss)
+                if bar.total != cfg.iterations:  # (a time budget lengthened the run: `watch_tail`)
+                    bar.total = cfg.iterations
                 bar.update(1)
                 yield self.iteration
         except Exception as exc:
