@@ -151,6 +151,22 @@ def test_the_rest_of_a_run_costs_its_steps_from_where_it_is():
     assert StepCost.from_dict(cost.to_dict()) == cost
 
 
+def _short_run(walk, iterations: int, densify_every: int, densify_stop: int, **over):
+    """The fast preset cut to a run of `iterations` on the fixture: decomposed at 20, densified
+    from 10 to `densify_stop` up to 2,000 Gaussians, checkpointed and evaluated twice."""
+    return make_config(
+        "fast",
+        scene=walk,
+        iterations=iterations,
+        plan_budget=False,
+        decompose_at=20,
+        checkpoint_every=iterations // 2,
+        eval_every=iterations // 2,
+        **{"densify.max_gaussians": 2000, "densify.start": 10, "densify.every": densify_every, "densify.stop": densify_stop},
+        **over,
+    )
+
+
 def _planned(cfg, most: int, cost: StepCost, budget_s: float):
     return dataclasses.replace(cfg, time_budget=budget_s, budget_pilot={"cost": cost.to_dict(), "most_gaussians": most})
 
@@ -223,18 +239,7 @@ def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(w
     pilot's cost leaves time to spare; the count then when no time is left), recorded in
     run.json and in the checkpoints, from which a resumed run keeps it. Steps at half the image
     size may lower the budget, never raise it."""
-    base = make_config(
-        "fast",
-        scene=walk,
-        iterations=90,
-        plan_budget=False,
-        decompose_at=20,
-        checkpoint_every=45,
-        eval_every=45,
-        downscales=0 if size == "full" else 1,
-        downscale_until=0.75,
-        **{"densify.max_gaussians": 2000, "densify.start": 10, "densify.every": 20, "densify.stop": 80},
-    )
+    base = _short_run(walk, 90, densify_every=20, densify_stop=80, downscales=0 if size == "full" else 1, downscale_until=0.75)
     # A pilot of 1 s a step, nothing per Gaussian: the measured steps are far cheaper (read as
     # RATIO_BOUND times cheaper, 0.5 s).
     cfg = _planned(base, 9000, StepCost(fixed=1.0, per_gaussian=0.0), 1e4 if time_left == "plenty" else 1e-3)
@@ -276,16 +281,7 @@ def test_a_planned_run_with_time_left_after_densification_runs_longer_on_stretch
     densification stops: the run goes on to the preset's iteration count, which run.json's
     config and log record, with its learning rates continuous at the change and ending at
     their final values; a checkpoint after the change resumes to the same count and schedules."""
-    base = make_config(
-        "fast",
-        scene=walk,
-        iterations=120,
-        plan_budget=False,
-        decompose_at=20,
-        checkpoint_every=60,
-        eval_every=60,
-        **{"densify.max_gaussians": 2000, "densify.start": 10, "densify.every": 10, "densify.stop": 40},
-    )
+    base = _short_run(walk, 120, densify_every=10, densify_stop=40)
     cfg = _planned(base, 2000, StepCost(fixed=1.0, per_gaussian=0.0), 1e4)
     cfg.budget_pilot["most_iterations"] = 150
     tr = Trainer(walk, tmp_path / "run", cfg, progress=False)
