@@ -85,9 +85,9 @@ class ScheduleEvents:
         left = REVISED_HEADROOM * c.time_budget - self.train_seconds
         after, _ = refit_gaussian_budget(c, nxt, n, step, divisor, left / events)
         if divisor > 1:
-            # Steps at a smaller image size say little of a full-size step's per-pixel part (on walk
-            # a ratio of 0.6 there was 0.9 at full size): they may lower the budget, not raise it.
-            # The full-size revisions may; time they leave unused buys iterations (`watch_tail`).
+            # Steps at a smaller image size say little of a full-size step's per-pixel part
+            # (docs/method.md, "A time budget"): they may lower the budget, not raise it. The
+            # full-size revisions may; time they leave unused buys iterations (`watch_tail`).
             after = min(after, max(before, n))
         self.strategy.max_gaussians = after
         size = "full size" if divisor == 1 else f"1/{divisor} size"
