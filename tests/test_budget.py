@@ -263,7 +263,7 @@ def test_time_left_after_densification_buys_iterations_up_to_the_preset_s():
     sets the iteration count: never fewer than planned, never more than the preset's; a run
     planned before the preset's count was recorded keeps its own."""
     cfg = make_config("fast", iterations=3000)
-    plan = dataclasses.replace(_planned(cfg, 20_000, StepCost(fixed=0.1, per_gaussian=0.0), 600.0))
+    plan = _planned(cfg, 20_000, StepCost(fixed=0.1, per_gaussian=0.0), 600.0)
     plan.budget_pilot["most_iterations"] = 6000
     assert budget.tail_check_start(plan) == plan.densify.stop
     assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=300.0) == 2130 + 1200
@@ -316,6 +316,8 @@ def test_a_malformed_pilot_record_is_refused_by_name(walk, known_cost):
         {"cost": {"fixed": 0.1}},
         {"most_gaussians": 5},
         {"cost": "x", "most_gaussians": 5},
+        {"cost": {"fixed": 0.1, "per_gaussian": 0.0}, "most_gaussians": 5, "most_iterations": 0},
+        {"cost": {"fixed": 0.1, "per_gaussian": 0.0}, "most_gaussians": 5, "most_iterations": 2.5},
     ):
         with pytest.raises(ValueError, match="budget_pilot"):
             TrainConfig.from_dict({**good, "budget_pilot": bad})

@@ -58,31 +58,57 @@ class ScheduleEvents:
             if self.progress:
                 tqdm.write(f"note: {self.kr_check['note']}")
 
+    def _window_median(self, window: str, start: int | None, nxt: int) -> float | None:
+        """The median of the `BUDGET_CHECK_STEPS` steps after `start` once step `nxt` completes
+        them (collected in `check_steps[window]`), else None: before, after, or where a run
+        resumed inside the window (it skips that check)."""
+        from .budget import BUDGET_CHECK_STEPS
+
+        if start is None or not 1 <= nxt - start <= BUDGET_CHECK_STEPS:
+            return None
+        if nxt - start == 1:
+            self.check_steps[window] = []
+        steps = self.check_steps.setdefault(window, [])
+        steps.append(self.last_step_seconds)
+        return statistics.median(steps) if nxt - start == BUDGET_CHECK_STEPS and len(steps) == BUDGET_CHECK_STEPS else None
+
+    def _budget_left(self) -> tuple[float, float]:
+        """`(events, seconds)`: the run's time over its steps' so far (the events: densification,
+        spawning, decompositions, evaluation, which keep that share of what is left), and the
+        seconds left of the time budget, REVISED_HEADROOM of it kept back."""
+        from .budget import REVISED_HEADROOM
+
+        return self.train_seconds / max(self.step_seconds, 1e-9), REVISED_HEADROOM * self.cfg.time_budget - self.train_seconds
+
+    def schedule_iteration(self, it: int) -> tuple[float, int]:
+        """`(iteration, total)` as the schedules read them: the step itself, or after a time
+        budget lengthened the run (`watch_tail`: `tail` = (the iteration it did so, the total
+        before)), the stretch that was left spread evenly over the longer run, so that every
+        schedule goes on from where it was and ends where it would have."""
+        if self.tail is None:
+            return it, self.cfg.iterations
+        at, before = self.tail
+        if it <= at:
+            return it, before
+        return at + (it - at) * (before - at) / max(self.cfg.iterations - at, 1), before
+
     def watch_budget(self, nxt: int) -> None:
         """Revises the Gaussian budget of a run planned to a time budget from its own steps
         (`budget.refit_gaussian_budget`): the median of the `BUDGET_CHECK_STEPS` steps after
         each of `budget.budget_check_starts` (the first decomposition, each change of image size,
         once more before densification stops; events excluded, as from the pilot's). Each
         revision is recorded in `budget_checks` (run.json)."""
-        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, budget_check_starts, read_budget_pilot, refit_gaussian_budget
+        from .budget import BUDGET_CHECK_STEPS, budget_check_starts, read_budget_pilot, refit_gaussian_budget
 
         c = self.cfg
         start = next((s for s in budget_check_starts(c) if 1 <= nxt - s <= BUDGET_CHECK_STEPS), None)
-        if start is None:
+        step = self._window_median("budget", start, nxt)
+        if step is None:
             return
-        if nxt - start == 1:
-            self.budget_steps = []
-        self.budget_steps.append(self.last_step_seconds)
-        if nxt - start < BUDGET_CHECK_STEPS or len(self.budget_steps) < BUDGET_CHECK_STEPS:
-            return  # (a run resumed inside the window skips this revision)
         n, divisor = len(self.model), self.image_divisor(nxt - 1)
-        step = statistics.median(self.budget_steps)
         before = self.strategy.max_gaussians
         pilot_ms = 1000 * read_budget_pilot(c.budget_pilot)[0].at(n, divisor)
-        # The events (densification, spawning, decompositions, evaluation) take their share
-        # so far of what is left: the steps get the rest.
-        events = self.train_seconds / max(self.step_seconds, 1e-9)
-        left = REVISED_HEADROOM * c.time_budget - self.train_seconds
+        events, left = self._budget_left()
         after, _ = refit_gaussian_budget(c, nxt, n, step, divisor, left / events)
         if divisor > 1:
             # Steps at a smaller image size say little of a full-size step's per-pixel part
@@ -116,21 +142,14 @@ class ScheduleEvents:
         """Sets a run planned to a time budget to the iterations its time left affords once its
         densification has stopped (`budget.tail_iterations`), from the median of the
         `BUDGET_CHECK_STEPS` steps after the stop; the schedules' remaining stretch is spread
-        over them (`Trainer.schedule_iteration`). Recorded in `budget_checks` (run.json)."""
-        from .budget import BUDGET_CHECK_STEPS, REVISED_HEADROOM, tail_check_start, tail_iterations
+        over them (`schedule_iteration`). Recorded in `budget_checks` (run.json)."""
+        from .budget import tail_check_start, tail_iterations
 
         c = self.cfg
-        start = tail_check_start(c)
-        if start is None or self.tail is not None or not 1 <= nxt - start <= BUDGET_CHECK_STEPS:
+        step = None if self.tail is not None else self._window_median("tail", tail_check_start(c), nxt)
+        if step is None:
             return
-        if nxt - start == 1:
-            self.tail_steps = []
-        self.tail_steps.append(self.last_step_seconds)
-        if nxt - start < BUDGET_CHECK_STEPS or len(self.tail_steps) < BUDGET_CHECK_STEPS:
-            return
-        step = statistics.median(self.tail_steps)
-        events = self.train_seconds / max(self.step_seconds, 1e-9)
-        left = REVISED_HEADROOM * c.time_budget - self.train_seconds
+        events, left = self._budget_left()
         total = tail_iterations(c, nxt, step * events, left)
         if total == c.iterations:
             return

@@ -135,8 +135,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         # A time budget's revisions from the run's own steps (`watch_budget`), and the step
         # times the next one reads.
         self.budget_checks: list[dict] = []
-        self.budget_steps: list[float] = []
-        self.tail_steps: list[float] = []
+        self.check_steps: dict[str, list[float]] = {}  # the steps a budget check reads (`_window_median`)
         self.tail: tuple[int, int] | None = None  # (iteration, planned total) once `watch_tail` lengthened the run
         self.last_step_seconds = 0.0
         self.step_seconds = 0.0  # the steps' share of `train_seconds` (the rest: events)
@@ -275,18 +274,6 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
             return random.sample(range(n), k)
         p = (1 - c.frame_sampling_mix) / n + c.frame_sampling_mix * self.frame_loss / self.frame_loss.sum()
         return [int(i) for i in torch.multinomial(p, k, replacement=False)]
-
-    def schedule_iteration(self, it: int) -> tuple[float, int]:
-        """`(iteration, total)` as the schedules read them: the step itself, or after a time
-        budget lengthened the run (`watch_tail`: `tail` = (the iteration it did so, the total
-        before)), the stretch that was left spread evenly over the longer run, so that every
-        schedule goes on from where it was and ends where it would have."""
-        if self.tail is None:
-            return it, self.cfg.iterations
-        at, before = self.tail
-        if it <= at:
-            return it, before
-        return at + (it - at) * (before - at) / max(self.cfg.iterations - at, 1), before
 
     def image_divisor(self, it: int) -> int:
         """The training images' size divisor at step `it` (`downscales`, train/image_levels.py)."""
