@@ -258,20 +258,22 @@ def test_a_planned_run_revises_its_budget_after_the_decomposition_and_keeps_it(w
     assert resumed.strategy.max_gaussians == check["max_gaussians"] and resumed.budget_checks == checks
 
 
-def test_time_left_after_densification_buys_iterations_up_to_the_preset_s():
+def test_time_left_after_densification_sets_the_iterations_up_to_the_preset_s():
     """Once densification has stopped, the run's own step (events included) over the time left
-    sets the iteration count: never fewer than planned, never more than the preset's; a run
-    planned before the preset's count was recorded keeps its own."""
+    sets the iteration count: more than planned where time is left, up to the preset's; fewer
+    where it is not, down to one more step; a run planned before the preset's count was
+    recorded is not lengthened."""
     cfg = make_config("fast", iterations=3000)
     plan = _planned(cfg, 20_000, StepCost(fixed=0.1, per_gaussian=0.0), 600.0)
     plan.budget_pilot["most_iterations"] = 6000
     assert budget.tail_check_start(plan) == plan.densify.stop
     assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=300.0) == 2130 + 1200
     assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=1e6) == 6000
-    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=10.0) == 3000
-    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=-5.0) == 3000
+    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=10.0) == 2130 + 40
+    assert budget.tail_iterations(plan, 2130, step_seconds=0.25, seconds_left=-5.0) == 2131
     older = _planned(cfg, 20_000, StepCost(fixed=0.1, per_gaussian=0.0), 600.0)
     assert budget.tail_iterations(older, 2130, step_seconds=0.25, seconds_left=1e6) == 3000
+    assert budget.tail_iterations(older, 2130, step_seconds=0.25, seconds_left=10.0) == 2170
     # No check where the run ends within two windows of densification's stop.
     assert budget.tail_check_start(dataclasses.replace(plan, iterations=plan.densify.stop + 2 * BUDGET_CHECK_STEPS)) is None
 
@@ -302,8 +304,85 @@ def test_a_planned_run_with_time_left_after_densification_runs_longer_on_stretch
     assert all(seen[k + 1] <= seen[k] for k in range(1, 150))
     resumed = Trainer(walk, tmp_path / "run", make_config("fast", scene=walk, iterations=120, plan_budget=False), progress=False)
     resumed.restore(tmp_path / "run" / "checkpoints" / "ckpt_000120.pt")
-    assert resumed.cfg.iterations == 150 and resumed.tail == (at, 120)
+    assert resumed.cfg.iterations == 150 and resumed.tail == tr.tail and tr.tail[0][0][:2] == (at, at)
     assert resumed.schedule_iteration(135) == tr.schedule_iteration(135)
+
+
+def test_a_planned_run_out_of_time_after_densification_ends_sooner_on_compressed_schedules(walk, tmp_path):
+    """A real training whose budget is spent when densification stops (its steps dearer than
+    planned) ends one step after the check, which run.json records, its schedules (time noise,
+    learning rates) mapped so that the new end is the planned one."""
+    base = _short_run(walk, 120, densify_every=10, densify_stop=40, noise_init_frames=1.0, noise_final_frames=0.0, noise_until=0.9)
+    cfg = _planned(base, 2000, StepCost(fixed=1e-3, per_gaussian=0.0), 1e-3)
+    cfg.budget_pilot["most_iterations"] = 150
+    tr = Trainer(walk, tmp_path / "run", cfg, progress=False)
+    seen = {}
+    for it in tr.iterate():
+        seen[it] = next(g["lr"] for g in tr.net_opt.param_groups if g["name"] == "grid")
+    at = 40 + BUDGET_CHECK_STEPS
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    change = [c for c in info["budget_checks"] if "iterations" in c]
+    assert [(c["iteration"], c["iterations_before"], c["iterations"]) for c in change] == [(at, 120, at + 1)]
+    assert tr.iteration == at + 1 and info["config"]["iterations"] == at + 1
+    assert tr.schedule_iteration(at + 1) == (120, 120) and tr.schedule_iteration(at) == (at, 120)
+    assert tr.noise.sigma(tr.schedule_iteration(at + 1)[0]) == pytest.approx(0.0)
+    assert max(seen) == at + 1
+
+
+def test_the_schedules_run_through_each_knot_to_the_planned_end():
+    """After checks that set a run's length at steps 100 (planned 300 -> 400) and 200 (-> 250),
+    the schedules' clock is the step up to the first, linear between the knots, and reaches the
+    planned 300 at the run's new end; an older checkpoint's `(step, total)` reads as one knot."""
+    from kgs_core.train.events import ScheduleEvents
+
+    ev = ScheduleEvents.__new__(ScheduleEvents)
+    ev.cfg = make_config("fast", iterations=250)
+    p200 = 100 + 100 * (300 - 100) / (400 - 100)
+    ev.tail = ([(100, 100.0, 10.0), (200, p200, 20.0)], 300)
+    assert ev.schedule_iteration(50) == (50, 300) and ev.schedule_iteration(100) == (100, 300)
+    assert ev.schedule_iteration(150)[0] == pytest.approx(100 + 50 * (p200 - 100) / 100)
+    assert ev.schedule_iteration(225)[0] == pytest.approx(p200 + 25 * (300 - p200) / 50)
+    assert ev.schedule_iteration(250)[0] == pytest.approx(300)
+    assert budget.read_tail([120, 3000], 55.0) == ([(120, 120.0, 55.0)], 3000)
+    assert budget.read_tail(None, 1.0) is None
+
+
+def test_a_planned_run_whose_steps_grow_dearer_after_the_first_check_is_shortened_again(walk, tmp_path, monkeypatch):
+    """The pace is checked again every TAIL_RECHECK_STEPS steps once densification has stopped:
+    a run whose steps stay cheap keeps the first check's count; one whose steps then cost ten
+    times as much (here, a step padded with sleep) ends sooner, recorded in run.json."""
+    import time as _time
+
+    from kgs_core.train import budget as budget_module
+
+    monkeypatch.setattr(budget_module, "TAIL_RECHECK_STEPS", 20)
+    base = _short_run(walk, 120, densify_every=10, densify_stop=40)
+    at = 40 + BUDGET_CHECK_STEPS
+    probe = Trainer(walk, tmp_path / "probe", base, progress=False)
+    for it in probe.iterate():
+        if it == at:
+            break
+    step = probe.train_seconds / at
+    # Time for about 80 more steps at that pace when the first check runs: the run is lengthened.
+    cfg = _planned(base, 2000, StepCost(fixed=1e-3, per_gaussian=0.0), (probe.train_seconds + 80 * step) / budget_module.REVISED_HEADROOM)
+    cfg.budget_pilot["most_iterations"] = 300
+    tr = Trainer(walk, tmp_path / "run", cfg, progress=False)
+    real_step = tr.train_step
+
+    def slow_step(it):
+        if it >= at + 5:
+            _time.sleep(10 * step)
+        return real_step(it)
+
+    tr.train_step = slow_step
+    for _ in tr.iterate():
+        pass
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    changes = [(c["iteration"], c["iterations_before"], c["iterations"]) for c in info["budget_checks"] if "iterations" in c]
+    assert len(changes) >= 2 and changes[0][0] == at and changes[0][2] > 120
+    assert changes[1][0] == at + 20 and changes[1][2] < changes[0][2]
+    assert tr.iteration == info["config"]["iterations"] == changes[-1][2]
+    assert tr.schedule_iteration(tr.iteration)[0] == pytest.approx(120)
 
 
 def test_a_malformed_pilot_record_is_refused_by_name(walk, known_cost):

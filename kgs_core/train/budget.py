@@ -43,6 +43,8 @@ BUDGET_CHECK_STEPS = 30
 # What a revision keeps back of the budget: less than the pilot's plan, since it measures the
 # run's steps and events.
 REVISED_HEADROOM = 0.95
+# Steps between the checks of a planned run's pace once densification has stopped (`watch_tail`).
+TAIL_RECHECK_STEPS = 200
 # How far from the pilot's a revision may take a step's cost (either way): a median caught
 # beside another process, or in the thread tuner's trial, must not throw the plan.
 RATIO_BOUND = 2.0
@@ -249,15 +251,29 @@ def read_budget_pilot(record: dict) -> tuple[StepCost, int]:
 def tail_iterations(cfg, it: int, step_seconds: float, seconds_left: float) -> int:
     """The iteration count for a planned run whose densification has stopped (its Gaussian
     count is final), from its own steps: `it` plus as many steps of `step_seconds` as fit
-    `seconds_left`, never fewer than planned nor more than the preset's (`most_iterations` of
-    `cfg.budget_pilot`; the planned count for a run planned before it was recorded).
+    `seconds_left`, never more than the preset's (`most_iterations` of `cfg.budget_pilot`; the
+    planned count for a run planned before it was recorded) and at least one more step.
 
     Densification adds what its gradient threshold selects, not what the budget allows, so a
     plan that left room for more Gaussians than densification made ends early; the time it
-    leaves buys iterations, which is what deblurring needs (docs/method.md, "A time budget")."""
+    leaves buys iterations, which is what deblurring needs (docs/method.md, "A time budget").
+    The other way, a run whose steps came out dearer than planned (spawned Gaussians come on
+    top of the Gaussian budget) ends sooner, so that the budget holds."""
     most = cfg.budget_pilot.get("most_iterations", cfg.iterations)
-    affordable = it + int(seconds_left / max(step_seconds, 1e-9))
-    return max(cfg.iterations, min(affordable, most))
+    affordable = it + int(max(seconds_left, 0.0) / max(step_seconds, 1e-9))
+    return max(it + 1, min(affordable, max(most, cfg.iterations)))
+
+
+def read_tail(saved, train_seconds: float) -> tuple[list[tuple[int, float, float]], int] | None:
+    """`Trainer.tail` from a checkpoint's record: None, `(knots, planned total)`, or an older
+    checkpoint's `(step, planned total)`, read as one knot where the step and the schedule
+    agreed (its time the checkpoint's: the first pace check after the resume reads low)."""
+    if not saved:
+        return None
+    first, before = saved
+    if isinstance(first, (int, float)):
+        return [(int(first), float(first), float(train_seconds))], int(before)
+    return [(int(a), float(p), float(s)) for a, p, s in first], int(before)
 
 
 def refit_gaussian_budget(cfg, it: int, count: int, step_seconds: float, divisor: int, seconds_left: float) -> tuple[int, StepCost]:

@@ -82,15 +82,19 @@ class ScheduleEvents:
 
     def schedule_iteration(self, it: int) -> tuple[float, int]:
         """`(iteration, total)` as the schedules read them: the step itself, or after a time
-        budget lengthened the run (`watch_tail`: `tail` = (the iteration it did so, the total
-        before)), the stretch that was left spread evenly over the longer run, so that every
-        schedule goes on from where it was and ends where it would have."""
+        budget set the run's length (`watch_tail`: `tail` = (knots, the total planned), each knot
+        `(step, schedule position, train seconds)` where it did so), the position running linearly
+        between the knots and from the last one to the run's end, which is the planned end; so
+        every schedule goes on from where it was and ends where it would have."""
         if self.tail is None:
             return it, self.cfg.iterations
-        at, before = self.tail
-        if it <= at:
-            return it, before
-        return at + (it - at) * (before - at) / max(self.cfg.iterations - at, 1), before
+        knots, before = self.tail
+        prev: tuple[float, float] = (0, 0.0)
+        for at, position, _ in knots:
+            if it <= at:
+                return prev[1] + (it - prev[0]) * (position - prev[1]) / max(at - prev[0], 1), before
+            prev = (at, position)
+        return prev[1] + (it - prev[0]) * (before - prev[1]) / max(self.cfg.iterations - prev[0], 1), before
 
     def watch_budget(self, nxt: int) -> None:
         """Revises the Gaussian budget of a run planned to a time budget from its own steps
@@ -140,35 +144,49 @@ class ScheduleEvents:
 
     def watch_tail(self, nxt: int) -> None:
         """Sets a run planned to a time budget to the iterations its time left affords once its
-        densification has stopped (`budget.tail_iterations`), from the median of the
-        `BUDGET_CHECK_STEPS` steps after the stop; the schedules' remaining stretch is spread
-        over them (`schedule_iteration`). Recorded in `budget_checks` (run.json)."""
-        from .budget import tail_check_start, tail_iterations
+        densification has stopped, more or fewer than planned (`budget.tail_iterations`): first
+        from the median of the `BUDGET_CHECK_STEPS` steps after the stop (events at their share
+        so far), then every `TAIL_RECHECK_STEPS` from the pace since the last check, events
+        included, since steps can grow dearer at a fixed Gaussian count. The schedules' remaining
+        stretch is spread over the new length (`schedule_iteration`). Each change is recorded in
+        `budget_checks` (run.json)."""
+        from .budget import TAIL_RECHECK_STEPS, tail_check_start, tail_iterations
 
         c = self.cfg
-        step = None if self.tail is not None else self._window_median("tail", tail_check_start(c), nxt)
-        if step is None:
-            return
-        events, left = self._budget_left()
-        total = tail_iterations(c, nxt, step * events, left)
+        if self.tail is None:
+            step = self._window_median("tail", tail_check_start(c), nxt)
+            if step is None:
+                return
+            events, left = self._budget_left()
+            pace, step_ms = step * events, 1000 * step
+            how = (
+                f"densification has stopped at {len(self.model):,} Gaussians, whose steps took {1000 * step:.0f} ms, "
+                f"events {events - 1:.0%} on top"
+            )
+        else:
+            at, _, seconds = self.tail[0][-1]
+            if nxt - at < TAIL_RECHECK_STEPS or nxt >= c.iterations:
+                return
+            _, left = self._budget_left()
+            pace = (self.train_seconds - seconds) / (nxt - at)
+            step_ms = 1000 * pace
+            how = f"the {nxt - at} steps since iteration {at} took {1000 * pace:.0f} ms each, events included"
+        total = tail_iterations(c, nxt, pace, left)
+        knots, before = self.tail if self.tail is not None else ([], c.iterations)
+        self.tail = ([*knots, (nxt, self.schedule_iteration(nxt)[0], self.train_seconds)], before)
         if total == c.iterations:
             return
-        note = (
-            f"iterations {c.iterations:,} -> {total:,} at iteration {nxt}: densification has stopped at {len(self.model):,} "
-            f"Gaussians, whose steps took {1000 * step:.0f} ms; {max(left, 0):.0f} s of the budget left, "
-            f"events {events - 1:.0%} on top of the steps"
-        )
+        note = f"iterations {c.iterations:,} -> {total:,} at iteration {nxt}: {how}; {max(left, 0):.0f} s of the budget left"
         self.budget_checks.append(
             {
                 "iteration": nxt,
                 "gaussians": len(self.model),
-                "step_ms": round(1000 * step, 1),
+                "step_ms": round(step_ms, 1),
                 "iterations_before": c.iterations,
                 "iterations": total,
                 "note": note,
             }
         )
-        self.tail = (nxt, c.iterations)
         c.iterations = total
         if self.progress:
             tqdm.write(f"note: {note}")

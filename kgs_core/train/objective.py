@@ -19,7 +19,8 @@ class Objective:
 
     def loss_for(self, frame: Frame, it: int) -> tuple[torch.Tensor, Rendered]:
         c, scene, model = self.cfg, self.scene, self.model
-        noise = 0.0 if self.static_only else self.noise.sigma(it)
+        # (on the schedules' clock: a time budget may lengthen or shorten the run, `watch_tail`)
+        noise = 0.0 if self.static_only else self.noise.sigma(self.schedule_iteration(it)[0])
         t = frame.time
         if noise > 0 and not c.noise_per_gaussian:  # one shift for every Gaussian
             t, noise = t + noise * float(torch.randn(())), 0.0

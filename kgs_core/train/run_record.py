@@ -21,6 +21,7 @@ from ..model.decomposition import decomposition_counts
 from ..model.dynamic import KinematicsGS
 from ..model.render import render_model
 from ..run import load_torch, save_decomposition, save_torch, write_run_json
+from .budget import read_tail
 from .camera_motion import camera_motion_records
 from .config import TrainConfig
 
@@ -230,8 +231,8 @@ class RunRecord:
         # (Absent from older checkpoints.) A revised budget is the strategy's from then on.
         self.budget_checks = state.get("budget_checks") or []
         self.strategy.max_gaussians = state.get("max_gaussians", self.strategy.max_gaussians)
-        # A run that its time budget lengthened goes on to its new count, on the same schedules.
-        self.tail = tuple(state["tail"]) if state.get("tail") else None
+        # A run whose length its time budget set goes on to that count, on the same schedules.
+        self.tail = read_tail(state.get("tail"), self.train_seconds)
         self.cfg.iterations = int(state.get("iterations", self.cfg.iterations))
         self.flow_vote = state.get("flow_vote")  # (absent from older checkpoints)
         self.spawn_record = {
@@ -255,7 +256,7 @@ class RunRecord:
         plot_psnr_vs_time(self.log_rows, self.run_dir / "psnr_vs_time.png", title=self.scene.name)
         if info["status"] == "training":
             info["status"] = "done"
-        info["config"]["iterations"] = self.cfg.iterations  # (a time budget may have raised it: `watch_tail`)
+        info["config"]["iterations"] = self.cfg.iterations  # (a time budget may have changed it: `watch_tail`)
         info.update(
             iteration=self.iteration,
             train_seconds=round(self.train_seconds, 2),

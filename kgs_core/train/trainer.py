@@ -136,7 +136,8 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         # times the next one reads.
         self.budget_checks: list[dict] = []
         self.check_steps: dict[str, list[float]] = {}  # the steps a budget check reads (`_window_median`)
-        self.tail: tuple[int, int] | None = None  # (iteration, planned total) once `watch_tail` lengthened the run
+        # (knots (step, schedule position, train seconds), planned total) once `watch_tail` has set the run's length
+        self.tail: tuple[list[tuple[int, float, float]], int] | None = None
         self.last_step_seconds = 0.0
         self.step_seconds = 0.0  # the steps' share of `train_seconds` (the rest: events)
         # What the decompositions' reading of the flow added to the dynamic set (`split`); None until the
@@ -331,7 +332,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
         if nxt in self.level_ends[:-1]:
             self.next_level(self.level_ends.index(nxt) + 1)
         changed = self.strategy.step(model, self.opt, nxt)
-        total = self.schedule_iteration(nxt)[1]  # (the planned count, also after a time budget lengthened the run)
+        total = self.schedule_iteration(nxt)[1]  # (the planned count, also after a time budget changed the run's length)
         if changed and c.spawn_frames > 0 and model.decomposed and not self.static_only and nxt >= c.spawn_from * total:
             self.spawn(nxt)
         if not self.static_only and not self.no_decompose:
@@ -471,7 +472,7 @@ class Trainer(Objective, ScheduleEvents, RunRecord):
                         self.checkpoint()
                     if self.on_step:
                         self.on_step(self.iteration, loss)
-                if bar.total != cfg.iterations:  # (a time budget lengthened the run: `watch_tail`)
+                if bar.total != cfg.iterations:  # (a time budget changed the run's length: `watch_tail`)
                     bar.total = cfg.iterations
                 bar.update(1)
                 yield self.iteration
